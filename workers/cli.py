@@ -1,0 +1,72 @@
+"""The ``schlieren`` command line.
+
+Every module in :mod:`schlieren.workers.commands` contributes one subcommand by defining
+``add_parser(subparsers)``, which creates its parser and sets ``func`` to a handler
+``handler(args) -> int`` (the exit code). Handlers raise :class:`CLIError` (or any
+error with a one-line message listed in ``USER_ERRORS``) for bad input: the CLI prints
+that line, without a traceback, and exits non-zero.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import pkgutil
+import sys
+
+from schlieren.workers import commands as _commands
+
+log = logging.getLogger("schlieren")
+
+
+class CLIError(Exception):
+    """An error whose message is meant for the user as it is (one line)."""
+
+
+def _user_error_types() -> tuple[type[BaseException], ...]:
+    types: list[type[BaseException]] = [CLIError]
+    try:  # the session/store errors are defined in storage; they carry file/camera/field
+        from schlieren.storage.errors import SchlierenInputError
+
+        types.append(SchlierenInputError)
+    except ImportError:
+        pass
+    return tuple(types)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="schlieren",
+        description="Time-resolved 3D Background Oriented Schlieren tomography.",
+    )
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for info in sorted(pkgutil.iter_modules(_commands.__path__), key=lambda m: m.name):
+        if info.name.startswith("_"):
+            continue
+        module = importlib.import_module(f"{_commands.__name__}.{info.name}")
+        add = getattr(module, "add_parser", None)
+        if add is not None:
+            add(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = logging.WARNING - 10 * min(args.verbose, 2)
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return int(args.func(args) or 0)
+    except _user_error_types() as exc:
+        print(f"schlieren {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"schlieren {args.command}: interrupted; completed chunks are kept", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

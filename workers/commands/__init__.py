@@ -1,0 +1,1 @@
+"""Subcommands of the ``schlieren`` CLI: one module each, discovered by ``workers.cli``."""
