@@ -1,0 +1,166 @@
+"""The declared stages of a reconstruction run, and the run configuration.
+
+Each :class:`Stage` names its pure kernel (in ``pipeline/``), the :class:`RunConfig` field
+holding its frozen params dataclass, the store arrays it reads and writes, the dims it
+maps over (one task per index of those dims) and the stages it waits for. The executors
+in ``workers/`` (a plain loop in ``workers/serial.py``, a Dask graph in
+``workers/graph.py``) compile this same table; ``workers/tasks.py`` holds the per-stage
+glue that reads the inputs of one index, calls the kernel and writes whole chunks.
+
+Dependencies are declared per index:
+
+* ``same``: the task at the same index of that stage (matching the dims they share),
+* ``all``: every task of that stage,
+* ``window``: the tasks of that stage within ``frame_halo`` frames, same camera.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Callable
+
+from schlieren.pipeline import derived, flow, hull, masks, poisson, sync
+from schlieren.pipeline import tomography
+
+__all__ = ["Stage", "RunConfig", "STAGES", "stage", "FrameStatsParams", "frame_statistics",
+           "config_from_dict", "config_to_dict"]
+
+
+@dataclass(frozen=True)
+class FrameStatsParams:
+    """Parameters of the ``frames`` stage (none needed; kept for a uniform table)."""
+
+
+def frame_statistics(frame, *, params: FrameStatsParams | None = None):
+    """Mean, standard deviation, minimum and maximum grey level of one frame.
+
+    The cheapest stage that touches every input frame: it proves every frame decodes,
+    and the statistics (exposure drift, the strobe flash) go into the report.
+
+    Parameters
+    ----------
+    frame : ndarray, shape (H, W)
+        Grey levels.
+
+    Returns
+    -------
+    stats : ndarray, shape (4,), float32
+    """
+    import numpy as np
+
+    f = np.asarray(frame, dtype=np.float64)
+    return np.array([f.mean(), f.std(), f.min(), f.max()], dtype=np.float32)
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """Every parameter of a run, one frozen dataclass per stage (saved in the store)."""
+
+    flow_factor: int = 3
+    flow: flow.FlowParams = field(default_factory=flow.FlowParams)
+    resample: sync.ResampleParams = field(default_factory=sync.ResampleParams)
+    masks: masks.MaskParams = field(default_factory=masks.MaskParams)
+    hull: hull.HullParams = field(default_factory=hull.HullParams)
+    tomography: tomography.TomoParams = field(default_factory=tomography.TomoParams)
+    poisson: poisson.PoissonParams = field(default_factory=poisson.PoissonParams)
+    reconstruction: str = "two-step"  # or "direct" (refractivity solved directly)
+    warm_start_block: int = 4  # frames solved in sequence, each warm-started from the last
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One declared stage.
+
+    Attributes
+    ----------
+    name : str
+    kernel : callable
+        The pure kernel this stage wraps.
+    params : str or None
+        Name of the :class:`RunConfig` field holding the kernel's parameters.
+    inputs, outputs : tuple of str
+        Store arrays read and written (``images`` = the session's frames).
+    over : tuple of str
+        Dims mapped over: ``("camera", "frame")``, ``("frame",)``, ``("camera",)`` or ``()``.
+    after : tuple of (str, str)
+        ``(stage, how)`` dependencies, ``how`` in ``{"same", "all", "window", "chain"}``.
+    frame_halo : int
+        Frames either side read by ``window`` dependencies.
+    resources : dict
+        Worker resources each task needs (e.g. ``{"TOMO": 1}`` for memory-heavy solves).
+    """
+
+    name: str
+    kernel: Callable
+    params: str | None
+    inputs: tuple[str, ...]
+    outputs: tuple[str, ...]
+    over: tuple[str, ...]
+    after: tuple[tuple[str, str], ...] = ()
+    frame_halo: int = 0
+    resources: dict = field(default_factory=dict)
+
+
+STAGES: tuple[Stage, ...] = (
+    Stage("frames", frame_statistics, None, ("images",), ("frame_stats",), ("camera", "frame")),
+    Stage("sync", sync.offset_from_flash, None, ("images",), ("time_offset",), ("camera",)),
+    Stage("clock", sync.output_times, None, ("time_offset",), ("time",), (),
+          after=(("sync", "all"),)),
+    Stage("deflection", flow.deflection_stage, "flow", ("images",), ("flow_raw",),
+          ("camera", "raw_frame")),
+    Stage("resample", sync.resample_flow, "resample", ("flow_raw", "time_offset", "time"),
+          ("flow",), ("camera", "frame"), after=(("clock", "all"), ("deflection", "window")),
+          frame_halo=2),
+    Stage("potential", masks.flow_potential, "masks", ("flow",), ("potential",),
+          ("camera", "frame"), after=(("resample", "same"),)),
+    Stage("threshold", masks.threshold_from_summaries, "masks", ("potential",),
+          ("mask_threshold",), (), after=(("potential", "all"),)),
+    Stage("mask", masks.make_mask, "masks", ("potential", "mask_threshold"), ("mask",),
+          ("camera", "frame"), after=(("threshold", "all"),), frame_halo=1),
+    Stage("geometry", tomography.build_geometry, "tomography", (), ("geometry",), ()),
+    Stage("hull", hull.visual_hull, "hull", ("mask",), ("hull",), ("frame",),
+          after=(("mask", "same"),)),
+    Stage("tomography", tomography.solve_gradient, "tomography", ("flow", "hull", "geometry"),
+          ("gradient",), ("frame",),
+          after=(("hull", "same"), ("resample", "same"), ("geometry", "all"), ("tomography", "chain")),
+          resources={"TOMO": 1}),
+    Stage("integrate", poisson.integrate, "poisson", ("gradient", "hull"),
+          ("refractivity", "density", "temperature"), ("frame",),
+          after=(("tomography", "same"),), resources={"TOMO": 1}),
+)
+
+_BY_NAME = {s.name: s for s in STAGES}
+
+
+def stage(name: str) -> Stage:
+    """Look a stage up by name."""
+    return _BY_NAME[name]
+
+
+def config_to_dict(cfg: RunConfig) -> dict:
+    """Plain nested dict of every parameter (for the store attributes)."""
+    return dataclasses.asdict(cfg)
+
+
+def config_from_dict(d: dict | None) -> RunConfig:
+    """Rebuild a :class:`RunConfig` from :func:`config_to_dict` output (unknown keys refused)."""
+    d = dict(d or {})
+    kwargs = {}
+    for f in dataclasses.fields(RunConfig):
+        if f.name not in d:
+            continue
+        value = d.pop(f.name)
+        default = RunConfig.__dataclass_fields__[f.name].default_factory \
+            if f.default_factory is not dataclasses.MISSING else None
+        if default is not None and isinstance(value, dict):
+            cls = type(default())
+            names = {g.name for g in dataclasses.fields(cls)}
+            unknown = set(value) - names
+            if unknown:
+                raise ValueError(f"unknown parameter(s) {sorted(unknown)} for {f.name}")
+            value = cls(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in value.items()})
+        kwargs[f.name] = value
+    if d:
+        raise ValueError(f"unknown run parameter(s): {sorted(d)}")
+    return RunConfig(**kwargs)

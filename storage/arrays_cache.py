@@ -1,0 +1,62 @@
+"""Per-session derived arrays (the tomography geometry) saved as ``.npy`` files.
+
+The projection geometry is computed once per session by one task and written next to
+the result store; every tomography task maps the files read-only (``mmap_mode="r"``)
+instead of receiving the matrix through the task graph (DASK-ZARR.md item 6).
+The directory is written under a temporary name and renamed when complete, so a crash
+never leaves a half-written cache that looks valid.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import uuid
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["cache_dir", "save_arrays", "load_arrays", "has_arrays"]
+
+
+def cache_dir(store_path: str | os.PathLike, name: str, key: str) -> Path:
+    """Folder for a cached set of arrays: ``<store>/_cache/<name>-<key>``."""
+    return Path(store_path) / "_cache" / f"{name}-{key}"
+
+
+def has_arrays(path: str | os.PathLike) -> bool:
+    return (Path(path) / "manifest.json").is_file()
+
+
+def save_arrays(path: str | os.PathLike, arrays: dict) -> Path:
+    """Write a dict of arrays (and JSON-able scalars) atomically as ``.npy`` files."""
+    path = Path(path)
+    if has_arrays(path):
+        return path
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.parent / f".{path.name}.{uuid.uuid4().hex}.tmp"
+    tmp.mkdir()
+    meta = {"arrays": [], "scalars": {}}
+    for k, v in arrays.items():
+        if isinstance(v, np.ndarray):
+            np.save(tmp / f"{k}.npy", v, allow_pickle=False)
+            meta["arrays"].append(k)
+        else:
+            meta["scalars"][k] = v
+    (tmp / "manifest.json").write_text(json.dumps(meta))
+    try:
+        os.replace(tmp, path)
+    except OSError:  # another process finished first: keep theirs
+        shutil.rmtree(tmp, ignore_errors=True)
+    return path
+
+
+def load_arrays(path: str | os.PathLike, *, mmap: bool = True) -> dict:
+    """Read arrays saved by :func:`save_arrays` (memory-mapped read-only by default)."""
+    path = Path(path)
+    meta = json.loads((path / "manifest.json").read_text())
+    out = dict(meta["scalars"])
+    for k in meta["arrays"]:
+        out[k] = np.load(path / f"{k}.npy", mmap_mode="r" if mmap else None, allow_pickle=False)
+    return out

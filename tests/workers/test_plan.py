@@ -1,0 +1,67 @@
+"""The compiled task plan: topological order, dependency kinds, resume skipping."""
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from schlieren.pipeline.stages import STAGES
+from schlieren.workers.plan import Extents, make_plan, task_key
+
+extents = st.builds(
+    lambda c, f, margin_lo, margin_hi, block: Extents(
+        camera=c, frame=f, raw_frame=f + margin_lo + margin_hi, raw_offset=margin_lo,
+        warm_start_block=block),
+    st.integers(1, 4), st.integers(1, 6), st.integers(0, 2), st.integers(0, 2), st.integers(1, 4))
+
+
+@settings(max_examples=40, deadline=None)
+@given(extents)
+def test_every_dependency_comes_earlier_and_exists(ext):
+    plan = make_plan(ext, "tok")
+    seen = set()
+    for t in plan.tasks:
+        for d in t.deps:
+            assert d in seen, (t.key, d)
+        seen.add(t.key)
+    # one task per index of the mapped dims
+    sizes = {"camera": ext.camera, "frame": ext.frame, "raw_frame": ext.raw_frame}
+    for s in STAGES:
+        n = 1
+        for d in s.over:
+            n *= sizes[d]
+        assert len([t for t in plan.tasks if t.stage == s.name]) == n
+
+
+@settings(max_examples=40, deadline=None)
+@given(extents)
+def test_resample_waits_for_raw_frames_within_the_halo(ext):
+    plan = make_plan(ext, "tok")
+    for t in plan.by_stage()["resample"]:
+        c, k = t.index
+        raw = sorted(int(d.split("-")[-1]) for d in t.deps if d.startswith("deflection-"))
+        cams = {int(d.split("-")[-2]) for d in t.deps if d.startswith("deflection-")}
+        assert cams <= {c}
+        expect = [j for j in range(ext.raw_frame) if abs(j - ext.raw_offset - k) <= 2]
+        assert raw == expect
+        assert task_key("clock", "tok", ()) in t.deps
+
+
+@settings(max_examples=30, deadline=None)
+@given(extents)
+def test_tomography_chain_follows_warm_start_blocks(ext):
+    plan = make_plan(ext, "tok")
+    for t in plan.by_stage()["tomography"]:
+        (k,) = t.index
+        prev = task_key("tomography", "tok", (k - 1,))
+        assert (prev in t.deps) == (k % ext.warm_start_block != 0)
+
+
+def test_completed_tasks_are_skipped_and_their_edges_dropped():
+    ext = Extents(camera=2, frame=3, raw_frame=5, raw_offset=1, warm_start_block=2)
+    full = make_plan(ext, "tok")
+    done = {("deflection", (0, j)) for j in range(5)} | {("sync", (0,)), ("sync", (1,))}
+    plan = make_plan(ext, "tok", done=lambda s, i: (s, i) in done)
+    assert plan.skipped == len(done)
+    assert len(plan.tasks) == len(full.tasks) - len(done)
+    keys = {t.key for t in plan.tasks}
+    for t in plan.tasks:
+        assert set(t.deps) <= keys

@@ -1,0 +1,124 @@
+"""``schlieren run SESSION --out STORE [--frames A:B] [--workers N | --scheduler ADDR | --serial]``."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import logging
+import sys
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+
+def parse_frames(text: str | None) -> tuple[int, int] | None:
+    """``"A:B"`` -> ``(A, B)``, a half-open range of session frames."""
+    from schlieren.workers.cli import CLIError
+
+    if text is None:
+        return None
+    try:
+        a, b = text.split(":")
+        a, b = int(a), int(b)
+    except ValueError:
+        raise CLIError(f"--frames {text!r}: expected A:B with integers, e.g. 0:120") from None
+    if a < 0 or b <= a:
+        raise CLIError(f"--frames {text!r}: the range must be non-empty and start at 0 or later")
+    return a, b
+
+
+def add_common_run_args(p: argparse.ArgumentParser) -> None:
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--workers", type=int, default=None, metavar="N",
+                      help="local cluster of N worker processes (threads capped); 1 = serial loop")
+    mode.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                      help="an existing Dask scheduler, tcp://host:port or tls://host:port")
+    mode.add_argument("--serial", action="store_true", help="run the reference loop in this process")
+    p.add_argument("--tls", default=None, metavar="DIR",
+                   help="folder with ca.pem, client.pem, client-key.pem for a tls:// scheduler")
+    p.add_argument("--report", default=None, metavar="FILE", help="write a Dask performance report (HTML)")
+    p.add_argument("--params", default=None, metavar="FILE",
+                   help="YAML file of run parameters (see docs/parameters.md), e.g. {tomography: {...}}")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("run", help="process a capture session into a result store",
+                       description="Process a capture session (session.yaml) into a Zarr result store. "
+                                   "A rerun on the same store resumes from the completion markers.")
+    p.add_argument("session", help="session folder or its session.yaml")
+    p.add_argument("--out", required=True, help="result store (Zarr v3 folder)")
+    p.add_argument("--frames", default=None, metavar="A:B", help="half-open frame range to process")
+    add_common_run_args(p)
+    p.set_defaults(func=handler)
+
+
+def load_params(path: str | None):
+    from schlieren.pipeline.stages import RunConfig, config_from_dict
+    from schlieren.storage.params_io import read_params
+    from schlieren.workers.cli import CLIError
+
+    if path is None:
+        return RunConfig()
+    data = read_params(path)
+    try:
+        return config_from_dict(data)
+    except (TypeError, ValueError) as exc:
+        raise CLIError(f"file {path}: {exc}") from None
+
+
+@contextlib.contextmanager
+def client_for(args):
+    """Yield a Dask client (or None for the serial loop) according to the CLI flags."""
+    if args.serial or (args.workers is not None and args.workers <= 1 and args.scheduler is None):
+        yield None, None
+        return
+    from schlieren.workers.cluster import ClusterOptions, open_client
+
+    opts = ClusterOptions(workers=args.workers if args.scheduler is None else None,
+                          scheduler=args.scheduler, tls_dir=args.tls)
+    with open_client(opts) as (client, info):
+        yield client, info
+
+
+def execute(session: str, out: str, frames, args, *, console=None):
+    """Run a session with progress bars; returns the RunSummary."""
+    from schlieren.workers.progress import StageProgress
+    from schlieren.workers.run import run_session
+
+    cfg = load_params(getattr(args, "params", None))
+    with client_for(args) as (client, info):
+        link = None
+        if client is not None:
+            from schlieren.workers.cluster import dashboard_link
+
+            link = dashboard_link(client)
+            if link:
+                print(f"dashboard: {link}", file=sys.stderr)
+        with StageProgress(enabled=not args.no_progress, console=console) as prog:
+            summary = run_session(session, out, client=client, frames=frames,
+                                  serial=client is None, config=cfg, report=args.report,
+                                  on_receipt=prog.receipt, on_failure=prog.failure,
+                                  on_plan=prog.plan)
+        summary.dashboard = link
+    return summary
+
+
+def print_summary(summary, *, stream=sys.stderr) -> None:
+    roots = summary.root_failures()
+    print(f"store: {summary.store}  ({summary.tasks} tasks run, {summary.skipped} already complete, "
+          f"{summary.seconds:.1f} s, {summary.executor} executor)", file=stream)
+    if summary.failures:
+        print(f"FAILED: {len(roots)} task(s) failed, {len(summary.failures) - len(roots)} not run "
+              f"because of them; every completed chunk is kept, rerun to resume:", file=stream)
+        for key, msg in list(roots.items())[:20]:
+            print(f"  - {msg}", file=stream)
+        if len(roots) > 20:
+            print(f"  ... and {len(roots) - 20} more", file=stream)
+
+
+def handler(args) -> int:
+    frames = parse_frames(args.frames)
+    summary = execute(args.session, args.out, frames, args)
+    print_summary(summary)
+    return 0 if summary.ok else 1

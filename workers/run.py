@@ -1,0 +1,178 @@
+"""Process one capture session into a result store: validate, template, plan, execute.
+
+Order of events (SPEC sections 1-2):
+
+1. the session is loaded and validated completely (bad input stops here, nothing is
+   scheduled and no store is touched);
+2. the store is created with every array up front, or reopened when it was made for the
+   same session and parameters (a rerun resumes; a different run is refused, never
+   overwritten);
+3. the stage table is compiled into tasks, minus those whose completion marker is set;
+4. the tasks run in a plain loop or as Dask futures; failures are collected per task and
+   summarised, every completed chunk stays.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from typing import Callable
+
+from schlieren.pipeline.geometry import FlowGrid
+from schlieren.pipeline.stages import STAGES, RunConfig, config_to_dict
+from schlieren.storage.layout import result_layout
+from schlieren.storage.session import Session, load_session
+from schlieren.storage.store import ResultStore
+from schlieren.workers.plan import Extents, Plan, make_plan
+
+log = logging.getLogger(__name__)
+
+__all__ = ["run_session", "RunSummary", "prepare_store"]
+
+RAW_MARGIN = 2  # raw frames either side of the output range used by rolling-shutter resampling
+
+
+@dataclass
+class RunSummary:
+    store: str
+    executor: str
+    tasks: int = 0
+    skipped: int = 0
+    failures: dict[str, str] = field(default_factory=dict)
+    seconds: float = 0.0
+    stage_seconds: dict[str, float] = field(default_factory=dict)
+    receipts: list[dict] = field(default_factory=list)
+    dashboard: str | None = None
+
+    @property
+    def ok(self) -> bool:
+        return not self.failures
+
+    def root_failures(self) -> dict[str, str]:
+        return {k: v for k, v in self.failures.items() if not v.startswith("not run:")}
+
+
+def software_version() -> str:
+    try:
+        return version("schlieren")
+    except PackageNotFoundError:  # pragma: no cover - running from a source tree
+        return "0+unknown"
+
+
+def _fingerprint(session: Session, cfg: RunConfig, frames: tuple[int, int]) -> str:
+    blob = json.dumps({"manifest": session.manifest, "params": config_to_dict(cfg),
+                       "frames": list(frames)}, sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()
+
+
+def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig) -> tuple[ResultStore, Extents, str]:
+    """Create (or reopen for resume) the result store for ``session`` and return the extents."""
+    a, b = session.frames
+    n_frames = b - a
+    raw_first = max(0, a - RAW_MARGIN)
+    raw_last = min(session.n_frames_available, b + RAW_MARGIN)
+    fg = FlowGrid(session.cameras[0].image_size, cfg.flow_factor)
+    ext = Extents(camera=len(session.cameras), frame=n_frames, raw_frame=raw_last - raw_first,
+                  raw_offset=a - raw_first, warm_start_block=cfg.warm_start_block)
+    fp = _fingerprint(session, cfg, (a, b))
+    layout = result_layout(camera_names=[c.name for c in session.cameras], n_frames=n_frames,
+                           n_raw=ext.raw_frame, flow_shape=fg.shape, grid=session.grid)
+    attrs = {
+        "session": session.manifest,
+        "session_path": str(Path(session.root) / "session.yaml") if Path(session.root).is_dir()
+        else str(session.root),
+        "session_name": session.name,
+        "params": config_to_dict(cfg),
+        "version": software_version(),
+        "fingerprint": fp,
+        "run": {"frames": [a, b], "n_frames": n_frames, "raw_first": raw_first,
+                "n_raw": ext.raw_frame, "flow_factor": cfg.flow_factor,
+                "flow_shape": list(fg.shape)},
+        "stage_times": {},
+    }
+    markers = {}
+    sizes = {"camera": ext.camera, "frame": ext.frame, "raw_frame": ext.raw_frame}
+    for st in STAGES:
+        markers[st.name] = tuple(sizes[d] for d in st.over)
+    store = ResultStore.create(out_path, layout, attrs=attrs, markers=markers)
+    return store, ext, fp[:10]
+
+
+def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
+                frames: tuple[int, int] | None = None, serial: bool = False,
+                config: RunConfig | None = None, report: str | None = None,
+                on_receipt: Callable[[dict], None] | None = None,
+                on_failure: Callable[[str, str], None] | None = None,
+                on_plan: Callable[[Plan], None] | None = None,
+                progress: bool = False) -> RunSummary:
+    """Validate ``session_path``, then compute every missing chunk of ``out_path``.
+
+    Parameters
+    ----------
+    session_path : path
+        The session folder or its ``session.yaml``.
+    out_path : path
+        The result store (Zarr v3 folder).
+    client : distributed.Client, optional
+        Run on this cluster; ``None`` with ``serial=True`` runs the reference loop.
+    frames : (int, int), optional
+        Half-open frame range overriding the manifest's.
+    config : RunConfig, optional
+    report : str, optional
+        Path of a Dask performance report (HTML), with a client.
+    """
+    cfg = config or RunConfig()
+    session = load_session(session_path, frames=frames)
+    store, ext, token = prepare_store(session, out_path, cfg)
+    plan = make_plan(ext, token, done=store.is_done)
+    if on_plan:
+        on_plan(plan)
+    summary = RunSummary(store=str(out_path), executor="serial" if (serial or client is None) else "dask",
+                         tasks=len(plan.tasks), skipped=plan.skipped)
+    t0 = time.time()
+    stage_first: dict[str, float] = {}
+    stage_last: dict[str, float] = {}
+    stage_busy: dict[str, float] = {}
+
+    def _receipt(r: dict) -> None:
+        now = time.time()
+        s = r["stage"]
+        stage_first.setdefault(s, now - r.get("seconds", 0.0))
+        stage_last[s] = now
+        stage_busy[s] = stage_busy.get(s, 0.0) + float(r.get("seconds", 0.0))
+        if on_receipt:
+            on_receipt(r)
+
+    if summary.executor == "serial":
+        from schlieren.workers.serial import run_serial
+
+        receipts, failures = run_serial(str(out_path), plan, on_receipt=_receipt, on_failure=on_failure)
+    else:
+        from schlieren.workers.graph import run_graph
+
+        if report:
+            from distributed import performance_report
+
+            with performance_report(filename=str(report)):
+                receipts, failures = run_graph(client, str(out_path), plan,
+                                               on_receipt=_receipt, on_failure=on_failure)
+        else:
+            receipts, failures = run_graph(client, str(out_path), plan,
+                                           on_receipt=_receipt, on_failure=on_failure)
+    summary.receipts = receipts
+    summary.failures = failures
+    summary.seconds = time.time() - t0
+    summary.stage_seconds = dict(stage_busy)
+    times = dict(store.attrs.get("stage_times") or {})
+    done_stages = {t.stage for t in plan.tasks} - {k.split("-")[0] for k in failures}
+    for s in done_stages:
+        if s in stage_first:
+            times[s] = {"started": stage_first[s], "completed": stage_last[s],
+                        "task_seconds": stage_busy.get(s, 0.0), "executor": summary.executor}
+    store.update_attrs({"stage_times": times})
+    return summary

@@ -1,0 +1,312 @@
+"""One task = one stage at one index: read inputs, call the pure kernel, write whole chunks.
+
+Tasks take the store path, the stage name and an index, and return a small receipt
+(STYLE.md example 7): frames, flow fields and the projection geometry never travel
+through the task graph. Per-process caches hold the opened store, the session, the
+reference images and the memory-mapped tomography geometry. The completion marker is
+written last, so a task killed midway is simply run again.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from schlieren.pipeline import derived, flow as flowmod, hull as hullmod, masks as masksmod
+from schlieren.pipeline import poisson, sync, tomography
+from schlieren.pipeline.geometry import Camera, FlowGrid
+from schlieren.pipeline.stages import RunConfig, config_from_dict, frame_statistics, stage
+from schlieren.storage import arrays_cache
+from schlieren.storage.frames import open_frames, read_reference
+from schlieren.storage.session import Session, load_session
+from schlieren.storage.store import ResultStore
+
+log = logging.getLogger(__name__)
+
+__all__ = ["run_task", "TaskFailed", "RunContext", "context"]
+
+
+class TaskFailed(Exception):
+    """A task failed on its data; the message names the stage, camera and frame."""
+
+
+@dataclass
+class RunContext:
+    """Everything a task needs that is per run, opened once per worker process."""
+
+    store_path: str
+    store: ResultStore
+    session: Session
+    config: RunConfig
+    flow_grid: FlowGrid
+    first_frame: int  # session frame of output frame 0
+    n_frames: int
+    raw_first: int  # session frame of flow_raw index 0
+    n_raw: int
+
+    @property
+    def cameras(self) -> list[Camera]:
+        return self.session.cameras
+
+    @functools.cached_property
+    def _sources(self) -> dict:
+        return {}
+
+    def frames(self, c: int):
+        src = self._sources.get(c)
+        if src is None:
+            s = self.session.sources[c]
+            src = self._sources[c] = open_frames(s, camera_name=s.name)
+        return src
+
+    def reference(self, c: int) -> np.ndarray:
+        return _reference(self.store_path, c)
+
+    def camera_with_offset(self, c: int) -> Camera:
+        off = float(self.store.read("time_offset", (c,)))
+        return self.cameras[c].with_time_offset(off)
+
+    def flash_frames(self, c: int) -> tuple[int, ...]:
+        lo, hi = (int(v) for v in self.store.read("flash_frames", (c,)))
+        return tuple(range(lo, hi + 1)) if lo >= 0 else ()
+
+
+@functools.lru_cache(maxsize=4)
+def context(store_path: str) -> RunContext:
+    store = ResultStore.open(store_path)
+    a = store.attrs
+    run = a["run"]
+    session = load_session(a["session_path"], frames=tuple(run["frames"]), check_files=False)
+    cfg = config_from_dict(a["params"])
+    return RunContext(store_path=store_path, store=store, session=session, config=cfg,
+                      flow_grid=FlowGrid(session.cameras[0].image_size, cfg.flow_factor),
+                      first_frame=int(run["frames"][0]), n_frames=int(run["n_frames"]),
+                      raw_first=int(run["raw_first"]), n_raw=int(run["n_raw"]))
+
+
+@functools.lru_cache(maxsize=64)
+def _reference(store_path: str, c: int) -> np.ndarray:
+    ctx = context(store_path)
+    s = ctx.session.sources[c]
+    return read_reference(s, camera_name=s.name)
+
+
+@functools.lru_cache(maxsize=2)
+def _geometry(store_path: str, key: str):
+    path = arrays_cache.cache_dir(store_path, "geometry", key)
+    return tomography.load_geometry(arrays_cache.load_arrays(path))
+
+
+def _geometry_key(ctx: RunContext) -> str:
+    return tomography.content_hash(ctx.cameras, ctx.session.grid, ctx.flow_grid,
+                                   ctx.config.tomography)
+
+
+# --------------------------------------------------------------------------------------
+# stage glue: each returns a dict of extra receipt fields
+# --------------------------------------------------------------------------------------
+
+def _frames(ctx: RunContext, c: int, k: int) -> dict:
+    img = ctx.frames(c).read(ctx.first_frame + k)
+    ctx.store.write("frame_stats", (c, k), frame_statistics(img))
+    return {}
+
+
+def _sync(ctx: RunContext, c: int) -> dict:
+    cam = ctx.cameras[c]
+    s = ctx.session
+    if s.strobe_search is not None:
+        a, b = s.strobe_search
+        src = ctx.frames(c)
+        b = min(b, len(src))
+        rows = np.stack([src.read(f).mean(axis=1) for f in range(a, b)])
+        try:
+            det = sync.detect_flash(rows)
+        except ValueError as exc:
+            raise TaskFailed(f"sync: camera {cam.name}: frames {a}..{b - 1}: {exc}") from None
+        off = sync.offset_from_flash(det, first_frame=a, frame_rate=s.frame_rate,
+                                     line_time=cam.line_time)
+        flash = sorted(sync.flash_frames(det, first_frame=a))
+        span = (flash[0], flash[-1]) if flash else (-1, -1)
+        info = {"offset": off, "flash_frames": list(span)}
+    else:
+        off = float(cam.time_offset)
+        span = (-1, -1)
+        info = {"offset": off}
+    ctx.store.write("time_offset", (c,), np.array([off], dtype=np.float64))
+    ctx.store.write("flash_frames", (c,), np.array([span], dtype=np.int64))
+    return info
+
+
+def _clock(ctx: RunContext) -> dict:
+    offsets = np.array([float(ctx.store.read("time_offset", (c,))) for c in range(len(ctx.cameras))])
+    line_time = float(np.mean([cam.line_time for cam in ctx.cameras]))
+    times = sync.output_times(ctx.first_frame, ctx.n_frames, offsets=offsets,
+                              frame_rate=ctx.session.frame_rate,
+                              height=ctx.cameras[0].height, line_time=line_time)
+    ctx.store.write("time", (), np.asarray(times, dtype=np.float64))
+    return {"t0": float(times[0])}
+
+
+def _deflection(ctx: RunContext, c: int, j: int) -> dict:
+    img = ctx.frames(c).read(ctx.raw_first + j)
+    d = flowmod.deflection_stage(ctx.reference(c), img, ctx.config.flow)
+    ctx.store.write("flow_raw", (c, j), d.astype(np.float32))
+    return {"max_px": float(np.nanmax(np.abs(d))) if d.size else 0.0}
+
+
+def _resample(ctx: RunContext, c: int, k: int) -> dict:
+    s = ctx.session
+    cam = ctx.cameras[c]
+    off = float(ctx.store.read("time_offset", (c,)))
+    t = float(ctx.store.read("time", ())[k])
+    f0, f1 = sync.frames_needed(t, offset=off, frame_rate=s.frame_rate,
+                                line_time=cam.line_time, height=cam.height)
+    lo = max(ctx.raw_first, min(f0, ctx.raw_first + ctx.n_raw - 1))
+    hi = max(lo, min(f1, ctx.raw_first + ctx.n_raw - 1))
+    raw = np.stack([ctx.store.read("flow_raw", (c, f - ctx.raw_first)) for f in range(lo, hi + 1)])
+    out = sync.resample_flow(raw, lo, t, offset=off, frame_rate=s.frame_rate,
+                             line_time=cam.line_time, flow_grid=ctx.flow_grid,
+                             excluded_frames=ctx.flash_frames(c), params=ctx.config.resample)
+    ctx.store.write("flow", (c, k), np.asarray(out, dtype=np.float32))
+    return {"raw_frames": [lo, hi]}
+
+
+def _potential(ctx: RunContext, c: int, k: int) -> dict:
+    f = ctx.store.read("flow", (c, k))
+    p = masksmod.flow_potential(f)
+    ctx.store.write("potential", (c, k), np.asarray(p, dtype=np.float32))
+    return {}
+
+
+def _threshold(ctx: RunContext) -> dict:
+    params = ctx.config.masks
+    summaries = [masksmod.potential_summary(ctx.store.read("potential", (c, k)), params=params)
+                 for c in range(len(ctx.cameras)) for k in range(ctx.n_frames)]
+    thr = masksmod.threshold_from_summaries(summaries, params=params)
+    ctx.store.write("mask_threshold", (), np.array([thr], dtype=np.float64))
+    return {"threshold": float(thr)}
+
+
+def _mask(ctx: RunContext, c: int, k: int) -> dict:
+    params = ctx.config.masks
+    h = stage("mask").frame_halo
+    ks = [min(max(i, 0), ctx.n_frames - 1) for i in range(k - h, k + h + 1)]
+    pots = np.stack([ctx.store.read("potential", (c, i)) for i in ks])
+    thr = float(ctx.store.read("mask_threshold", ())[0])
+    m = masksmod.make_mask(pots, h, thr, params=params)
+    ctx.store.write("mask", (c, k), np.asarray(m, dtype=bool))
+    return {"fraction": float(np.mean(m))}
+
+
+def _geometry_stage(ctx: RunContext) -> dict:
+    key = _geometry_key(ctx)
+    path = arrays_cache.cache_dir(ctx.store_path, "geometry", key)
+    if not arrays_cache.has_arrays(path):
+        geom = tomography.build_geometry(ctx.cameras, ctx.session.grid, ctx.flow_grid,
+                                         params=ctx.config.tomography)
+        arrays_cache.save_arrays(path, tomography.save_geometry(geom))
+    return {"key": key}
+
+
+def _hull(ctx: RunContext, k: int) -> dict:
+    ms = np.stack([ctx.store.read("mask", (c, k)) for c in range(len(ctx.cameras))])
+    h = hullmod.visual_hull(ms, ctx.cameras, ctx.session.grid, ctx.flow_grid, params=ctx.config.hull)
+    ctx.store.write("hull", (k,), np.asarray(h, dtype=bool))
+    return {"voxels": int(h.sum())}
+
+
+def _tomography(ctx: RunContext, k: int) -> dict:
+    geom = _geometry(ctx.store_path, _geometry_key(ctx))
+    flows = np.stack([ctx.store.read("flow", (c, k)) for c in range(len(ctx.cameras))])
+    hull = ctx.store.read("hull", (k,))
+    x0 = None
+    if k % max(ctx.config.warm_start_block, 1) != 0:
+        x0 = ctx.store.read("gradient", (k - 1,))
+    grad, info = tomography.solve_gradient(geom, flows, hull, params=ctx.config.tomography, x0=x0)
+    ctx.store.write("gradient", (k,), np.asarray(grad, dtype=np.float32))
+    return _info_dict(info)
+
+
+def _integrate(ctx: RunContext, k: int) -> dict:
+    grad = np.asarray(ctx.store.read("gradient", (k,)), dtype=np.float64)
+    hull = ctx.store.read("hull", (k,))
+    medium = ctx.session.medium
+    r, info = poisson.integrate(grad, hull, ctx.session.grid, r_ambient=medium.refractivity_ambient,
+                                params=ctx.config.poisson)
+    ctx.store.write("refractivity", (k,), np.asarray(r, dtype=np.float32))
+    ctx.store.write("density", (k,), np.asarray(derived.density(r, medium), dtype=np.float32))
+    ctx.store.write("temperature", (k,), np.asarray(derived.temperature(r, medium), dtype=np.float32))
+    return _info_dict(info)
+
+
+def _info_dict(info) -> dict:
+    out = {}
+    for name in ("iterations", "residual", "relative_residual", "converged", "unknowns", "rays"):
+        if hasattr(info, name):
+            v = getattr(info, name)
+            out[name] = v.tolist() if isinstance(v, np.ndarray) else v
+    return out
+
+
+_GLUE = {
+    "frames": _frames, "sync": _sync, "clock": _clock, "deflection": _deflection,
+    "resample": _resample, "potential": _potential, "threshold": _threshold, "mask": _mask,
+    "geometry": _geometry_stage, "hull": _hull, "tomography": _tomography,
+    "integrate": _integrate,
+}
+
+
+def _describe(stage_name: str, index: tuple[int, ...], ctx: RunContext | None) -> str:
+    st = stage(stage_name)
+    parts = [stage_name]
+    for dim, i in zip(st.over, index):
+        if dim == "camera" and ctx is not None:
+            parts.append(f"camera {ctx.cameras[i].name}")
+        elif dim == "frame" and ctx is not None:
+            parts.append(f"frame {ctx.first_frame + i}")
+        elif dim == "raw_frame" and ctx is not None:
+            parts.append(f"frame {ctx.raw_first + i}")
+        else:
+            parts.append(f"{dim} {i}")
+    return ", ".join(parts)
+
+
+def run_task(store_path: str, stage_name: str, index: tuple[int, ...], *_deps) -> dict:
+    """Run one stage at one index and return its receipt.
+
+    Extra positional arguments are the receipts of the tasks this one waits for (the Dask
+    executor passes them so the graph carries the dependencies); they are ignored.
+    """
+    index = tuple(int(i) for i in index)
+    t0 = time.perf_counter()
+    ctx = context(str(store_path))
+    receipt = {"stage": stage_name, "index": list(index), "skipped": False}
+    st = stage(stage_name)
+    labels = dict(zip(st.over, index))
+    if "camera" in labels:
+        receipt["camera"] = ctx.cameras[labels["camera"]].name
+    if "frame" in labels:
+        receipt["frame"] = ctx.first_frame + labels["frame"]
+    if "raw_frame" in labels:
+        receipt["frame"] = ctx.raw_first + labels["raw_frame"]
+    if ctx.store.is_done(stage_name, index):
+        receipt["skipped"] = True
+        receipt["seconds"] = time.perf_counter() - t0
+        return receipt
+    try:
+        extra = _GLUE[stage_name](ctx, *index)
+    except TaskFailed:
+        raise
+    except Exception as exc:  # name the camera/frame; the original type stays in the text
+        msg = f"{_describe(stage_name, index, ctx)}: {type(exc).__name__}: {exc}"
+        raise TaskFailed(" ".join(msg.split())) from exc
+    ctx.store.mark_done(stage_name, index)
+    receipt.update(extra)
+    receipt["seconds"] = time.perf_counter() - t0
+    log.info("task done", extra={"receipt": receipt})
+    return receipt
