@@ -20,11 +20,15 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Callable
 
-from schlieren.pipeline import derived, flow, hull, masks, poisson, sync
-from schlieren.pipeline import tomography
+from schlieren.pipeline import flow as _flow
+from schlieren.pipeline import hull as _hull
+from schlieren.pipeline import masks as _masks
+from schlieren.pipeline import poisson as _poisson
+from schlieren.pipeline import sync as _sync
+from schlieren.pipeline import tomography as _tomo
 
 __all__ = ["Stage", "RunConfig", "STAGES", "stage", "FrameStatsParams", "frame_statistics",
-           "config_from_dict", "config_to_dict"]
+           "config_from_dict", "config_to_dict", "kernel_kwargs"]
 
 
 @dataclass(frozen=True)
@@ -57,15 +61,37 @@ def frame_statistics(frame, *, params: FrameStatsParams | None = None):
 class RunConfig:
     """Every parameter of a run, one frozen dataclass per stage (saved in the store)."""
 
-    flow_factor: int = 3
-    flow: flow.FlowParams = field(default_factory=flow.FlowParams)
-    resample: sync.ResampleParams = field(default_factory=sync.ResampleParams)
-    masks: masks.MaskParams = field(default_factory=masks.MaskParams)
-    hull: hull.HullParams = field(default_factory=hull.HullParams)
-    tomography: tomography.TomoParams = field(default_factory=tomography.TomoParams)
-    poisson: poisson.PoissonParams = field(default_factory=poisson.PoissonParams)
+    flow: _flow.FlowParams = field(default_factory=_flow.FlowParams)
+    flash: _sync.FlashParams = field(default_factory=_sync.FlashParams)
+    resample: _sync.ResampleParams = field(default_factory=_sync.ResampleParams)
+    masks: _masks.MaskParams = field(default_factory=_masks.MaskParams)
+    hull: _hull.HullParams = field(default_factory=_hull.HullParams)
+    tomography: _tomo.TomoParams = field(default_factory=_tomo.TomoParams)
+    poisson: _poisson.PoissonParams = field(default_factory=_poisson.PoissonParams)
     reconstruction: str = "two-step"  # or "direct" (refractivity solved directly)
     warm_start_block: int = 4  # frames solved in sequence, each warm-started from the last
+    direct: _tomo.RefractivityParams = field(default_factory=_tomo.RefractivityParams)
+
+    def __post_init__(self):
+        if self.reconstruction not in {"two-step", "direct"}:
+            raise ValueError(f"reconstruction must be 'two-step' or 'direct', not {self.reconstruction!r}")
+        if self.warm_start_block < 1:
+            raise ValueError("warm_start_block must be at least 1")
+
+    @property
+    def flow_factor(self) -> int:
+        """Downsampling factor from image pixels to the flow grid."""
+        return self.flow.factor
+
+
+def kernel_kwargs(params, kernel: Callable) -> dict:
+    """The fields of a params dataclass that ``kernel`` takes as keyword arguments."""
+    import inspect
+
+    if params is None:
+        return {}
+    accepted = inspect.signature(kernel).parameters
+    return {f.name: getattr(params, f.name) for f in dataclasses.fields(params) if f.name in accepted}
 
 
 @dataclass(frozen=True)
@@ -104,28 +130,28 @@ class Stage:
 
 STAGES: tuple[Stage, ...] = (
     Stage("frames", frame_statistics, None, ("images",), ("frame_stats",), ("camera", "frame")),
-    Stage("sync", sync.offset_from_flash, None, ("images",), ("time_offset",), ("camera",)),
-    Stage("clock", sync.output_times, None, ("time_offset",), ("time",), (),
+    Stage("sync", _sync.offset_from_flash, None, ("images",), ("time_offset",), ("camera",)),
+    Stage("clock", _sync.output_times, None, ("time_offset",), ("time",), (),
           after=(("sync", "all"),)),
-    Stage("deflection", flow.deflection_stage, "flow", ("images",), ("flow_raw",),
+    Stage("deflection", _flow.deflection_stage, "flow", ("images",), ("flow_raw",),
           ("camera", "raw_frame")),
-    Stage("resample", sync.resample_flow, "resample", ("flow_raw", "time_offset", "time"),
+    Stage("resample", _sync.resample_flow, "resample", ("flow_raw", "time_offset", "time"),
           ("flow",), ("camera", "frame"), after=(("clock", "all"), ("deflection", "window")),
           frame_halo=2),
-    Stage("potential", masks.flow_potential, "masks", ("flow",), ("potential",),
+    Stage("potential", _masks.flow_potential, "masks", ("flow",), ("potential",),
           ("camera", "frame"), after=(("resample", "same"),)),
-    Stage("threshold", masks.threshold_from_summaries, "masks", ("potential",),
+    Stage("threshold", _masks.threshold_from_summaries, "masks", ("potential",),
           ("mask_threshold",), (), after=(("potential", "all"),)),
-    Stage("mask", masks.make_mask, "masks", ("potential", "mask_threshold"), ("mask",),
+    Stage("mask", _masks.make_mask, "masks", ("potential", "mask_threshold"), ("mask",),
           ("camera", "frame"), after=(("threshold", "all"),), frame_halo=1),
-    Stage("geometry", tomography.build_geometry, "tomography", (), ("geometry",), ()),
-    Stage("hull", hull.visual_hull, "hull", ("mask",), ("hull",), ("frame",),
+    Stage("geometry", _tomo.build_geometry, "tomography", (), ("geometry",), ()),
+    Stage("hull", _hull.visual_hull, "hull", ("mask",), ("hull",), ("frame",),
           after=(("mask", "same"),)),
-    Stage("tomography", tomography.solve_gradient, "tomography", ("flow", "hull", "geometry"),
+    Stage("tomography", _tomo.solve_gradient, "tomography", ("flow", "hull", "geometry"),
           ("gradient",), ("frame",),
           after=(("hull", "same"), ("resample", "same"), ("geometry", "all"), ("tomography", "chain")),
           resources={"TOMO": 1}),
-    Stage("integrate", poisson.integrate, "poisson", ("gradient", "hull"),
+    Stage("integrate", _poisson.integrate, "poisson", ("gradient", "hull"),
           ("refractivity", "density", "temperature"), ("frame",),
           after=(("tomography", "same"),), resources={"TOMO": 1}),
 )

@@ -81,11 +81,11 @@ def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig) -> tup
                   raw_offset=a - raw_first, warm_start_block=cfg.warm_start_block)
     fp = _fingerprint(session, cfg, (a, b))
     layout = result_layout(camera_names=[c.name for c in session.cameras], n_frames=n_frames,
-                           n_raw=ext.raw_frame, flow_shape=fg.shape, grid=session.grid)
+                           flow_shape=fg.shape, grid=session.grid, first_frame=a,
+                           n_raw=ext.raw_frame, raw_first=raw_first)
     attrs = {
         "session": session.manifest,
-        "session_path": str(Path(session.root) / "session.yaml") if Path(session.root).is_dir()
-        else str(session.root),
+        "session_path": str(Path(session.manifest_path).resolve()),
         "session_name": session.name,
         "params": config_to_dict(cfg),
         "version": software_version(),
@@ -95,10 +95,7 @@ def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig) -> tup
                 "flow_shape": list(fg.shape)},
         "stage_times": {},
     }
-    markers = {}
-    sizes = {"camera": ext.camera, "frame": ext.frame, "raw_frame": ext.raw_frame}
-    for st in STAGES:
-        markers[st.name] = tuple(sizes[d] for d in st.over)
+    markers = {st.name: st.over for st in STAGES}
     store = ResultStore.create(out_path, layout, attrs=attrs, markers=markers)
     return store, ext, fp[:10]
 

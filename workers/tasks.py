@@ -19,7 +19,7 @@ import numpy as np
 from schlieren.pipeline import derived, flow as flowmod, hull as hullmod, masks as masksmod
 from schlieren.pipeline import poisson, sync, tomography
 from schlieren.pipeline.geometry import Camera, FlowGrid
-from schlieren.pipeline.stages import RunConfig, config_from_dict, frame_statistics, stage
+from schlieren.pipeline.stages import RunConfig, config_from_dict, frame_statistics, kernel_kwargs, stage
 from schlieren.storage import arrays_cache
 from schlieren.storage.frames import open_frames, read_reference
 from schlieren.storage.session import Session, load_session
@@ -125,7 +125,7 @@ def _sync(ctx: RunContext, c: int) -> dict:
         b = min(b, len(src))
         rows = np.stack([src.read(f).mean(axis=1) for f in range(a, b)])
         try:
-            det = sync.detect_flash(rows)
+            det = sync.detect_flash(rows, **kernel_kwargs(ctx.config.flash, sync.detect_flash))
         except ValueError as exc:
             raise TaskFailed(f"sync: camera {cam.name}: frames {a}..{b - 1}: {exc}") from None
         off = sync.offset_from_flash(det, first_frame=a, frame_rate=s.frame_rate,
@@ -164,14 +164,16 @@ def _resample(ctx: RunContext, c: int, k: int) -> dict:
     cam = ctx.cameras[c]
     off = float(ctx.store.read("time_offset", (c,)))
     t = float(ctx.store.read("time", ())[k])
-    f0, f1 = sync.frames_needed(t, offset=off, frame_rate=s.frame_rate,
-                                line_time=cam.line_time, height=cam.height)
+    excluded = ctx.flash_frames(c)
+    f0, f1 = sync.frames_needed(t, offset=off, frame_rate=s.frame_rate, line_time=cam.line_time,
+                                height=cam.height, excluded_frames=excluded,
+                                frame_range=(ctx.raw_first, ctx.raw_first + ctx.n_raw))
     lo = max(ctx.raw_first, min(f0, ctx.raw_first + ctx.n_raw - 1))
-    hi = max(lo, min(f1, ctx.raw_first + ctx.n_raw - 1))
+    hi = max(lo, min(f1 - 1, ctx.raw_first + ctx.n_raw - 1))
     raw = np.stack([ctx.store.read("flow_raw", (c, f - ctx.raw_first)) for f in range(lo, hi + 1)])
     out = sync.resample_flow(raw, lo, t, offset=off, frame_rate=s.frame_rate,
                              line_time=cam.line_time, flow_grid=ctx.flow_grid,
-                             excluded_frames=ctx.flash_frames(c), params=ctx.config.resample)
+                             excluded_frames=excluded, params=ctx.config.resample)
     ctx.store.write("flow", (c, k), np.asarray(out, dtype=np.float32))
     return {"raw_frames": [lo, hi]}
 
@@ -185,20 +187,22 @@ def _potential(ctx: RunContext, c: int, k: int) -> dict:
 
 def _threshold(ctx: RunContext) -> dict:
     params = ctx.config.masks
-    summaries = [masksmod.potential_summary(ctx.store.read("potential", (c, k)), params=params)
+    kw = kernel_kwargs(params, masksmod.potential_summary)
+    summaries = [masksmod.potential_summary(ctx.store.read("potential", (c, k)), **kw)
                  for c in range(len(ctx.cameras)) for k in range(ctx.n_frames)]
-    thr = masksmod.threshold_from_summaries(summaries, params=params)
+    thr = masksmod.threshold_from_summaries(
+        summaries, **kernel_kwargs(params, masksmod.threshold_from_summaries))
     ctx.store.write("mask_threshold", (), np.array([thr], dtype=np.float64))
     return {"threshold": float(thr)}
 
 
 def _mask(ctx: RunContext, c: int, k: int) -> dict:
     params = ctx.config.masks
-    h = stage("mask").frame_halo
+    h = params.temporal_radius
     ks = [min(max(i, 0), ctx.n_frames - 1) for i in range(k - h, k + h + 1)]
     pots = np.stack([ctx.store.read("potential", (c, i)) for i in ks])
     thr = float(ctx.store.read("mask_threshold", ())[0])
-    m = masksmod.make_mask(pots, h, thr, params=params)
+    m = masksmod.make_mask(pots, h, thr, **kernel_kwargs(params, masksmod.make_mask))
     ctx.store.write("mask", (c, k), np.asarray(m, dtype=bool))
     return {"fraction": float(np.mean(m))}
 
@@ -227,6 +231,17 @@ def _tomography(ctx: RunContext, k: int) -> dict:
     x0 = None
     if k % max(ctx.config.warm_start_block, 1) != 0:
         x0 = ctx.store.read("gradient", (k - 1,))
+    if ctx.config.reconstruction == "direct":
+        # beyond the paper: solve for n - 1 directly; the gradient stored is its derivative
+        r0 = ctx.store.read("refractivity", (k - 1,)).astype(np.float64) if x0 is not None else None
+        r, info = tomography.solve_refractivity(
+            geom, flows, hull, ctx.session.grid, r_ambient=ctx.session.medium.refractivity_ambient,
+            params=ctx.config.direct, x0=r0)
+        h = ctx.session.grid.voxel_size
+        gz, gy, gx = np.gradient(np.asarray(r, dtype=np.float64), h)
+        ctx.store.write("refractivity", (k,), np.asarray(r, dtype=np.float32))
+        ctx.store.write("gradient", (k,), np.stack([gx, gy, gz], axis=-1).astype(np.float32))
+        return _info_dict(info)
     grad, info = tomography.solve_gradient(geom, flows, hull, params=ctx.config.tomography, x0=x0)
     ctx.store.write("gradient", (k,), np.asarray(grad, dtype=np.float32))
     return _info_dict(info)
@@ -236,9 +251,13 @@ def _integrate(ctx: RunContext, k: int) -> dict:
     grad = np.asarray(ctx.store.read("gradient", (k,)), dtype=np.float64)
     hull = ctx.store.read("hull", (k,))
     medium = ctx.session.medium
-    r, info = poisson.integrate(grad, hull, ctx.session.grid, r_ambient=medium.refractivity_ambient,
-                                params=ctx.config.poisson)
-    ctx.store.write("refractivity", (k,), np.asarray(r, dtype=np.float32))
+    if ctx.config.reconstruction == "direct":  # refractivity came out of the solve already
+        r = ctx.store.read("refractivity", (k,)).astype(np.float64)
+        info = None
+    else:
+        r, info = poisson.integrate(grad, hull, ctx.session.grid,
+                                    r_ambient=medium.refractivity_ambient, params=ctx.config.poisson)
+        ctx.store.write("refractivity", (k,), np.asarray(r, dtype=np.float32))
     ctx.store.write("density", (k,), np.asarray(derived.density(r, medium), dtype=np.float32))
     ctx.store.write("temperature", (k,), np.asarray(derived.temperature(r, medium), dtype=np.float32))
     return _info_dict(info)

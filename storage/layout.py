@@ -1,0 +1,335 @@
+"""The layout of the result store: every array's dims, shape, chunks, dtype and fill value.
+
+:func:`result_layout` lists the SPEC section 2 arrays plus the internal ones of
+``docs/design.md`` (one chunk per camera-frame for image arrays, one frame per chunk for
+volumes) and the coordinate arrays that let ``xarray.open_zarr`` label the axes
+(``frame``, ``camera``, ``x``, ``y``, ``z``, ``component``, ``axis``, ``stat``).
+
+Region arithmetic for chunk-aligned writes lives here too (:func:`normalize_region`,
+:func:`assert_aligned`): it is pure index arithmetic, property-tested with hypothesis.
+
+Dimension names: SPEC names the last axis of both ``flow`` and ``gradient``
+``component``, but xarray needs one size per dimension name in a dataset, so the
+gradient's 3-vector axis is named ``axis`` (x, y, z) and the flow's 2-vector axis keeps
+``component`` (u/x, v/y).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+
+from schlieren.pipeline.geometry import Grid
+
+__all__ = [
+    "STORE_FORMAT",
+    "STAT_NAMES",
+    "ArraySpec",
+    "AlignmentError",
+    "result_layout",
+    "stage_markers",
+    "normalize_region",
+    "assert_aligned",
+    "is_aligned",
+    "chunk_grid_regions",
+]
+
+STORE_FORMAT = "schlieren-store/1"
+STAT_NAMES = ("mean", "std", "min", "max")
+
+
+class AlignmentError(ValueError):
+    """A write region that is not a union of whole chunks (a programming error)."""
+
+
+@dataclass(frozen=True, eq=False)
+class ArraySpec:
+    """Everything needed to create one array of the store.
+
+    Attributes
+    ----------
+    name : str
+        Path inside the group (``flow``, ``status/tomography``).
+    dims : tuple of str
+        Dimension names (stored as zarr ``dimension_names``).
+    shape, chunks : tuple of int
+    dtype : str
+        numpy dtype string (``"float32"``, ``"bool"``, ``"str"`` for text coordinates).
+    fill_value : scalar
+        Explicit fill value (NaN for floats: an unwritten chunk reads as NaN, never 0).
+    attrs : dict
+        JSON attributes (``units``, ``long_name``, ``origin``/``voxel_size`` for volumes,
+        ``coordinates: "time"`` so xarray attaches the time coordinate).
+    data : ndarray, optional
+        Values written when the store is created (static coordinates), else None.
+    """
+
+    name: str
+    dims: tuple[str, ...]
+    shape: tuple[int, ...]
+    chunks: tuple[int, ...]
+    dtype: str
+    fill_value: Any
+    attrs: dict = field(default_factory=dict)
+    data: np.ndarray | None = None
+
+    def __post_init__(self):
+        object.__setattr__(self, "dims", tuple(self.dims))
+        object.__setattr__(self, "shape", tuple(int(s) for s in self.shape))
+        object.__setattr__(self, "chunks", tuple(int(c) for c in self.chunks))
+        if not (len(self.dims) == len(self.shape) == len(self.chunks)):
+            raise ValueError(f"{self.name}: dims {self.dims}, shape {self.shape} and chunks {self.chunks} "
+                             "must have the same length")
+        if any(c < 1 for c in self.chunks):
+            raise ValueError(f"{self.name}: chunks must be positive, got {self.chunks}")
+
+    @property
+    def n_chunks(self) -> tuple[int, ...]:
+        """Number of chunks along each dimension."""
+        return tuple(-(-s // c) if s else 0 for s, c in zip(self.shape, self.chunks))
+
+
+def _f32(name, dims, shape, chunks, attrs, fill=np.nan, dtype="float32") -> ArraySpec:
+    return ArraySpec(name, dims, shape, chunks, dtype, fill, attrs)
+
+
+def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tuple[int, int],
+                  grid: Grid, n_stats: int = 4, first_frame: int = 0, n_raw: int | None = None,
+                  raw_first: int | None = None) -> list[ArraySpec]:
+    """Every array of a run's store (SPEC section 2 and docs/design.md).
+
+    Parameters
+    ----------
+    camera_names : sequence of str
+        In session order; also stored as the ``camera`` coordinate.
+    n_frames : int
+        Frames to process, ``B - A``.
+    flow_shape : (int, int)
+        ``(rows, cols)`` of the flow grid (``FlowGrid.shape``), the same for every camera.
+    grid : Grid
+        Reconstruction grid; volume arrays are ``grid.shape`` = (nz, ny, nx).
+    n_stats : int
+        Statistics per frame in ``frame_stats`` (mean, std, min, max).
+    first_frame : int
+        Index ``A`` of the first processed frame (values of the ``frame`` coordinate).
+    n_raw : int, optional
+        Frames of ``flow_raw`` (dimension ``raw_frame``): the processed range plus the
+        margin that rolling-shutter resampling reads. Defaults to ``n_frames``.
+    raw_first : int, optional
+        Capture index of ``flow_raw``'s first frame (values of the ``raw_frame``
+        coordinate). Defaults to ``first_frame`` when ``n_raw`` is not given; without it
+        and with a different ``n_raw``, no ``raw_frame`` coordinate is written.
+
+    Returns
+    -------
+    list of ArraySpec
+    """
+    C, F = len(camera_names), int(n_frames)
+    if C < 1 or F < 1:
+        raise ValueError(f"need at least one camera and one frame, got {C} cameras and {F} frames")
+    R = F if n_raw is None else int(n_raw)
+    if R < 1:
+        raise ValueError(f"n_raw must be positive, got {R}")
+    if raw_first is None and R == F:
+        raw_first = first_frame
+    h, w = (int(s) for s in flow_shape)
+    nz, ny, nx = grid.shape
+    vol_attrs = grid.to_attrs()
+    x, y, z = grid.axes()
+    t = {"coordinates": "time"}  # xarray attaches the time coordinate to frame arrays
+    cam = {"camera_names": list(camera_names)}
+    stat_names = list(STAT_NAMES[:n_stats]) + [f"stat{i}" for i in range(len(STAT_NAMES), n_stats)]
+
+    specs = [
+        # ---- coordinates -----------------------------------------------------------
+        ArraySpec("frame", ("frame",), (F,), (F,), "int64", -1,
+                  {"long_name": "frame index in the capture", "units": "1"},
+                  data=np.arange(first_frame, first_frame + F, dtype=np.int64)),
+        *([ArraySpec("raw_frame", ("raw_frame",), (R,), (R,), "int64", -1,
+                     {"long_name": "capture frame index of flow_raw", "units": "1"},
+                     data=np.arange(raw_first, raw_first + R, dtype=np.int64))] if raw_first is not None else []),
+        ArraySpec("camera", ("camera",), (C,), (C,), "str", "",
+                  {"long_name": "camera name"}, data=np.asarray(list(camera_names), dtype=object)),
+        ArraySpec("component", ("component",), (2,), (2,), "str", "",
+                  {"long_name": "deflection component: u (image x, columns), v (image y, rows)"},
+                  data=np.asarray(["u", "v"], dtype=object)),
+        ArraySpec("axis", ("axis",), (3,), (3,), "str", "",
+                  {"long_name": "world axis of the gradient component"},
+                  data=np.asarray(["x", "y", "z"], dtype=object)),
+        ArraySpec("stat", ("stat",), (n_stats,), (n_stats,), "str", "",
+                  {"long_name": "statistic of the frame's grey levels"},
+                  data=np.asarray(stat_names, dtype=object)),
+        ArraySpec("x", ("x",), (nx,), (nx,), "float64", np.nan,
+                  {"long_name": "world x of voxel centres", "units": "m"}, data=x.astype(np.float64)),
+        ArraySpec("y", ("y",), (ny,), (ny,), "float64", np.nan,
+                  {"long_name": "world y of voxel centres", "units": "m"}, data=y.astype(np.float64)),
+        ArraySpec("z", ("z",), (nz,), (nz,), "float64", np.nan,
+                  {"long_name": "world z of voxel centres", "units": "m"}, data=z.astype(np.float64)),
+        ArraySpec("time", ("frame",), (F,), (F,), "float64", np.nan,
+                  {"long_name": "session-clock time of each reconstructed frame", "units": "s",
+                   "stage": "resample"}),
+        # ---- per camera ----------------------------------------------------------------
+        _f32("frame_stats", ("camera", "frame", "stat"), (C, F, n_stats), (1, 1, n_stats),
+             {"long_name": "grey-level statistics of each frame", "units": "grey level",
+              "stat_names": stat_names, "stage": "frames", **cam, **t}),
+        _f32("time_offset", ("camera",), (C,), (1,),
+             {"long_name": "session-clock time at which row 0 of frame 0 starts", "units": "s",
+              "stage": "sync", **cam}, dtype="float64"),
+        ArraySpec("flash_frames", ("camera", "bound"), (C, 2), (1, 2), "int64", -1,
+                  {"long_name": "first and last capture frame lit by the sync flash (-1: none)",
+                   "units": "1", "stage": "sync", **cam}),
+        _f32("flow_raw", ("camera", "raw_frame", "v", "u", "component"), (C, R, h, w, 2), (1, 1, h, w, 2),
+             {"long_name": "BOS deflection at each frame's own rolling-shutter times",
+              "units": "pixel", "stage": "deflection", **cam}),
+        _f32("flow", ("camera", "frame", "v", "u", "component"), (C, F, h, w, 2), (1, 1, h, w, 2),
+             {"long_name": "BOS deflection resampled to the output times", "units": "pixel",
+              "stage": "resample", **cam, **t}),
+        _f32("potential", ("camera", "frame", "v", "u"), (C, F, h, w), (1, 1, h, w),
+             {"long_name": "2-D integral (potential) of the deflection field", "units": "pixel * flow cell",
+              "stage": "potential", **cam, **t}),
+        _f32("mask_threshold", ("scalar",), (1,), (1,),
+             {"long_name": "flow-mask threshold on the potential", "units": "pixel * flow cell",
+              "stage": "threshold"}, dtype="float64"),
+        ArraySpec("mask", ("camera", "frame", "v", "u"), (C, F, h, w), (1, 1, h, w), "bool", False,
+                  {"long_name": "conservative flow mask", "units": "1", "stage": "mask", **cam, **t}),
+        # ---- volumes -----------------------------------------------------------------
+        ArraySpec("hull", ("frame", "z", "y", "x"), (F, nz, ny, nx), (1, nz, ny, nx), "bool", False,
+                  {"long_name": "visual hull", "units": "1", "stage": "hull", **vol_attrs, **t}),
+        _f32("gradient", ("frame", "z", "y", "x", "axis"), (F, nz, ny, nx, 3), (1, nz, ny, nx, 3),
+             {"long_name": "gradient of the refractive index", "units": "1/m", "stage": "tomography",
+              **vol_attrs, **t}),
+        _f32("refractivity", ("frame", "z", "y", "x"), (F, nz, ny, nx), (1, nz, ny, nx),
+             {"long_name": "refractivity n - 1", "units": "1", "stage": "integrate", **vol_attrs, **t}),
+        _f32("density", ("frame", "z", "y", "x"), (F, nz, ny, nx), (1, nz, ny, nx),
+             {"long_name": "density (Gladstone-Dale)", "units": "kg/m^3", "stage": "integrate",
+              **vol_attrs, **t}),
+        _f32("temperature", ("frame", "z", "y", "x"), (F, nz, ny, nx), (1, nz, ny, nx),
+             {"long_name": "temperature (ideal gas at p_ambient)", "units": "K", "stage": "integrate",
+              **vol_attrs, **t}),
+    ]
+    return specs
+
+
+def stage_markers() -> dict[str, tuple[str, ...]]:
+    """Completion markers of the stages of ``pipeline/stages.py``, as dimension names.
+
+    Pass to :meth:`ResultStore.create` (``markers=``); sizes come from the layout; ``()``
+    is a single (0-d) marker for stages that run once.
+    """
+    return {
+        "frames": ("camera", "frame"),
+        "sync": ("camera",),
+        "clock": (),
+        "deflection": ("camera", "raw_frame"),
+        "resample": ("camera", "frame"),
+        "potential": ("camera", "frame"),
+        "threshold": (),
+        "mask": ("camera", "frame"),
+        "geometry": (),
+        "hull": ("frame",),
+        "tomography": ("frame",),
+        "integrate": ("frame",),
+    }
+
+
+# --------------------------------------------------------------------------------------
+# regions
+# --------------------------------------------------------------------------------------
+def normalize_region(index, shape: Sequence[int]) -> tuple[slice, ...]:
+    """Turn an index (ints and unit-step slices, trailing dims omitted) into slices.
+
+    Parameters
+    ----------
+    index : int, slice or tuple of them
+        Non-negative ints pick one position; ``slice(a, b)`` with step 1 or None.
+        Missing trailing dimensions mean the whole extent.
+    shape : sequence of int
+
+    Returns
+    -------
+    tuple of slice
+        One ``slice(start, stop)`` per dimension, clipped to ``shape``.
+    """
+    if not isinstance(index, tuple):
+        index = (index,)
+    shape = tuple(int(s) for s in shape)
+    if len(index) > len(shape):
+        raise IndexError(f"index {index} has more entries than the {len(shape)} dimensions")
+    out = []
+    for k, (ix, n) in enumerate(zip(index + (slice(None),) * (len(shape) - len(index)), shape)):
+        if isinstance(ix, slice):
+            if ix.step not in (None, 1):
+                raise IndexError(f"dimension {k}: only unit steps are allowed, got {ix}")
+            start, stop, _ = ix.indices(n)
+            out.append(slice(start, max(start, stop)))
+        elif isinstance(ix, (int, np.integer)) and not isinstance(ix, bool):
+            i = int(ix)
+            if not 0 <= i < n:
+                raise IndexError(f"dimension {k}: index {i} is outside [0, {n})")
+            out.append(slice(i, i + 1))
+        else:
+            raise IndexError(f"dimension {k}: expected an int or a slice, got {ix!r}")
+    return tuple(out)
+
+
+def _write_unit(array) -> tuple[int, ...]:
+    shards = getattr(array, "shards", None)
+    return tuple(shards) if shards else tuple(array.chunks)
+
+
+def is_aligned(region: tuple[slice, ...], shape: Sequence[int], chunks: Sequence[int]) -> bool:
+    """True if ``region`` (normalised slices) is a non-empty union of whole chunks.
+
+    The last chunk along a dimension may be partial (it ends at the array's edge).
+    """
+    for sl, n, c in zip(region, shape, chunks):
+        start, stop = sl.start, sl.stop
+        if stop <= start:
+            return False
+        if start % c != 0:
+            return False
+        if stop != n and stop % c != 0:
+            return False
+    return len(region) == len(shape)
+
+
+def assert_aligned(region, array) -> tuple[slice, ...]:
+    """Check that a write region covers whole chunks (whole shards if sharded).
+
+    Parameters
+    ----------
+    region : index (ints/slices) or tuple of slices
+    array : object with ``shape`` and ``chunks`` (and optionally ``shards``)
+        A zarr array or an :class:`ArraySpec`.
+
+    Returns
+    -------
+    tuple of slice
+        The normalised region.
+
+    Raises
+    ------
+    AlignmentError
+        If the region is empty or cuts a chunk: concurrent partial-chunk writes lose data.
+    """
+    shape = tuple(array.shape)
+    reg = normalize_region(region, shape)
+    unit = _write_unit(array)
+    if not is_aligned(reg, shape, unit):
+        name = getattr(array, "name", None) or getattr(array, "path", "") or "array"
+        raise AlignmentError(
+            f"{name}: region {[(s.start, s.stop) for s in reg]} is not a union of whole chunks "
+            f"{unit} of shape {shape}: partial-chunk writes are refused")
+    return reg
+
+
+def chunk_grid_regions(spec) -> list[tuple[slice, ...]]:
+    """Every chunk's region of an array (``spec`` with ``shape`` and ``chunks``), in C order."""
+    shape, chunks = tuple(spec.shape), tuple(spec.chunks)
+    counts = [-(-s // c) for s, c in zip(shape, chunks)]
+    out = []
+    for idx in np.ndindex(*counts):
+        out.append(tuple(slice(i * c, min((i + 1) * c, s)) for i, c, s in zip(idx, chunks, shape)))
+    return out

@@ -1,0 +1,456 @@
+"""The result store: one Zarr v3 group per run (SPEC section 2, docs/design.md).
+
+The coordinator creates the group and every array up front
+(:meth:`ResultStore.create`, the *template*); tasks then open the store by path, write
+whole chunks (:meth:`ResultStore.write` refuses partial-chunk regions, which lose data
+under concurrent writers) and set their completion marker last
+(:meth:`ResultStore.mark_done`). Markers, not chunk presence, mean "done": zarr deletes
+chunks equal to the fill value (``write_empty_chunks=False``), and a killed task can leave
+some of its chunks written.
+
+An existing path is never overwritten or deleted: :meth:`create` on an existing store
+resumes it only if its ``fingerprint`` attribute (a hash of session + configuration,
+see :func:`fingerprint`) equals the caller's; anything else raises
+:class:`~schlieren.storage.errors.StoreError` naming the path.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import hashlib
+import json
+import logging
+import math
+import os
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+import numpy as np
+import zarr
+from zarr.codecs import ZstdCodec
+
+from schlieren.storage.errors import StoreError
+from schlieren.storage.layout import STORE_FORMAT, ArraySpec, assert_aligned, normalize_region
+
+__all__ = ["ResultStore", "fingerprint", "to_json"]
+
+log = logging.getLogger(__name__)
+
+MARKER_GROUP = "status"
+_COMPRESSORS = (ZstdCodec(level=3),)
+
+
+# --------------------------------------------------------------------------------------
+# JSON helpers for attributes
+# --------------------------------------------------------------------------------------
+def to_json(obj: Any) -> Any:
+    """Plain JSON data from numpy values, tuples, paths, dataclasses and datetimes.
+
+    Non-finite floats become the strings ``"NaN"``, ``"Infinity"``, ``"-Infinity"``
+    (JSON has no such numbers).
+    """
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: to_json(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, Mapping):
+        return {str(k): to_json(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple, set, frozenset)):
+        return [to_json(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return to_json(obj.tolist())
+    if isinstance(obj, np.generic):
+        return to_json(obj.item())
+    if isinstance(obj, float):
+        if math.isfinite(obj):
+            return obj
+        return "NaN" if math.isnan(obj) else ("Infinity" if obj > 0 else "-Infinity")
+    if isinstance(obj, (str, int, bool)) or obj is None:
+        return obj
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
+    if isinstance(obj, (_dt.datetime, _dt.date)):
+        return obj.isoformat()
+    raise TypeError(f"cannot store a {type(obj).__name__} in the store attributes")
+
+
+def fingerprint(*parts: Any) -> str:
+    """SHA-256 of the canonical JSON of ``parts`` (e.g. the manifest and the run config).
+
+    Equal inputs give equal fingerprints across processes and machines; dict key order
+    does not matter.
+    """
+    text = json.dumps(to_json(list(parts)), sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+# --------------------------------------------------------------------------------------
+# the store
+# --------------------------------------------------------------------------------------
+def _location(path) -> str:
+    if isinstance(path, (str, os.PathLike)):
+        return os.fspath(path)
+    root = getattr(path, "root", None)  # LocalStore and friends
+    return f"{type(path).__name__}({root})" if root is not None else type(path).__name__
+
+
+def _marker_spec(stage: str, dims_or_shape, sizes: dict[str, int]) -> ArraySpec:
+    entries = tuple(dims_or_shape)
+    if entries and all(isinstance(d, str) for d in entries):
+        missing = [d for d in entries if d not in sizes]
+        if missing:
+            raise ValueError(f"marker {stage}: unknown dimension(s) {missing}; the layout has {sorted(sizes)}")
+        dims = entries
+        shape = tuple(sizes[d] for d in entries)
+    elif not all(isinstance(d, (int, np.integer)) and not isinstance(d, bool) for d in entries):
+        raise ValueError(f"marker {stage}: give dimension names or a shape of ints, got {entries!r}")
+    else:
+        shape = tuple(int(s) for s in entries)
+        dims = tuple(f"{stage}_{k}" for k in range(len(shape)))
+    return ArraySpec(f"{MARKER_GROUP}/{stage}", dims, shape, (1,) * len(shape), "uint8", 0,
+                     {"long_name": f"completion of stage {stage} (1 = done)", "stage": stage})
+
+
+class ResultStore:
+    """A run's Zarr v3 group: template creation, aligned writes, completion markers.
+
+    Use :meth:`create` (coordinator) or :meth:`open` (tasks, readers); do not call the
+    constructor directly.
+    """
+
+    def __init__(self, group: zarr.Group, location: str, store_arg: Any, mode: str):
+        self._group = group
+        self._location = location
+        self._store_arg = store_arg
+        self._mode = mode
+        self._arrays: dict[str, zarr.Array] = {}
+
+    # -- construction ---------------------------------------------------------------
+    @classmethod
+    def create(cls, path, layout: Iterable[ArraySpec], *, attrs: Mapping[str, Any],
+               markers: Mapping[str, tuple]) -> "ResultStore":
+        """Create the group and every array (or resume the same run's store).
+
+        Parameters
+        ----------
+        path : str, Path or zarr store
+            A folder (LocalStore) or a store object such as ``zarr.storage.MemoryStore``.
+        layout : iterable of ArraySpec
+            Usually :func:`storage.layout.result_layout`.
+        attrs : mapping
+            Root attributes (manifest, parameters, version, ``fingerprint``); converted
+            with :func:`to_json`. ``format`` is set to ``schlieren-store/1``.
+        markers : mapping of str to tuple
+            Stage -> marker dimension names (sizes from the layout, e.g.
+            ``("camera", "frame")``) or a shape of ints. Each marker is a uint8 array
+            ``status/<stage>`` with one chunk per index.
+
+        Returns
+        -------
+        ResultStore
+            Opened read-write.
+
+        Raises
+        ------
+        StoreError
+            If ``path`` exists and is not this run's store (different or missing
+            fingerprint, not a schlieren store, a non-empty folder), or if its arrays do
+            not match the layout. Nothing existing is deleted or overwritten.
+        """
+        layout = list(layout)
+        loc = _location(path)
+        try:
+            root_attrs = to_json(dict(attrs))
+        except TypeError as exc:
+            raise StoreError(str(exc), file=loc, field="attrs") from None
+        root_attrs["format"] = STORE_FORMAT
+        sizes: dict[str, int] = {}
+        for spec in layout:
+            for d, n in zip(spec.dims, spec.shape):
+                if sizes.setdefault(d, n) != n:
+                    raise ValueError(f"dimension {d} has sizes {sizes[d]} and {n} ({spec.name})")
+        specs = layout + [_marker_spec(stage, m, sizes) for stage, m in markers.items()]
+        names = [s.name for s in specs]
+        if len(set(names)) != len(names):
+            raise ValueError(f"duplicate array names in the layout: {sorted(n for n in names if names.count(n) > 1)}")
+
+        existing = cls._try_open_existing(path, loc)
+        if existing is not None:
+            existing._check_resume(root_attrs, specs)
+            existing._create_missing(specs)
+            if not existing._group.attrs.get("template_complete", False):
+                existing._group.attrs.update({"template_complete": True})
+            log.info("resuming the existing store %s", loc)
+            return existing
+
+        try:
+            group = zarr.open_group(path, mode="w-", attributes={**root_attrs, "template_complete": False,
+                                                                 "created": _now()}, zarr_format=3)
+        except (FileExistsError, zarr.errors.ContainsGroupError, zarr.errors.ContainsArrayError):
+            # created concurrently by someone else
+            raise StoreError("the store already exists (created concurrently); not overwriting it",
+                             file=loc) from None
+        store = cls(group, loc, path, "r+")
+        store._create_missing(specs)
+        group.attrs.update({"template_complete": True})
+        return store
+
+    @staticmethod
+    def _try_open_existing(path, loc: str) -> "ResultStore | None":
+        if isinstance(path, (str, os.PathLike)):
+            p = Path(path)
+            if not p.exists():
+                return None
+            if p.is_file():
+                raise StoreError("the path exists and is a file, not a result store; not overwriting it",
+                                 file=loc)
+            if not (p / "zarr.json").is_file():
+                if any(p.iterdir()):
+                    raise StoreError("the folder exists, is not empty and is not a result store; not "
+                                     "overwriting it", file=loc)
+                return None
+        try:
+            group = zarr.open_group(path, mode="r+", zarr_format=3)
+        except (FileNotFoundError, zarr.errors.GroupNotFoundError, zarr.errors.NodeTypeValidationError):
+            if isinstance(path, (str, os.PathLike)):
+                raise StoreError("the folder holds Zarr data that is not a result store group; not "
+                                 "overwriting it", file=loc) from None
+            return None
+        except (ValueError, OSError, json.JSONDecodeError) as exc:
+            raise StoreError(f"the path holds something that is not a readable result store ({exc}); "
+                             "not overwriting it", file=loc) from None
+        return ResultStore(group, loc, path, "r+")
+
+    def _check_resume(self, new_attrs: dict, specs: list[ArraySpec]) -> None:
+        old = dict(self._group.attrs)
+        loc = self._location
+        if old.get("format") != STORE_FORMAT:
+            raise StoreError(f"the path holds a Zarr group that is not a {STORE_FORMAT} store; not "
+                             "overwriting it", file=loc)
+        new_fp, old_fp = new_attrs.get("fingerprint"), old.get("fingerprint")
+        if new_fp is None or old_fp is None:
+            raise StoreError("a result store already exists here and no fingerprint tells whether it is "
+                             "the same run; not overwriting it (choose another output path)", file=loc,
+                             field="fingerprint")
+        if new_fp != old_fp:
+            raise StoreError(f"a result store for a different session or configuration already exists here "
+                             f"(fingerprint {str(old_fp)[:12]}, this run {str(new_fp)[:12]}); not overwriting "
+                             "it (choose another output path or remove it yourself)", file=loc,
+                             field="fingerprint")
+        for spec in specs:
+            try:
+                arr = self._group[spec.name]
+            except KeyError:
+                continue
+            if not isinstance(arr, zarr.Array):
+                raise StoreError(f"{spec.name} is a group, expected an array", file=loc, field=spec.name)
+            same = (tuple(arr.shape) == spec.shape and tuple(arr.chunks) == spec.chunks
+                    and _same_dtype(arr.dtype, spec.dtype)
+                    and tuple(arr.metadata.dimension_names or ()) == spec.dims)
+            if not same:
+                raise StoreError(f"existing array {spec.name} {tuple(arr.shape)} chunks {tuple(arr.chunks)} "
+                                 f"{arr.dtype} does not match the layout {spec.shape} chunks {spec.chunks} "
+                                 f"{spec.dtype}; not overwriting it", file=loc, field=spec.name)
+
+    def _create_missing(self, specs: list[ArraySpec]) -> None:
+        for spec in specs:
+            parent_name, _, leaf = spec.name.rpartition("/")
+            parent = self._group
+            if parent_name:
+                try:
+                    parent = self._group[parent_name]
+                except KeyError:
+                    parent = self._group.create_group(parent_name)
+            if leaf in parent:
+                continue
+            kwargs = dict(
+                shape=spec.shape, chunks=spec.chunks, dtype=spec.dtype, fill_value=spec.fill_value,
+                dimension_names=spec.dims, attributes=to_json(spec.attrs), overwrite=False,
+            )
+            if spec.dtype != "str":
+                kwargs["compressors"] = _COMPRESSORS
+            arr = parent.create_array(leaf, **kwargs)
+            if spec.data is not None:
+                arr[...] = np.asarray(spec.data) if spec.dtype != "str" else np.asarray(spec.data, dtype=str)
+        self._arrays.clear()
+
+    @classmethod
+    def open(cls, path, *, mode: str = "r+") -> "ResultStore":
+        """Open an existing store (``mode="r"`` read-only, ``"r+"`` for task writes)."""
+        loc = _location(path)
+        if mode not in ("r", "r+"):
+            raise ValueError(f"mode must be 'r' or 'r+', got {mode!r}")
+        try:
+            group = zarr.open_group(path, mode=mode, zarr_format=3)
+        except (FileNotFoundError, zarr.errors.GroupNotFoundError, zarr.errors.NodeTypeValidationError):
+            raise StoreError("no result store at this path", file=loc) from None
+        except (ValueError, OSError, json.JSONDecodeError) as exc:
+            raise StoreError(f"cannot open the result store ({exc})", file=loc) from None
+        if group.attrs.get("format") != STORE_FORMAT:
+            raise StoreError(f"not a {STORE_FORMAT} store (format {group.attrs.get('format')!r})", file=loc,
+                             field="format")
+        return cls(group, loc, path, mode)
+
+    def __reduce__(self):
+        if isinstance(self._store_arg, (str, os.PathLike)):
+            return (_reopen, (os.fspath(self._store_arg), self._mode))
+        raise TypeError("a ResultStore on an in-memory store cannot be pickled; open it by path")
+
+    # -- access ---------------------------------------------------------------------
+    @property
+    def path(self) -> str:
+        """The store's location (folder path, or the store type for in-memory stores)."""
+        return self._location
+
+    @property
+    def group(self) -> zarr.Group:
+        return self._group
+
+    @property
+    def attrs(self) -> dict:
+        """Root attributes (a fresh copy)."""
+        return dict(self._group.attrs)
+
+    def array(self, name: str) -> zarr.Array:
+        """The zarr array ``name`` (``flow``, ``status/tomography``), cached."""
+        arr = self._arrays.get(name)
+        if arr is None:
+            try:
+                arr = self._group[name]
+            except KeyError:
+                raise StoreError("no such array in the store", file=self._location, field=name) from None
+            if not isinstance(arr, zarr.Array):
+                raise StoreError("is a group, not an array", file=self._location, field=name)
+            self._arrays[name] = arr
+        return arr
+
+    def __contains__(self, name: str) -> bool:
+        try:
+            self.array(name)
+        except StoreError:
+            return False
+        return True
+
+    def array_names(self) -> list[str]:
+        """Names of the data and coordinate arrays at the root (markers excluded)."""
+        return sorted(name for name, _ in self._group.arrays())
+
+    def dims(self, name: str) -> tuple[str, ...]:
+        return tuple(self.array(name).metadata.dimension_names or ())
+
+    # -- data -----------------------------------------------------------------------
+    def write(self, name: str, index, data) -> None:
+        """Write whole chunks of array ``name`` at ``index``.
+
+        Parameters
+        ----------
+        name : str
+        index : int, slice or tuple of them
+            Ints pick single positions (e.g. ``(camera, frame)``), trailing dimensions
+            are whole; the region must be a union of whole chunks.
+        data : array_like
+            Shape of the region, or of the region without the int-indexed dimensions
+            (so ``write("flow", (c, f), flow_hw2)`` works). Cast to the array's dtype.
+
+        Raises
+        ------
+        AlignmentError
+            For a region that would cut a chunk.
+        ValueError
+            For data of the wrong shape.
+        """
+        if self._mode == "r":
+            raise StoreError("the store is open read-only", file=self._location, field=name)
+        arr = self.array(name)
+        region = assert_aligned(index, arr)
+        full = tuple(s.stop - s.start for s in region)
+        idx = index if isinstance(index, tuple) else (index,)
+        squeezed = tuple(n for k, n in enumerate(full)
+                         if not (k < len(idx) and not isinstance(idx[k], slice)))
+        a = np.asarray(data)
+        if a.shape == squeezed and squeezed != full:
+            a = a.reshape(full)
+        elif a.shape != full:
+            raise ValueError(f"{name}: data of shape {a.shape} does not fit the region of shape {full} "
+                             f"(or {squeezed} without the indexed dimensions)")
+        arr[region] = a.astype(arr.dtype, copy=False)
+
+    def read(self, name: str, index=()) -> np.ndarray:
+        """Read ``array[index]`` (numpy indexing semantics: int entries drop their axis)."""
+        arr = self.array(name)
+        if index == () or index is Ellipsis:
+            return np.asarray(arr[...])
+        if not isinstance(index, tuple):
+            index = (index,)
+        return np.asarray(arr[index])
+
+    # -- completion markers -----------------------------------------------------------
+    def _marker(self, stage: str) -> zarr.Array:
+        try:
+            return self.array(f"{MARKER_GROUP}/{stage}")
+        except StoreError:
+            raise StoreError(f"no completion marker for stage {stage!r}", file=self._location,
+                             field=f"{MARKER_GROUP}/{stage}") from None
+
+    def stages(self) -> list[str]:
+        """Stages that have completion markers."""
+        try:
+            grp = self._group[MARKER_GROUP]
+        except KeyError:
+            return []
+        return sorted(name for name, _ in grp.arrays())
+
+    def mark_done(self, stage: str, index) -> None:
+        """Set the marker of ``stage`` at ``index`` (a task's last write)."""
+        if self._mode == "r":
+            raise StoreError("the store is open read-only", file=self._location, field=stage)
+        arr = self._marker(stage)
+        region = normalize_region(index, arr.shape)
+        arr[region] = np.ones(tuple(s.stop - s.start for s in region), dtype=np.uint8)
+
+    def is_done(self, stage: str, index) -> bool:
+        """True if every position of ``index`` in ``stage``'s marker is set."""
+        arr = self._marker(stage)
+        region = normalize_region(index, arr.shape)
+        return bool(np.all(np.asarray(arr[region]) == 1))
+
+    def done(self, stage: str) -> np.ndarray:
+        """The whole marker of ``stage`` as a bool array."""
+        return np.asarray(self._marker(stage)[...]) == 1
+
+    # -- coordinator-only attribute updates -----------------------------------------------
+    def set_stage_completed(self, stage: str, timestamp: str | _dt.datetime | None = None) -> None:
+        """Record in the root attrs (``stages_completed``) when ``stage`` completed.
+
+        Only the coordinator calls this (concurrent metadata writes are unsafe in zarr 3).
+        """
+        ts = timestamp.isoformat() if isinstance(timestamp, _dt.datetime) else (timestamp or _now())
+        done = dict(self._group.attrs.get("stages_completed", {}))
+        done[stage] = ts
+        self._group.attrs.update({"stages_completed": done})
+
+    def update_attrs(self, values: Mapping[str, Any]) -> None:
+        """Merge ``values`` into the root attrs (coordinator only)."""
+        values = to_json(dict(values))
+        if "format" in values and values["format"] != STORE_FORMAT:
+            raise ValueError("the store format attribute cannot be changed")
+        self._group.attrs.update(values)
+
+    def __repr__(self) -> str:
+        return f"ResultStore({self._location!r}, mode={self._mode!r})"
+
+
+def _reopen(path: str, mode: str) -> ResultStore:
+    return ResultStore.open(path, mode=mode)
+
+
+def _same_dtype(actual, wanted: str) -> bool:
+    if wanted == "str":
+        return np.dtype(actual).kind in ("T", "O", "U") or "str" in str(actual).lower()
+    try:
+        return np.dtype(actual) == np.dtype(wanted)
+    except TypeError:
+        return False
