@@ -7,6 +7,7 @@ skipped; independent work goes on, so nothing that can be computed is lost.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 from typing import Callable
 
@@ -31,6 +32,31 @@ def run_serial(store_path: str, plan: Plan, *, on_receipt: Callable[[dict], None
     """
     receipts: list[dict] = []
     failures: dict[str, str] = {}
+    with single_threaded_kernels():
+        _loop(store_path, plan, receipts, failures, on_receipt, on_failure)
+    return receipts, failures
+
+
+@contextlib.contextmanager
+def single_threaded_kernels():
+    """Run OpenCV, numba and BLAS single-threaded, as in the Dask workers, so both executors agree
+    bit for bit (threaded BLAS reductions round differently)."""
+    import cv2
+    import numba
+    from threadpoolctl import threadpool_limits
+
+    before = cv2.getNumThreads(), numba.get_num_threads()
+    cv2.setNumThreads(1)
+    numba.set_num_threads(1)
+    try:
+        with threadpool_limits(limits=1):
+            yield
+    finally:
+        cv2.setNumThreads(before[0])
+        numba.set_num_threads(before[1])
+
+
+def _loop(store_path, plan, receipts, failures, on_receipt, on_failure) -> None:
     for task in plan.tasks:
         bad = [d for d in task.deps if d in failures]
         if bad:
@@ -48,4 +74,3 @@ def run_serial(store_path: str, plan: Plan, *, on_receipt: Callable[[dict], None
         receipts.append(r)
         if on_receipt:
             on_receipt(r)
-    return receipts, failures

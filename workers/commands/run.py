@@ -104,7 +104,8 @@ def execute(session: str, out: str, frames, args, *, console=None):
     return summary
 
 
-def print_summary(summary, *, stream=sys.stderr) -> None:
+def print_summary(summary, *, stream=None) -> None:
+    stream = stream or sys.stderr
     roots = summary.root_failures()
     print(f"store: {summary.store}  ({summary.tasks} tasks run, {summary.skipped} already complete, "
           f"{summary.seconds:.1f} s, {summary.executor} executor)", file=stream)

@@ -1,0 +1,33 @@
+"""Store comparison helpers for the end-to-end tests."""
+
+from __future__ import annotations
+
+import numpy as np
+import zarr
+
+
+def read_all(store_path) -> dict[str, np.ndarray]:
+    """Every array of a store (markers included) as numpy arrays."""
+    g = zarr.open_group(str(store_path), mode="r")
+    out = {}
+
+    def walk(grp, prefix=""):
+        for name, arr in grp.arrays():
+            out[prefix + name] = np.asarray(arr[...])
+        for name, sub in grp.groups():
+            walk(sub, prefix + name + "/")
+
+    walk(g)
+    return out
+
+
+def assert_same_store(a, b) -> None:
+    A, B = read_all(a), read_all(b)
+    assert sorted(A) == sorted(B)
+    for k in A:
+        x, y = A[k], B[k]
+        assert x.shape == y.shape, k
+        if x.dtype.kind == "f":
+            assert np.array_equal(x, y, equal_nan=True), f"{k} differs (max {np.nanmax(np.abs(x - y))})"
+        else:
+            assert np.array_equal(x, y), f"{k} differs"

@@ -1,0 +1,138 @@
+"""``schlieren submit SESSION --out STORE --cluster slurm|pbs|kubernetes --config FILE``.
+
+Creates the cluster on a batch system (dask-jobqueue for SLURM/PBS, the Dask Kubernetes
+operator for Kubernetes) from a YAML config (see ``deploy/slurm/jobqueue.yaml`` and
+``deploy/kubernetes/schlieren.yaml``), connects a client, runs the session on it and
+closes the cluster. ``--dry-run`` prints the worker job script (SLURM/PBS) or the
+``DaskCluster`` manifest (Kubernetes) and submits nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import sys
+from pathlib import Path
+from typing import Any
+
+from schlieren.workers.cli import CLIError
+
+KINDS = ("slurm", "pbs", "kubernetes")
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "submit",
+        help="run a session on a SLURM, PBS or Kubernetes cluster",
+        description=(
+            "Start Dask workers through the batch system (dask-jobqueue or the Dask Kubernetes operator), "
+            "process the session on them and shut them down. The scheduler runs in this process; its "
+            "dashboard binds loopback (reach it through an SSH tunnel)."
+        ),
+    )
+    p.add_argument("session", help="session folder or its session.yaml")
+    p.add_argument("--out", required=True, help="result store (Zarr v3 folder)")
+    p.add_argument("--cluster", required=True, choices=KINDS, help="batch system")
+    p.add_argument("--config", required=True, metavar="FILE", help="cluster config YAML (deploy/slurm/jobqueue.yaml, ...)")
+    p.add_argument("--scale", type=int, default=None, metavar="N", help="worker jobs (SLURM/PBS) or pods (Kubernetes)")
+    p.add_argument("--frames", default=None, metavar="A:B", help="half-open frame range to process")
+    p.add_argument("--params", default=None, metavar="FILE", help="YAML file of run parameters")
+    p.add_argument("--report", default=None, metavar="FILE", help="write a Dask performance report (HTML)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--dry-run", action="store_true", help="print the job script / manifest and exit")
+    p.set_defaults(func=handler)
+
+
+def load_submit_config(path: str | Path, *, scale: int | None = None) -> dict[str, Any]:
+    """Read a submit config with ``yaml.safe_load`` (no tags, nothing executed).
+
+    ``scale`` overrides ``schlieren.scale``. Raises ``CLIError`` with one line on any
+    problem (missing file, YAML error, not a mapping).
+    """
+    import yaml
+
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise CLIError(f"config {p}: {exc.strerror or exc}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" line {mark.line + 1}" if mark is not None else ""
+        problem = getattr(exc, "problem", None) or "invalid YAML"
+        raise CLIError(f"config {p}{where}: {problem}") from None
+    if not isinstance(data, dict):
+        raise CLIError(f"config {p}: expected a mapping with 'jobqueue:' or 'kubernetes:' and 'schlieren:' sections")
+    data = copy.deepcopy(data)
+    if scale is not None:
+        if scale < 1:
+            raise CLIError(f"--scale must be at least 1, got {scale}")
+        sec = data.get("schlieren") or {}
+        if not isinstance(sec, dict):
+            raise CLIError(f"config {p}: the 'schlieren' section must be a mapping")
+        data["schlieren"] = {**sec, "scale": scale}
+    return data
+
+
+def render(kind: str, config: dict[str, Any]) -> str:
+    """What ``--dry-run`` prints: the worker job script or the DaskCluster manifest (YAML)."""
+    from schlieren.workers.cluster import daskcluster_manifest, job_script
+
+    if kind == "kubernetes":
+        import yaml
+
+        return yaml.safe_dump(daskcluster_manifest(config), sort_keys=False)
+    return job_script(kind, config)
+
+
+def handler(args: argparse.Namespace) -> int:
+    from schlieren.workers.cluster import ClusterOptions, connect, make_batch_cluster, schlieren_section
+
+    config = load_submit_config(args.config, scale=args.scale)
+    try:
+        sec = schlieren_section(config)
+        if args.dry_run:
+            print(render(args.cluster, config))
+            return 0
+    except (ValueError, TypeError, FileNotFoundError) as exc:
+        raise CLIError(f"config {args.config}: {exc}") from None
+
+    # the run entry points belong to the executor; imported here so this module loads without them
+    from schlieren.workers.commands.run import load_params, parse_frames, print_summary
+    from schlieren.workers.progress import StageProgress
+    from schlieren.workers.run import run_session
+
+    frames = parse_frames(args.frames)
+    run_config = load_params(args.params)
+    try:
+        cluster = make_batch_cluster(args.cluster, config)
+    except (ValueError, TypeError, FileNotFoundError, RuntimeError) as exc:
+        raise CLIError(f"config {args.config}: {exc}") from None
+    timeout = sec["wait_timeout"]
+    with cluster:
+        with connect(
+            cluster,
+            ClusterOptions(tomo_slots=sec["tomo_slots"]),
+            mode=args.cluster,
+            wait_workers=sec["wait_workers"],
+            timeout=float(timeout) if timeout is not None else None,
+        ) as (client, info):
+            if info.dashboard_link:
+                print(f"dashboard: {info.dashboard_link}", file=sys.stderr)
+            with StageProgress(enabled=not args.no_progress) as prog:
+                summary = run_session(
+                    args.session,
+                    args.out,
+                    client=client,
+                    frames=frames,
+                    config=run_config,
+                    report=args.report,
+                    on_receipt=prog.receipt,
+                    on_failure=prog.failure,
+                    on_plan=prog.plan,
+                )
+            summary.dashboard = info.dashboard_link
+    print_summary(summary, stream=sys.stderr)  # the stream of now (tests swap sys.stderr)
+    return 0 if summary.ok else 1

@@ -1,0 +1,194 @@
+"""Monitoring helpers: structured JSON log lines, task receipts, performance reports.
+
+Log records become one JSON object per line (:class:`JsonFormatter`), carrying the task
+context fields (session, stage, camera, frame, index, key, seconds, iterations, residual,
+...) when they are passed in ``extra``. :func:`log_receipt` turns a task's small receipt
+dict into such a line. :func:`performance_report_cm` wraps
+``distributed.performance_report`` so callers can write ``with performance_report_cm(path):``
+whether or not a report was asked for.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import json
+import logging
+import math
+import os
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any, TextIO
+
+log = logging.getLogger(__name__)
+
+RECEIPT_LOGGER = "schlieren.receipts"
+
+#: Context fields copied from a record's ``extra`` into the JSON object, in this order.
+CONTEXT_FIELDS: tuple[str, ...] = (
+    "session",
+    "stage",
+    "key",
+    "index",
+    "camera",
+    "frame",
+    "seconds",
+    "iterations",
+    "residual",
+    "status",
+    "worker",
+    "error",
+)
+
+# Attributes every LogRecord has; anything else on a record came from ``extra``.
+_RECORD_ATTRS = frozenset(vars(logging.LogRecord("x", logging.INFO, "x", 0, "x", None, None))) | {
+    "message",
+    "asctime",
+    "taskName",
+}
+
+
+def _jsonable(value: Any) -> Any:
+    """Plain JSON value for numpy scalars, paths, tuples; NaN/inf become strings."""
+    if value is None or isinstance(value, (bool, str)):
+        return value
+    if isinstance(value, int):
+        return int(value)
+    if isinstance(value, float):
+        return value if math.isfinite(value) else str(value)
+    item = getattr(value, "item", None)  # numpy scalar / 0-d array
+    if callable(item) and getattr(value, "ndim", 0) == 0:
+        try:
+            return _jsonable(item())
+        except (TypeError, ValueError):
+            pass
+    if isinstance(value, Mapping):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    return str(value)
+
+
+class JsonFormatter(logging.Formatter):
+    """Format a log record as one JSON object on one line.
+
+    The object has ``time`` (UTC, ISO 8601), ``level``, ``logger``, ``message``, then the
+    :data:`CONTEXT_FIELDS` found on the record (from ``logger.info(..., extra={...})``),
+    then any other ``extra`` fields, then ``exc_info`` text if an exception is attached.
+    """
+
+    def format(self, record: logging.LogRecord) -> str:
+        out: dict[str, Any] = {
+            "time": _dt.datetime.fromtimestamp(record.created, _dt.timezone.utc).isoformat(timespec="milliseconds"),
+            "level": record.levelname,
+            "logger": record.name,
+            "message": record.getMessage(),
+        }
+        for name in CONTEXT_FIELDS:
+            if hasattr(record, name):
+                out[name] = _jsonable(getattr(record, name))
+        for name, value in vars(record).items():
+            if name not in _RECORD_ATTRS and name not in out and not name.startswith("_"):
+                out[name] = _jsonable(value)
+        if record.exc_info:
+            out["exc_info"] = self.formatException(record.exc_info)
+        return json.dumps(out, separators=(",", ":"), sort_keys=False)
+
+
+_HANDLER_MARK = "_schlieren_json_handler"
+
+
+def configure_json_logging(
+    logger_name: str = "schlieren",
+    *,
+    level: int | str = logging.INFO,
+    stream: TextIO | None = None,
+    path: str | os.PathLike[str] | None = None,
+) -> logging.Handler:
+    """Attach one JSON-lines handler to ``logger_name`` (idempotent).
+
+    Writes to ``path`` (appending) when given, else to ``stream`` (default stderr). A
+    handler attached earlier by this function to the same logger is replaced, so calling
+    it again (e.g. when a worker plugin is re-registered) never duplicates lines. The
+    logger stops propagating to the root logger so lines are not printed twice.
+
+    Returns
+    -------
+    logging.Handler
+        The handler now attached.
+    """
+    logger = logging.getLogger(logger_name)
+    for h in list(logger.handlers):
+        if getattr(h, _HANDLER_MARK, False):
+            logger.removeHandler(h)
+            h.close()
+    handler: logging.Handler
+    if path is not None:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        handler = logging.FileHandler(path, mode="a", encoding="utf-8")
+    else:
+        handler = logging.StreamHandler(stream)
+    handler.setFormatter(JsonFormatter())
+    setattr(handler, _HANDLER_MARK, True)
+    logger.addHandler(handler)
+    logger.setLevel(level)
+    logger.propagate = False
+    return handler
+
+
+def log_receipt(
+    receipt: Mapping[str, Any],
+    *,
+    logger: logging.Logger | None = None,
+    level: int = logging.INFO,
+    message: str = "task receipt",
+) -> None:
+    """Log a task's receipt as one structured line.
+
+    Parameters
+    ----------
+    receipt : mapping
+        The small dict a task returns: e.g. ``stage``, ``index``, ``camera``, ``frame``,
+        ``seconds``, ``iterations``, ``residual``, ``key``. Keys that clash with
+        ``LogRecord`` attributes (``name``, ``msg``, ...) are prefixed with ``receipt_``.
+    logger : logging.Logger, optional
+        Defaults to the ``schlieren.receipts`` logger.
+    level : int
+        Logging level; failed receipts (``status == "failed"`` or an ``error`` entry) are
+        logged at ERROR regardless.
+    """
+    lg = logger if logger is not None else logging.getLogger(RECEIPT_LOGGER)
+    extra: dict[str, Any] = {}
+    for k, v in receipt.items():
+        name = str(k)
+        if name in _RECORD_ATTRS:
+            name = f"receipt_{name}"
+        extra[name] = _jsonable(v)
+    failed = receipt.get("status") == "failed" or bool(receipt.get("error"))
+    lg.log(logging.ERROR if failed else level, message, extra=extra)
+
+
+@contextlib.contextmanager
+def performance_report_cm(path: str | os.PathLike[str] | None, *, stacklevel: int = 1) -> Iterator[Path | None]:
+    """Write a Dask performance report (HTML) of everything computed inside the block.
+
+    Needs a current ``distributed.Client`` (the default client). With ``path=None``
+    this does nothing. The parent directory is created.
+
+    Yields
+    ------
+    Path or None
+        The report path.
+    """
+    if path is None:
+        yield None
+        return
+    from distributed import performance_report
+
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    with performance_report(filename=os.fspath(p), stacklevel=stacklevel + 1):
+        yield p
+    log.info("performance report written to %s", p)
