@@ -24,15 +24,7 @@ import zarr
 
 from schlieren.workers.run import run_session
 
-from e2e_helpers import assert_same_store
-
-
-@pytest.fixture(scope="module")
-def serial_store(tiny_session, tmp_path_factory):
-    out = tmp_path_factory.mktemp("serial") / "store.zarr"
-    summary = run_session(tiny_session.session, out, serial=True)
-    assert summary.ok, summary.failures
-    return out
+from store_compare import assert_same_store
 
 
 def test_every_stage_completed_and_time_is_recorded(serial_store, tiny_session):
