@@ -1,0 +1,133 @@
+"""``schlieren init SESSION_DIR --videos 'cams/*.mp4' --calibration calibration.yaml ...``.
+
+Writes ``SESSION_DIR/session.yaml`` (SPEC ``schlieren-session/1``) from a folder of camera
+videos and a calibration file written by ``schlieren calibrate``, after checking every
+video's frame count, size and frame rate (they must agree with each other and with the
+calibration). Each camera's reference (no-flow background) is frames A:B of its own
+video (``--reference-frames``), extracted losslessly into ``<camera>/reference/`` and
+averaged by ``schlieren run``. Cameras are matched by name: a video's file stem (or
+``NAME=PATH``) must be a camera name of the calibration. The session is loaded back
+with the session reader before the command returns, so ``schlieren run SESSION_DIR``
+accepts it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+
+log = logging.getLogger(__name__)
+
+
+def _range(text: str, flag: str) -> tuple[int, int]:
+    from schlieren.workers.cli import CLIError
+
+    try:
+        a, b = text.split(":")
+        a, b = int(a), int(b)
+    except ValueError:
+        raise CLIError(f"{flag} {text!r}: expected A:B with integers, e.g. 0:30") from None
+    if a < 0 or b <= a:
+        raise CLIError(f"{flag} {text!r}: the range must be non-empty and start at 0 or later")
+    return a, b
+
+
+def _floats(text: str, n: int, flag: str) -> list[float]:
+    from schlieren.workers.cli import CLIError
+
+    try:
+        vals = [float(v) for v in text.replace(" ", "").split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) != n:
+        raise CLIError(f"{flag} {text!r}: expected {n} comma-separated numbers")
+    return vals
+
+
+def _per_camera(items, flag: str, names):
+    """``["0.0"]`` -> 0.0 for every camera; ``["cam0=0.0", "1e-3"]`` -> ``{name: value}``
+    (the bare value for cameras not named); no items -> None."""
+    from schlieren.workers.cli import CLIError
+
+    if not items:
+        return None
+    default, named = None, {}
+    for item in items:
+        name, _, value = item.rpartition("=")
+        try:
+            v = float(value)
+        except ValueError:
+            raise CLIError(f"{flag} {item!r}: expected [NAME=]NUMBER") from None
+        if name:
+            named[name] = v
+        else:
+            default = v
+    if not named:
+        return default
+    out = {n: default for n in names if default is not None}
+    out.update(named)
+    return out
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("init", help="write a session.yaml from camera videos and a calibration file",
+                       description=__doc__.split("\n", 1)[1].strip().replace("``", ""),
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("session_dir", metavar="SESSION_DIR", help="session folder (created if missing)")
+    p.add_argument("--videos", nargs="+", required=True, metavar="[NAME=]PATH",
+                   help="camera videos: files or quoted glob patterns (camera name = file stem)")
+    p.add_argument("--calibration", required=True, metavar="FILE",
+                   help="calibration.yaml from schlieren calibrate")
+    p.add_argument("--reference-frames", required=True, metavar="A:B",
+                   help="frames without flow, averaged into each camera's reference")
+    p.add_argument("--volume", required=True, metavar="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX",
+                   help="reconstruction box in world metres (z up); write --volume=-0.1,... when "
+                        "it starts with a minus sign")
+    p.add_argument("--voxel-size", type=float, required=True, metavar="M", help="voxel edge, metres")
+    p.add_argument("--frame-rate", type=float, default=None, metavar="FPS",
+                   help="frames per second (default: the videos', which must agree)")
+    p.add_argument("--frames", default=None, metavar="A:B", help="half-open range of frames to process")
+    p.add_argument("--strobe-frames", default=None, metavar="A:B",
+                   help="frames where every camera sees the sync flash (sync.strobe.search_frames)")
+    p.add_argument("--time-offset", action="append", default=[], metavar="[NAME=]SECONDS",
+                   help="camera time offsets instead of a strobe (one value for all, or per camera)")
+    p.add_argument("--line-time", action="append", default=[], metavar="[NAME=]SECONDS",
+                   help="rolling-shutter line time (default 0 = global shutter)")
+    p.add_argument("--background-distance", action="append", default=[], metavar="[NAME=]METRES",
+                   help="background distance for cameras whose calibration has no background plane")
+    p.add_argument("--name", default=None, help="session name (default: the folder's name)")
+    p.add_argument("--copy-videos", action="store_true", help="copy videos from outside SESSION_DIR into it")
+    p.add_argument("--count-frames", action="store_true",
+                   help="count frames by decoding every video (exact, slow) instead of trusting "
+                        "the container")
+    p.add_argument("--force", action="store_true", help="replace an existing session.yaml")
+    p.set_defaults(func=handler)
+
+
+def handler(args) -> int:
+    from schlieren.storage.scaffold import find_videos, scaffold_session
+    from schlieren.storage.session import load_session
+    from schlieren.workers.cli import CLIError
+
+    vol = _floats(args.volume, 6, "--volume")
+    if args.voxel_size <= 0:
+        raise CLIError("--voxel-size must be positive (metres)")
+    videos = find_videos(args.videos, base=args.session_dir)
+    names = list(videos)
+    path = scaffold_session(
+        args.session_dir, videos, args.calibration,
+        reference_frames=_range(args.reference_frames, "--reference-frames"),
+        volume_min=vol[:3], volume_max=vol[3:], voxel_size=args.voxel_size,
+        frame_rate=args.frame_rate,
+        frames=_range(args.frames, "--frames") if args.frames else None,
+        strobe_frames=_range(args.strobe_frames, "--strobe-frames") if args.strobe_frames else None,
+        time_offsets=_per_camera(args.time_offset, "--time-offset", names),
+        line_times=_per_camera(args.line_time, "--line-time", names),
+        background_distance=_per_camera(args.background_distance, "--background-distance", names),
+        name=args.name, copy_videos=args.copy_videos, count_frames=args.count_frames,
+        overwrite=args.force)
+    session = load_session(path)  # the reader `schlieren run` uses: fail here, not later
+    print(f"wrote {path}: {len(session.cameras)} cameras, {session.n_frames_available} frames at "
+          f"{session.frame_rate:g} fps, frames {list(session.frames)} to process, grid "
+          f"{' x '.join(str(s) for s in session.grid.shape[::-1])} voxels (x, y, z)")
+    return 0
