@@ -1,0 +1,70 @@
+"""Parameters of the tomography stage (one frozen dataclass; field names = kernel keywords)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+__all__ = ["TomoParams", "RefractivityParams"]
+
+
+@dataclass(frozen=True)
+class TomoParams:
+    """Gradient-field tomography (paper sec. 5, eqs. 4-6).
+
+    Attributes
+    ----------
+    step : float
+        Ray-marching step for the line integrals of the basis functions, in voxels
+        (midpoint rule). Part of the geometry content hash.
+    hull_dilation : int
+        Basis functions kept per frame: the hull dilated by this many voxels (3x3x3
+        structuring element). 1 keeps every basis function whose support (radius one
+        voxel) touches a hull voxel, as in the paper.
+    reg_weight : float
+        Weight of the first-difference smoothness term restricted to the basis set,
+        relative to the mean of ``diag(S^T S)`` (dimensionless; 0 = plain least squares,
+        which semi-converges with noisy data).
+    max_iter : int
+        Iteration cap of the fused CGLS solver.
+    tol : float
+        Stop when the normal-equation residual of every component has dropped by this
+        factor relative to its initial value.
+    discrepancy : float
+        If > 0, also stop when the data residual of every component is below
+        ``discrepancy * noise_rms * sqrt(m)`` (Morozov's discrepancy principle) with
+        ``noise_rms`` passed to the solver; 0 disables it.
+    n_ambient : float
+        Refractive index of the surrounding air; the right-hand side is
+        ``n_ambient * (d_out - d_in)`` (eq. 3 with ``d = n * unit direction``).
+    """
+
+    step: float = 0.25
+    hull_dilation: int = 1
+    reg_weight: float = 0.1
+    max_iter: int = 25
+    tol: float = 5e-3
+    discrepancy: float = 0.0
+    n_ambient: float = 1.00029
+
+
+@dataclass(frozen=True)
+class RefractivityParams:
+    """Direct refractivity reconstruction (beyond the paper): solve for ``r = n - 1``.
+
+    Attributes
+    ----------
+    reg_weight : float
+        First-difference smoothness of ``r`` relative to the mean diagonal of the data
+        normal matrix (dimensionless).
+    max_iter : int
+        CGLS iteration cap.
+    tol : float
+        Relative normal-equation residual at which to stop.
+    n_ambient : float
+        Refractive index of the surrounding air (right-hand side scaling).
+    """
+
+    reg_weight: float = 0.02
+    max_iter: int = 150
+    tol: float = 1e-4
+    n_ambient: float = 1.00029

@@ -1,0 +1,250 @@
+"""Export reconstructed volumes for ParaView and other renderers.
+
+Formats (one file set per frame; voxel centres are the sample points, so ``Origin`` is the
+world position of voxel ``[0, 0, 0]``'s centre and ``Spacing`` the voxel size, metres):
+
+* ``vti``: VTK XML ImageData (version 1.0, UInt64 headers), point data as one inline
+  base64 ``binary`` DataArray (little endian), plus a ``.pvd`` collection whose
+  ``timestep`` is the store's ``time`` (seconds), so ParaView plays the sequence in time.
+* ``raw``: little-endian float32 ``.raw`` (x fastest, then y, then z; components fastest for
+  the gradient), a MetaImage ``.mhd`` header per frame that ParaView/ITK/3D Slicer open
+  directly, and one JSON sidecar describing every frame.
+* ``nrrd``: NRRD with an attached header: ``space origin`` and ``space directions`` in
+  world metres (``space units: "m"``), raw little-endian data.
+
+``hull`` (bool) is written as UInt8; ``gradient`` as a 3-component vector.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import logging
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+
+from schlieren.storage.errors import StoreError
+from schlieren.storage.report import frame_range, open_result, volume_grid
+
+__all__ = ["export", "ExportResult", "FORMATS", "QUANTITIES"]
+
+log = logging.getLogger(__name__)
+
+FORMATS = ("vti", "raw", "nrrd")
+STAGE_OF = {"refractivity": "integrate", "density": "integrate", "temperature": "integrate",
+            "gradient": "tomography", "hull": "hull"}
+QUANTITIES = {  # name -> (units, components)
+    "refractivity": ("1", 1),
+    "density": ("kg/m^3", 1),
+    "temperature": ("K", 1),
+    "gradient": ("1/m", 3),
+    "hull": ("1", 1),
+}
+
+
+@dataclass(frozen=True)
+class ExportResult:
+    """What an export wrote.
+
+    Attributes
+    ----------
+    entry_points : list of Path
+        The files to open: the ``.pvd`` (vti), the ``.mhd`` headers (raw), the ``.nrrd`` files.
+    files : list of Path
+        Every file written.
+    skipped : list of int
+        Store frames left out because their stage is not complete (partial run).
+    """
+
+    entry_points: list[Path] = field(default_factory=list)
+    files: list[Path] = field(default_factory=list)
+    skipped: list[int] = field(default_factory=list)
+
+
+def _vtk_type(dtype: np.dtype) -> str:
+    return {np.dtype("<f4"): "Float32", np.dtype("<f8"): "Float64", np.dtype("u1"): "UInt8"}[np.dtype(dtype)]
+
+
+def _frame_values(arr, f: int, quantity: str) -> np.ndarray:
+    v = np.asarray(arr[f])
+    if quantity == "hull" or v.dtype == bool:
+        return np.ascontiguousarray(v.astype(np.uint8))
+    return np.ascontiguousarray(v.astype("<f4"))
+
+
+def export(store_path: str | os.PathLike, out_path: str | os.PathLike, *, format: str = "vti",
+           quantity: str = "refractivity", frames=None) -> ExportResult:
+    """Write one volume quantity of a result store in a format other tools read.
+
+    Parameters
+    ----------
+    store_path : path
+        The Zarr result store.
+    out_path : path
+        Output folder (created). Files are named ``<quantity>_<frame:05d>.<ext>`` with the
+        store's frame index.
+    format : {"vti", "raw", "nrrd"}
+    quantity : {"refractivity", "density", "temperature", "gradient", "hull"}
+    frames : (a, b), optional
+        Half-open range of store frames (default: all). Frames whose stage is not complete
+        (``status/<stage>`` marker unset) are skipped and listed in the result.
+
+    Returns
+    -------
+    ExportResult
+
+    Raises
+    ------
+    StoreError
+        Unknown format or quantity, the quantity is not in the store, bad frame range, or no
+        frame of the range is complete.
+    """
+    if format not in FORMATS:
+        raise StoreError(f"unknown export format {format!r} (choose from {', '.join(FORMATS)})", field="format")
+    if quantity not in QUANTITIES:
+        raise StoreError(f"cannot export {quantity!r} (choose from {', '.join(QUANTITIES)})", field="quantity")
+    group = open_result(store_path)
+    if quantity not in group:
+        raise StoreError(f"the store has no {quantity!r} array (partial run?)", file=str(store_path),
+                         field=quantity)
+    arr = group[quantity]
+    grid = volume_grid(arr)
+    sel = frame_range(frames, int(arr.shape[0]))
+    times = np.asarray(group["time"][:], dtype=np.float64) if "time" in group else None
+    out = Path(out_path)
+    out.mkdir(parents=True, exist_ok=True)
+    units, ncomp = QUANTITIES[quantity]
+    origin = [float(v) for v in grid.origin]
+    h = float(grid.voxel_size)
+    nz, ny, nx = grid.shape
+    result = ExportResult()
+    try:
+        done = np.asarray(group[f"status/{STAGE_OF[quantity]}"][...]).reshape(-1) == 1
+    except KeyError:  # a store without completion markers: take every frame
+        done = np.ones(int(arr.shape[0]), bool)
+    records = []
+    dtype_name = ""
+    for f in sel:
+        if not done[f]:
+            result.skipped.append(f)
+            continue
+        data = _frame_values(arr, f, quantity)
+        dtype_name = {"<f4": "float32", "|u1": "uint8"}[data.dtype.str]
+        t = None if times is None else float(times[f])
+        stem = f"{quantity}_{f:05d}"
+        if format == "vti":
+            path = out / f"{stem}.vti"
+            _write_vti(path, data, quantity, origin, h, ncomp)
+            result.files.append(path)
+        elif format == "raw":
+            raw = out / f"{stem}.raw"
+            data.tofile(raw)
+            mhd = out / f"{stem}.mhd"
+            _write_mhd(mhd, raw.name, data, origin, h, ncomp)
+            result.files.extend([raw, mhd])
+            result.entry_points.append(mhd)
+        else:
+            path = out / f"{stem}.nrrd"
+            _write_nrrd(path, data, quantity, units, origin, h, ncomp, f, t)
+            result.files.append(path)
+            result.entry_points.append(path)
+        records.append({"frame": f, "time": t, "file": result.files[-1].name if format != "raw" else f"{stem}.raw"})
+    if not records:
+        raise StoreError(f"no frame of {quantity!r} in {sel.start}:{sel.stop} is complete yet", file=str(store_path),
+                         field=quantity)
+    if result.skipped:
+        log.warning("%s: frames %s are not complete yet and were not exported", quantity,
+                    ", ".join(map(str, result.skipped)))
+    if format == "vti":
+        pvd = out / f"{quantity}.pvd"
+        _write_pvd(pvd, records)
+        result.files.append(pvd)
+        result.entry_points.insert(0, pvd)
+    if format == "raw":
+        side = out / f"{quantity}.json"
+        side.write_text(json.dumps({
+            "quantity": quantity, "units": units, "dtype": dtype_name,
+            "byte_order": "little", "order": "x fastest, then y, then z" + (", components fastest" if ncomp > 1 else ""),
+            "shape_zyx": [nz, ny, nx], "components": ncomp,
+            "origin_xyz_m": origin, "spacing_xyz_m": [h, h, h],
+            "origin_is": "centre of voxel [0, 0, 0]",
+            "frames": records,
+        }, indent=2), encoding="utf-8")
+        result.files.append(side)
+    log.info("exported %d frame(s) of %s as %s to %s", len(sel), quantity, format, out)
+    return result
+
+
+def _write_vti(path: Path, data: np.ndarray, name: str, origin, h: float, ncomp: int) -> None:
+    nz, ny, nx = data.shape[:3]
+    payload = data.tobytes(order="C")
+    block = base64.b64encode(np.uint64(len(payload)).astype("<u8").tobytes() + payload).decode("ascii")
+    extent = f"0 {nx - 1} 0 {ny - 1} 0 {nz - 1}"
+    attr = f'Vectors={quoteattr(name)}' if ncomp > 1 else f'Scalars={quoteattr(name)}'
+    text = (
+        '<?xml version="1.0"?>\n'
+        '<VTKFile type="ImageData" version="1.0" byte_order="LittleEndian" header_type="UInt64">\n'
+        f'  <ImageData WholeExtent="{extent}" Origin="{origin[0]!r} {origin[1]!r} {origin[2]!r}" '
+        f'Spacing="{h!r} {h!r} {h!r}">\n'
+        f'    <Piece Extent="{extent}">\n'
+        f'      <PointData {attr}>\n'
+        f'        <DataArray type="{_vtk_type(data.dtype)}" Name={quoteattr(name)} '
+        f'NumberOfComponents="{ncomp}" format="binary">\n'
+        f'{block}\n'
+        '        </DataArray>\n'
+        '      </PointData>\n'
+        '      <CellData/>\n'
+        '    </Piece>\n'
+        '  </ImageData>\n'
+        '</VTKFile>\n')
+    path.write_text(text, encoding="ascii")
+
+
+def _write_pvd(path: Path, records: list[dict]) -> None:
+    lines = ['<?xml version="1.0"?>',
+             '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">', '  <Collection>']
+    for r in records:
+        t = r["time"] if r["time"] is not None else float(r["frame"])
+        lines.append(f'    <DataSet timestep="{t!r}" group="" part="0" file={quoteattr(r["file"])}/>')
+    lines += ['  </Collection>', '</VTKFile>', '']
+    path.write_text("\n".join(lines), encoding="utf-8")
+
+
+def _write_mhd(path: Path, raw_name: str, data: np.ndarray, origin, h: float, ncomp: int) -> None:
+    nz, ny, nx = data.shape[:3]
+    etype = {np.dtype("<f4"): "MET_FLOAT", np.dtype("u1"): "MET_UCHAR"}[data.dtype]
+    lines = ["ObjectType = Image", "NDims = 3", "BinaryData = True", "BinaryDataByteOrderMSB = False",
+             "CompressedData = False", "TransformMatrix = 1 0 0 0 1 0 0 0 1",
+             f"Offset = {origin[0]!r} {origin[1]!r} {origin[2]!r}", "CenterOfRotation = 0 0 0",
+             f"ElementSpacing = {h!r} {h!r} {h!r}", f"DimSize = {nx} {ny} {nz}"]
+    if ncomp > 1:
+        lines.append(f"ElementNumberOfChannels = {ncomp}")
+    lines += [f"ElementType = {etype}", f"ElementDataFile = {raw_name}", ""]
+    path.write_text("\n".join(lines), encoding="ascii")
+
+
+def _write_nrrd(path: Path, data: np.ndarray, name: str, units: str, origin, h: float, ncomp: int,
+                frame: int, t: float | None) -> None:
+    nz, ny, nx = data.shape[:3]
+    ntype = {np.dtype("<f4"): "float", np.dtype("u1"): "uint8"}[data.dtype]
+    dirs = f"({h!r},0,0) (0,{h!r},0) (0,0,{h!r})"
+    if ncomp > 1:
+        head = ["dimension: 4", f"sizes: {ncomp} {nx} {ny} {nz}", f"space directions: none {dirs}",
+                "kinds: vector domain domain domain"]
+    else:
+        head = ["dimension: 3", f"sizes: {nx} {ny} {nz}", f"space directions: {dirs}",
+                "kinds: domain domain domain"]
+    lines = ["NRRD0004", f"# schlieren export: {name}, store frame {frame}", f"type: {ntype}",
+             "space dimension: 3", *head, "endian: little", "encoding: raw",
+             f"space origin: ({origin[0]!r},{origin[1]!r},{origin[2]!r})", 'space units: "m" "m" "m"',
+             f"content: {name}", f"frame:={frame}", f"units:={units}"]
+    if t is not None:
+        lines.append(f"time:={t!r}")
+    header = ("\n".join(lines) + "\n\n").encode("ascii")
+    with open(path, "wb") as fh:
+        fh.write(header)
+        fh.write(data.tobytes(order="C"))

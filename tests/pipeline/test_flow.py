@@ -1,0 +1,178 @@
+"""Deflection kernels against synthetic images with known displacement fields."""
+
+import cv2
+import numpy as np
+import pytest
+from flow_helpers import NoiseBackground, pixel_truth, plume_deflection, render
+
+from schlieren.pipeline import flow as F
+from schlieren.pipeline.geometry import FlowGrid
+
+SHAPE = (96, 128)
+
+
+@pytest.fixture(scope="module")
+def background():
+    return NoiseBackground(SHAPE, rng=np.random.default_rng(11), feature_px=1.0)
+
+
+@pytest.fixture(scope="module")
+def reference(background):
+    return render(background, SHAPE)
+
+
+def shift(du, dv):
+    return lambda u, v: (np.full_like(u, du), np.full_like(v, dv))
+
+
+def interior(a, m=16):
+    return a[m:-m, m:-m]
+
+
+@pytest.mark.parametrize("method", F.METHODS)
+def test_identical_images_give_zero_flow(reference, method):
+    flow = F.deflection_field(reference, reference.copy(), method=method)
+    assert flow.shape == SHAPE + (2,) and flow.dtype == np.float32
+    assert np.abs(flow).max() < 1e-3
+
+
+# classic top-hat window correlation is biased towards zero (loss of pairs at the edges)
+@pytest.mark.parametrize("method,tol", [("lk", 0.01), ("hs", 0.02), ("correlation", 0.1),
+                                        ("dis", 0.1)])
+@pytest.mark.parametrize("du,dv", [(0.25, -0.1), (0.6, 0.35), (-0.9, 0.8)])
+def test_subpixel_shift_recovered(background, reference, method, tol, du, dv):
+    frame = render(background, SHAPE, shift(du, dv))
+    flow = interior(F.deflection_field(reference, frame, method=method))
+    mean = flow.reshape(-1, 2).mean(axis=0)
+    assert abs(mean[0] - du) < tol and abs(mean[1] - dv) < tol, mean
+    assert np.median(np.linalg.norm(flow - [du, dv], axis=-1)) < 2 * tol
+
+
+def test_sign_convention_frame_samples_reference_at_p_plus_delta(background, reference):
+    # frame(p) = reference(p + (0.5, 0)): the pattern moved to the LEFT in the frame,
+    # the deflection is +0.5 px in u (SPEC flow convention).
+    frame = render(background, SHAPE, shift(0.5, 0.0))
+    flow = interior(F.deflection_field(reference, frame))
+    assert flow[..., 0].mean() == pytest.approx(0.5, abs=0.01)
+    assert abs(flow[..., 1].mean()) < 0.01
+    # consistent with warp_image: warping the reference by the flow reproduces the frame
+    # (up to interpolation error of the pixel-scale pattern), the unwarped one does not
+    warped = F.warp_image(reference, F.deflection_field(reference, frame))
+    err_warped = np.abs(interior(warped - frame)).mean()
+    err_unwarped = np.abs(interior(reference - frame)).mean()
+    assert err_warped < 0.1 * err_unwarped
+
+
+def test_warp_image_is_exact_for_smooth_images():
+    H, W = 48, 64
+    y, x = np.mgrid[0:H, 0:W].astype(float)
+    f = lambda x, y: np.sin(0.3 * x + 0.2 * y) + 0.5 * np.cos(0.17 * x - 0.25 * y)  # noqa: E731
+    img = f(x, y).astype(np.float32)
+    flow = np.stack([0.3 * np.sin(y / 9.0), -0.7 + 0.1 * np.cos(x / 7.0)], -1)
+    out = F.warp_image(img, flow)
+    expect = f(x + flow[..., 0], y + flow[..., 1])
+    assert np.abs(out - expect)[4:-4, 4:-4].max() < 2e-3
+    # identity warp returns the image (the B-spline interpolates)
+    assert np.abs(F.warp_image(img, np.zeros_like(flow)) - img)[4:-4, 4:-4].max() < 1e-4
+
+
+@pytest.fixture(scope="module")
+def plume_case():
+    rng = np.random.default_rng(5)
+    shape = (150, 201)
+    bg = NoiseBackground(shape, rng=rng, feature_px=1.0)
+    defl = plume_deflection(shape, peak=0.8, width=shape[1] / 6)
+    ref = render(bg, shape, noise=1.0, rng=rng)
+    frm = render(bg, shape, defl, noise=1.0, rng=rng)
+    grid = FlowGrid((shape[1], shape[0]), 3)
+    truth = F.downsample_flow(pixel_truth(defl, shape).astype(np.float32), grid)
+    inside = np.linalg.norm(truth, axis=-1) > 0.02
+    inside[:3], inside[-3:], inside[:, :3], inside[:, -3:] = False, False, False, False
+    return ref, frm, truth, inside, grid
+
+
+def test_lk_recovers_plume_and_beats_correlation(plume_case):
+    ref, frm, truth, inside, grid = plume_case
+    lk = F.deflection_stage(ref, frm, F.FlowParams())
+    assert lk.shape == grid.shape + (2,)
+    err_lk = F.endpoint_error(lk, truth, inside)
+    err_corr = F.endpoint_error(F.deflection_stage(ref, frm, F.FlowParams(method="correlation")),
+                                truth, inside)
+    assert err_lk < 0.025
+    assert err_lk < 0.7 * err_corr
+    # plume sign: rays bend away from the axis (u > 0 right of it, u < 0 left of it)
+    mid = truth.shape[1] // 2
+    assert lk[40:45, mid + 5:mid + 15, 0].mean() > 0.1
+    assert lk[40:45, mid - 15:mid - 5, 0].mean() < -0.1
+
+
+def test_full_resolution_then_downsample_beats_downsampled_images(plume_case):
+    ref, frm, truth, inside, grid = plume_case
+    full = F.deflection_stage(ref, frm, F.FlowParams())
+    f = grid.factor
+    rows, cols = grid.shape
+
+    def area(img):
+        return cv2.resize(img[: rows * f, : cols * f], (cols, rows), interpolation=cv2.INTER_AREA)
+
+    small = F.deflection_field(area(ref), area(frm), window=5) * f  # pixels of the original
+    err_full = F.endpoint_error(full, truth, inside)
+    err_small = F.endpoint_error(small, truth, inside)
+    assert err_full < 0.6 * err_small, (err_full, err_small)
+
+
+def test_prepared_reference_gives_identical_result(plume_case):
+    ref, frm, *_ = plume_case
+    p = F.FlowParams()
+    prep = F.prepare_reference(ref, **p.reference_kwargs())
+    np.testing.assert_array_equal(F.deflection_stage(prep, frm, p), F.deflection_stage(ref, frm, p))
+    with pytest.raises(ValueError, match="PreparedReference"):
+        F.deflection_stage(prep, frm, F.FlowParams(levels=2))
+
+
+def test_remove_outliers_replaces_spikes_and_keeps_smooth_field():
+    rng = np.random.default_rng(2)
+    H, W = 60, 80
+    y, x = np.mgrid[0:H, 0:W]
+    smooth = np.stack([0.5 * np.sin(x / 12.0), 0.3 * np.cos(y / 9.0)], -1).astype(np.float32)
+    noisy = smooth + rng.normal(0, 0.003, smooth.shape).astype(np.float32)
+    cleaned, flags = F.remove_outliers(noisy, threshold=3.0, epsilon=0.01)
+    assert flags.mean() < 0.002  # essentially no false positives
+    spikes = noisy.copy()
+    idx = (rng.integers(2, H - 2, 30), rng.integers(2, W - 2, 30))
+    spikes[idx] += np.float32(0.8)
+    cleaned, flags = F.remove_outliers(spikes, threshold=3.0, epsilon=0.01)
+    assert flags[idx].all()
+    assert np.abs(cleaned[idx] - smooth[idx]).max() < 0.05
+    assert spikes[idx][0, 0] != cleaned[idx][0, 0]  # input was not mutated: copies differ
+
+
+def test_downsample_is_block_mean_with_crop():
+    H, W, f = 10, 14, 3
+    flow = np.random.default_rng(0).normal(size=(H, W, 2)).astype(np.float32)
+    out = F.downsample_flow(flow, FlowGrid((W, H), f))
+    assert out.shape == (3, 4, 2)
+    expect = flow[:9, :12].reshape(3, 3, 4, 3, 2).mean(axis=(1, 3))
+    np.testing.assert_allclose(out, expect, atol=1e-6)
+    with pytest.raises(ValueError):
+        F.downsample_flow(flow, FlowGrid((H, W), f))
+
+
+def test_stage_shape_dtype_and_input_not_mutated(reference, background):
+    frame = render(background, SHAPE, shift(0.3, 0.0))
+    before_r, before_f = reference.copy(), frame.copy()
+    out = F.deflection_stage(reference, frame, F.FlowParams(factor=4))
+    assert out.shape == (SHAPE[0] // 4, SHAPE[1] // 4, 2) and out.dtype == np.float32
+    np.testing.assert_array_equal(reference, before_r)
+    np.testing.assert_array_equal(frame, before_f)
+
+
+def test_bad_inputs_are_rejected(reference):
+    with pytest.raises(ValueError, match="method"):
+        F.deflection_field(reference, reference, method="farneback")
+    with pytest.raises(ValueError, match="shape"):
+        F.deflection_field(reference, reference[:-1])
+    with pytest.raises(ValueError):
+        F.FlowParams(window=10)
+    with pytest.raises(ValueError):
+        F.FlowParams(method="nope")

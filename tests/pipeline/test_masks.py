@@ -1,0 +1,125 @@
+"""Flow masks: Poisson integration, the global threshold reduction, spatio-temporal dilation."""
+
+import numpy as np
+import pytest
+
+from schlieren.pipeline import masks as M
+
+
+def gaussian_phi(h, w, *, cx, cy, s, amp=1.0):
+    y, x = np.mgrid[0:h, 0:w].astype(float)
+    return amp * np.exp(-((x - cx) ** 2 + (y - cy) ** 2) / (2 * s**2)), x, y
+
+
+def hot_plume_flow(h, w, *, cx, cy, s, amp=1.0):
+    """delta = -grad(phi) for a Gaussian deficit phi: rays bent away from the centre."""
+    phi, x, y = gaussian_phi(h, w, cx=cx, cy=cy, s=s, amp=amp)
+    return np.stack([phi * (x - cx) / s**2, phi * (y - cy) / s**2], -1).astype(np.float32), phi
+
+
+def test_potential_integrates_a_gradient_field_with_positive_sign():
+    flow, phi = hot_plume_flow(60, 80, cx=37.3, cy=28.0, s=7.0, amp=5.0)
+    P = M.flow_potential(flow)
+    assert P.shape == (60, 80) and P.dtype == np.float32
+    expect = phi - np.median(phi)
+    assert np.abs(P - expect).max() < 0.02 * phi.max()
+    assert P[28, 37] > 0.9 * phi.max()  # hot plume -> positive potential
+
+
+def test_potential_least_squares_ignores_curl_noise():
+    rng = np.random.default_rng(0)
+    flow, phi = hot_plume_flow(64, 64, cx=30, cy=34, s=6.0, amp=4.0)
+    noisy = flow + rng.normal(0, 0.05, flow.shape).astype(np.float32)
+    P = M.flow_potential(noisy)
+    corr = np.corrcoef(P.ravel(), phi.ravel())[0, 1]
+    assert corr > 0.98
+
+
+def test_threshold_is_sign_robust_and_masks_a_cold_flow_too():
+    flow, phi = hot_plume_flow(50, 50, cx=25, cy=25, s=5.0, amp=3.0)
+    P_hot = M.flow_potential(flow)
+    P_cold = M.flow_potential(-flow)
+    np.testing.assert_allclose(P_cold, -P_hot, atol=1e-5)
+    thr = M.threshold_from_samples(P_hot, percentile=90)
+    m_hot = M.make_mask(P_hot[None], 0, thr, dilation_radius=0, temporal_radius=0)
+    m_cold = M.make_mask(P_cold[None], 0, thr, dilation_radius=0, temporal_radius=0)
+    np.testing.assert_array_equal(m_hot, m_cold)
+    assert m_hot[25, 25] and not m_hot[0, 0]
+
+
+def test_threshold_from_summaries_matches_pooled_percentile():
+    rng = np.random.default_rng(1)
+    frames = [rng.gamma(2.0, s, size=(n, 40)) for s, n in ((1.0, 30), (3.0, 30), (0.5, 60))]
+    summaries = [M.potential_summary(f, smooth_sigma=0.0, n_quantiles=400) for f in frames]
+    assert all(s.shape == (401,) for s in summaries)
+    pooled = np.concatenate([f.ravel() for f in frames])
+    for pct in (50.0, 80.0, 97.0):
+        thr = M.threshold_from_summaries(summaries, percentile=pct)
+        frac_below = np.mean(pooled < thr)
+        assert abs(frac_below - pct / 100) < 0.004, (pct, frac_below)
+        assert thr == pytest.approx(M.threshold_from_samples(pooled, percentile=pct), rel=0.02)
+
+
+def test_mask_contains_plume_support_over_a_sequence():
+    # a plume drifting 1 cell per frame; support = where the true deflection > 0.02 px
+    h, w, n = 72, 96, 7
+    flows, supports = [], []
+    rng = np.random.default_rng(3)
+    for t in range(n):
+        f, _ = hot_plume_flow(h, w, cx=40 + t, cy=36, s=6.0, amp=4.0)
+        supports.append(np.linalg.norm(f, axis=-1) > 0.02)
+        flows.append(f + rng.normal(0, 0.005, f.shape).astype(np.float32))
+    P = np.stack([M.flow_potential(f) for f in flows])
+    params = M.MaskParams(percentile=85.0, deflection_threshold=0.0)
+    summaries = [M.potential_summary(p, **params.kwargs_for(M.potential_summary)) for p in P]
+    thr = M.threshold_from_summaries(summaries, **params.kwargs_for(M.threshold_from_summaries))
+    for t in range(n):
+        m = M.make_mask(P, t, thr, **params.kwargs_for(M.make_mask))
+        s = supports[t]
+        assert m[s].mean() >= 0.995
+        assert m.sum() <= 3 * s.sum()
+
+
+def test_temporal_and_spatial_dilation():
+    P = np.zeros((3, 31, 31), np.float32)
+    P[2, 15, 15] = 1.0  # only the next frame has a (single-cell) signal
+    m0 = M.make_mask(P, 1, 0.5, smooth_sigma=0, dilation_radius=0, temporal_radius=0)
+    assert not m0.any()
+    m1 = M.make_mask(P, 1, 0.5, smooth_sigma=0, dilation_radius=0, temporal_radius=1)
+    assert m1.sum() == 1 and m1[15, 15]
+    m3 = M.make_mask(P, 1, 0.5, smooth_sigma=0, dilation_radius=3, temporal_radius=1)
+    yy, xx = np.mgrid[0:31, 0:31]
+    disk = (yy - 15) ** 2 + (xx - 15) ** 2 <= 9
+    np.testing.assert_array_equal(m3, disk)
+    # frames outside the given stack are simply absent (sequence ends)
+    m_end = M.make_mask(P, 2, 0.5, smooth_sigma=0, dilation_radius=0, temporal_radius=2)
+    assert m_end[15, 15]
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError):
+        M.MaskParams(percentile=100.0)
+    with pytest.raises(ValueError):
+        M.flow_potential(np.zeros((4, 4)))
+    with pytest.raises(ValueError):
+        M.make_mask(np.zeros((2, 4, 4)), 5, 0.1)
+
+
+def test_deflection_union_covers_strong_plume_flanks_without_noise_false_positives():
+    rng = np.random.default_rng(7)
+    h, w = 80, 100
+    flow, _ = hot_plume_flow(h, w, cx=50, cy=40, s=5.0, amp=30.0)  # strong: wide |delta| > 0.02
+    flow = flow + rng.normal(0, 0.004, flow.shape).astype(np.float32)
+    support = np.linalg.norm(hot_plume_flow(h, w, cx=50, cy=40, s=5.0, amp=30.0)[0], axis=-1) > 0.02
+    P = M.flow_potential(flow)[None]
+    params = M.MaskParams(percentile=97.0)
+    thr = M.threshold_from_samples(P, percentile=params.percentile)
+    core_only = M.make_mask(P, 0, thr, **params.kwargs_for(M.make_mask))
+    both = M.make_mask(P, 0, thr, flows=flow[None], **params.kwargs_for(M.make_mask))
+    assert core_only[support].mean() < 0.99          # the percentile alone misses the flanks
+    assert both[support].mean() >= 0.995
+    assert both.sum() <= 3 * support.sum()
+    noise = rng.normal(0, 0.004, (1, h, w, 2)).astype(np.float32)
+    empty = M.make_mask(np.zeros((1, h, w), np.float32), 0, 1.0, flows=noise,
+                        **params.kwargs_for(M.make_mask))
+    assert not empty.any()

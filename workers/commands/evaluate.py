@@ -1,0 +1,39 @@
+"""``schlieren evaluate STORE --truth TRUTH``: accuracy table (SPEC section 4)."""
+
+from __future__ import annotations
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser("evaluate", help="accuracy of a store against synthetic ground truth",
+                              description="Relative RMS and PSNR of the refractivity per frame and overall.")
+    p.add_argument("store", metavar="STORE")
+    p.add_argument("--truth", required=True, metavar="TRUTH", help="truth.zarr written by `schlieren synth`")
+    p.add_argument("--json", metavar="FILE", default=None, help="also write the figures as JSON")
+    p.set_defaults(func=handler)
+
+
+def _fmt(x: float, spec: str) -> str:
+    return format(x, spec) if x == x and abs(x) != float("inf") else str(x)
+
+
+def handler(args) -> int:
+    from rich.console import Console
+    from rich.table import Table
+
+    from schlieren.storage.synthetic_io import write_json
+    from schlieren.workers.evaluate import evaluate
+
+    res = evaluate(args.store, args.truth)
+    table = Table(title=f"accuracy of {args.store}")
+    for col in ("frame", "time (s)", "RMS (%)", "PSNR (dB)", "truth"):
+        table.add_column(col, justify="right")
+    for r in res["frames"]:
+        table.add_row(str(r["frame"]), f"{r['time']:.6f}", _fmt(100 * r["rms"], ".3f"), _fmt(r["psnr"], ".2f"),
+                      r["truth_from"])
+    o = res["overall"]
+    table.add_row("all", "", _fmt(100 * o["rms"], ".3f"), _fmt(o["psnr"], ".2f"), f"{o['frames']} frames",
+                  style="bold")
+    Console().print(table)
+    if args.json:
+        write_json(args.json, res)
+    return 0

@@ -1,0 +1,253 @@
+"""Synthesise a capture session with its ground truth (``schlieren synth``).
+
+Glue only: the physics is in :mod:`schlieren.pipeline.synthetic`, the files in
+:mod:`schlieren.storage.synthetic_io`. Frames are rendered frame by frame (all cameras of
+one raw frame share the phantom's time knots) and streamed to disk, so memory stays
+bounded by one frame's knots plus the reference images.
+
+Timeline (``docs/design.md``): camera ``c`` has a hidden offset ``off_c`` chosen so that
+the strobe flash at session time 0 lights a band of rows in raw frame 1 (and possibly the
+bottom rows of frame 0); the manifest's ``frames`` are ``[4, 4 + N)`` so processed
+frames never carry the flash and the two raw frames before them (2, 3) that a temporal
+resampler may load are clean too; two extra raw frames are rendered after the range.
+Output instant ``k`` is ``time[k] = (4 + k) / frame_rate + mean(off) + 0.5 * H * line_time``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time as _time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from schlieren.pipeline.geometry import FlowGrid, Grid, Medium
+from schlieren.pipeline.synthetic import render as R
+from schlieren.pipeline.synthetic.background import make_background, wavelet_noise_tile
+from schlieren.pipeline.synthetic.phantoms import make_phantom
+from schlieren.pipeline.synthetic.rig import make_rig
+from schlieren.pipeline.synthetic.tracer import active_box, field_stack
+from schlieren.storage import synthetic_io as sio
+
+__all__ = ["SynthResult", "synthesize", "FIRST_FRAME", "FLASH_FRAME"]
+
+log = logging.getLogger(__name__)
+
+FLASH_FRAME = 1
+FIRST_FRAME = 4
+TAIL_FRAMES = 2   # raw frames rendered after the processed range (rolling-shutter resampling margin)
+DEFAULT_BOX = ((-0.075, -0.075, 0.0), (0.075, 0.075, 0.3))
+
+
+@dataclass
+class SynthResult:
+    """What :func:`synthesize` wrote.
+
+    Attributes
+    ----------
+    session : Path
+        ``session.yaml``.
+    truth : Path
+        ``truth.zarr``.
+    time_offsets : ndarray (camera,)
+        The hidden per-camera offsets (seconds).
+    times : ndarray (frame,)
+        Output instants of the processed frames.
+    frames : (int, int)
+        Processed raw-frame range.
+    timings : dict
+        Seconds spent per phase.
+    """
+
+    session: Path
+    truth: Path
+    time_offsets: np.ndarray
+    times: np.ndarray
+    frames: tuple[int, int]
+    timings: dict = field(default_factory=dict)
+
+
+class _KnotFields:
+    """Field stacks of the phantom's knots, cached across consecutive frames."""
+
+    def __init__(self, phantom, grid: Grid):
+        self.phantom = phantom
+        self.grid = grid
+        self._cache: dict[int, np.ndarray] = {}
+
+    def get(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray]:
+        idx = self.phantom.knots_covering(t0, t1)
+        for k in [k for k in self._cache if k not in set(idx.tolist())]:
+            del self._cache[k]
+        for k in idx:
+            if k not in self._cache:
+                self._cache[int(k)] = field_stack([self.phantom.knot_refractivity(int(k))], self.grid)[0]
+        return np.stack([self._cache[int(k)] for k in idx]), self.phantom.knot_times[idx]
+
+
+def synthesize(out_dir, *, cameras: int = 16, ring: str = "half", phantom: str = "plume", frames: int = 8,
+               size: tuple[int, int] = (1440, 1080), flow_factor: int = 3, seed: int = 0, noise: float = 1.5,
+               bit_depth: int = 8, video: bool = False, strobe: bool = True, distortion: bool = False,
+               voxel_size: float | None = None, recon_voxel: float = 0.0025, frame_rate: float = 60.0,
+               line_time: float = 1.54e-5, box=DEFAULT_BOX, radius: float = 2.5,
+               background_distance: float = 2.5, height_jitter: float = 0.0, supersample: int = 3,
+               exposure: float = 1.0 / 120.0, medium: Medium = Medium(), knot_dt: float | None = None,
+               step: float | None = None, name: str | None = None) -> SynthResult:
+    """Render a synthetic session and its ground truth into ``out_dir``.
+
+    Parameters
+    ----------
+    out_dir : path
+        Receives ``session.yaml``, ``camNN/frames/%05d.png`` (or ``camNN/capture.mkv``),
+        ``camNN/reference.png`` and ``truth.zarr``.
+    cameras, ring :
+        Rig (see :func:`schlieren.pipeline.synthetic.rig.make_rig`).
+    phantom : {"plume", "tealights", "blob"}
+    frames : int
+        Frames to process (N); ``FIRST_FRAME + N + TAIL_FRAMES`` raw frames are rendered.
+    size : (int, int)
+        Image ``(width, height)``.
+    flow_factor : int
+        Flow-grid downsampling factor of the truth deflections (also the trace lattice stride).
+    seed : int
+    noise : float
+        Sensor noise (8-bit grey levels).
+    bit_depth : {8, 16}
+    video : bool
+        Encode each camera as a lossless FFV1 video instead of PNG frames (8-bit only).
+    strobe : bool
+        Flash in raw frame 1 and ``sync.strobe`` in the manifest (offsets hidden); False
+        writes each camera's ``time_offset`` instead and renders no flash.
+    distortion : bool
+        Mild radial/tangential lens distortion on every camera.
+    voxel_size : float, optional
+        Phantom (truth) voxel size in metres; default ``recon_voxel / 2``.
+    recon_voxel : float
+        The manifest's reconstruction voxel size (metres).
+    frame_rate, line_time, exposure :
+        Camera timing (seconds); ``exposure`` is used for the flash band.
+    box : ((x, y, z), (x, y, z))
+        Volume corners (metres).
+    supersample : int
+        Sub-positions per pixel side.
+    knot_dt : float, optional
+        Phantom time-knot spacing; default ``1 / (4 frame_rate)``.
+    step : float, optional
+        RK4 step (metres); default the phantom voxel size.
+    """
+    t_all = _time.perf_counter()
+    timings: dict[str, float] = {}
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    W, H = int(size[0]), int(size[1])
+    if bit_depth not in (8, 16):
+        raise ValueError("bit_depth must be 8 or 16")
+    if video and bit_depth != 8:
+        raise ValueError("video output is 8-bit only")
+    if H * line_time > 1.0 / frame_rate:
+        raise ValueError("H * line_time exceeds the frame period")
+    rng = np.random.default_rng(seed)
+    grid = Grid(box[0], box[1], recon_voxel)
+    fine = Grid(box[0], box[1], voxel_size if voxel_size is not None else recon_voxel / 2.0)
+    dist = [-0.05, 0.02, 0.0005, -0.0003, 0.0] if distortion else None
+    rig = make_rig(cameras, ring=ring, grid=grid, radius=radius, image_size=(W, H),
+                   background_distance=background_distance, height_jitter=height_jitter, distortion=dist,
+                   line_time=line_time, seed=seed)
+    # hidden offsets: the flash (t = 0) lights rows ending near r_edge in frame FLASH_FRAME
+    r_edge = rng.uniform(0.25 * H, 0.75 * H, cameras)
+    offsets = -FLASH_FRAME / frame_rate - r_edge * line_time - rng.uniform(0.0, line_time, cameras)
+    rig = [c.with_time_offset(o) for c, o in zip(rig, offsets)]
+    A = FIRST_FRAME
+    n_raw = A + frames + TAIL_FRAMES
+    times = (A + np.arange(frames)) / frame_rate + offsets.mean() + 0.5 * H * line_time
+    kdt = knot_dt if knot_dt is not None else 1.0 / (4.0 * frame_rate)
+    t_lo = offsets.min() - kdt
+    t_hi = offsets.max() + (n_raw - 1) / frame_rate + H * line_time + kdt
+    t0 = _time.perf_counter()
+    ph = make_phantom(phantom, fine, t_start=t_lo, duration=t_hi - t_lo, seed=seed, medium=medium, knot_dt=kdt)
+    timings["phantom"] = _time.perf_counter() - t0
+    fg = FlowGrid((W, H), flow_factor)
+    lattice = R.make_lattice((W, H), flow_factor)
+    sl = (slice(R.MARGIN, R.MARGIN + fg.shape[0]), slice(R.MARGIN, R.MARGIN + fg.shape[1]))
+
+    # truth: knots spanning the processed instants (one frame period of slack each side)
+    store_knots = ph.knots_covering(times[0] - 1.0 / frame_rate, times[-1] + 1.0 / frame_rate)
+    truth_path = out / "truth.zarr"
+    attrs = {"phantom": phantom, "cameras": cameras, "ring": ring, "frames": [A, A + frames],
+             "frame_rate": frame_rate, "line_time": line_time, "image_size": [W, H], "flow_factor": flow_factor,
+             "seed": seed, "noise": noise, "bit_depth": bit_depth, "strobe": strobe, "supersample": supersample,
+             "exposure": exposure, "knot_dt": kdt, "voxel_size": fine.voxel_size,
+             "volume": {"min": list(grid.vmin), "max": list(grid.vmax), "voxel_size": grid.voxel_size},
+             "time_note": "time[k] = (A + k)/frame_rate + mean(time_offset) + 0.5*H*line_time; "
+                          "the phantom is linear in time between knot_time samples"}
+    tw = sio.TruthWriter(truth_path, grid=fine, n_frames=frames, n_knots=len(store_knots), n_cameras=cameras,
+                         flow_shape=fg.shape, attrs=attrs)
+    tw.write_times(times, ph.knot_times[store_knots], offsets)
+    for j, k in enumerate(store_knots):
+        tw.write_knot(j, ph.knot_refractivity(int(k)))
+    for k, t in enumerate(times):
+        tw.write_refractivity(k, ph.refractivity(float(t)))
+
+    # backgrounds and references
+    tile = wavelet_noise_tile(256, seed=seed)
+    t0 = _time.perf_counter()
+    bgs, refs, files, sinks = [], [], {}, {}
+    for i, cam in enumerate(rig):
+        zbg = float(np.linalg.norm(cam.center - cam.bg_point))
+        bg = make_background(cam.bg_point, cam.bg_normal, spacing=1.5 * zbg / cam.K[0, 0], tile=tile,
+                             seed=seed * 1000 + i + 1)
+        ref = R.reference_image(cam, bg, supersample=supersample, stride=flow_factor)
+        rel_ref = sio.write_reference(out, cam.name, R.sensor(ref, noise=0.0, bit_depth=bit_depth, rng=rng))
+        bgs.append(bg)
+        refs.append(ref)
+        if video:
+            sinks[cam.name] = sio.VideoSink(out, cam.name, frame_rate, (W, H))
+            files[cam.name] = (sinks[cam.name].rel, rel_ref)
+        else:
+            files[cam.name] = (sio.frame_pattern(cam.name), rel_ref)
+    timings["references"] = _time.perf_counter() - t0
+
+    knots = _KnotFields(ph, fine)
+    n_amb = medium.n_ambient
+    t_render = 0.0
+    t_truth = 0.0
+    for f in range(n_raw):
+        t0 = _time.perf_counter()
+        fields, kt = knots.get(offsets.min() + f / frame_rate, offsets.max() + f / frame_rate + H * line_time)
+        box_f = active_box(fields, fine, tol=1e-5)
+        k = f - A
+        for i, cam in enumerate(rig):
+            tr = R.trace_lattice(cam, lattice, fields, kt, fine, frame=f, frame_rate=frame_rate, step=step,
+                                 n_ambient=n_amb, clip_box=box_f)
+            img, dpx = R.render_image(cam, bgs[i], tr, lattice, refs[i], supersample=supersample)
+            if strobe:
+                lit = R.flash_rows(cam, f, frame_rate=frame_rate, exposure=exposure)
+                if lit.any():
+                    img = R.apply_flash(img, lit, R.RenderParams().flash_gain)
+            frame_img = R.sensor(img, noise=noise, bit_depth=bit_depth, rng=rng)
+            if video:
+                sinks[cam.name].write(frame_img)
+            else:
+                sio.write_frame(out, cam.name, f, frame_img)
+            if 0 <= k < frames:
+                ts = _time.perf_counter()
+                gs = R.trace_lattice(cam, lattice, fields, kt, fine, frame=None, time=float(times[k]),
+                                     frame_rate=frame_rate, step=step, n_ambient=n_amb, clip_box=box_f)
+                _, dgs = R.render_image(cam, bgs[i], gs, lattice, refs[i], supersample=supersample)
+                tw.write_camera_frame(i, k, d_in=gs.d_in[sl], d_out=gs.d_out[sl],
+                                      deflection=R.cell_average(dgs, fg),
+                                      deflection_rs=R.cell_average(dpx, fg))
+                t_truth += _time.perf_counter() - ts
+        t_render += _time.perf_counter() - t0
+        log.info("synth: raw frame %d/%d done", f + 1, n_raw)
+    for s in sinks.values():
+        s.close()
+    timings["frames_total"] = t_render
+    timings["truth_traces"] = t_truth
+    session = sio.write_manifest(out, name=name or f"synthetic-{phantom}-{cameras}{ring}", frame_rate=frame_rate,
+                                 frames=(A, A + frames), grid=grid, medium=medium, cameras=rig, camera_files=files,
+                                 strobe_search=(0, A) if strobe else None)
+    timings["total"] = _time.perf_counter() - t_all
+    return SynthResult(session=session, truth=truth_path, time_offsets=offsets, times=times, frames=(A, A + frames),
+                       timings=timings)
