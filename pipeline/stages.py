@@ -28,7 +28,7 @@ from schlieren.pipeline import sync as _sync
 from schlieren.pipeline import tomography as _tomo
 
 __all__ = ["Stage", "RunConfig", "STAGES", "stage", "FrameStatsParams", "frame_statistics",
-           "config_from_dict", "config_to_dict", "kernel_kwargs"]
+           "config_from_dict", "config_to_dict", "kernel_kwargs", "bind_medium"]
 
 
 @dataclass(frozen=True)
@@ -82,6 +82,16 @@ class RunConfig:
     def flow_factor(self) -> int:
         """Downsampling factor from image pixels to the flow grid."""
         return self.flow.factor
+
+
+def bind_medium(cfg: RunConfig, n_ambient: float) -> RunConfig:
+    """The configuration with every ``n_ambient`` parameter set to the session's medium."""
+    out = {}
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        if dataclasses.is_dataclass(value) and any(g.name == "n_ambient" for g in dataclasses.fields(value)):
+            out[f.name] = dataclasses.replace(value, n_ambient=float(n_ambient))
+    return dataclasses.replace(cfg, **out)
 
 
 def kernel_kwargs(params, kernel: Callable) -> dict:

@@ -8,7 +8,7 @@ import yaml
 
 from schlieren.storage.errors import SchlierenInputError
 
-__all__ = ["read_params"]
+__all__ = ["read_params", "write_params_text"]
 
 
 def read_params(path: str | Path) -> dict:
@@ -25,3 +25,12 @@ def read_params(path: str | Path) -> dict:
     if not isinstance(data, dict):
         raise SchlierenInputError("expected a mapping of stage -> parameters", file=str(p))
     return data
+
+
+def write_params_text(path: str | Path, text: str) -> Path:
+    """Write a parameters file; refuses to overwrite an existing one."""
+    p = Path(path)
+    if p.exists():
+        raise SchlierenInputError("exists already; not overwriting it", file=str(p))
+    p.write_text(text)
+    return p

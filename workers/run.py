@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Callable
 
 from schlieren.pipeline.geometry import FlowGrid
-from schlieren.pipeline.stages import STAGES, RunConfig, config_to_dict
+from schlieren.pipeline.stages import STAGES, RunConfig, bind_medium, config_to_dict
 from schlieren.storage.layout import result_layout
 from schlieren.storage.session import Session, load_session
 from schlieren.storage.store import ResultStore
@@ -123,8 +123,8 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
     report : str, optional
         Path of a Dask performance report (HTML), with a client.
     """
-    cfg = config or RunConfig()
     session = load_session(session_path, frames=frames)
+    cfg = bind_medium(config or RunConfig(), session.medium.n_ambient)
     store, ext, token = prepare_store(session, out_path, cfg)
     plan = make_plan(ext, token, done=store.is_done)
     if on_plan:
