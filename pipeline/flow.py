@@ -80,8 +80,8 @@ class FlowParams:
     presmooth : float
         Gaussian sigma (pixels) applied to both images before the flow; 0 disables.
     regularisation : float
-        LK Tikhonov weight, relative to the mean structure-tensor trace: pulls the flow
-        of textureless windows towards zero.
+        LK Tikhonov weight ``lambda = regularisation * mean(trace T) / 2`` added to the
+        structure tensor ``T``: pulls the flow of textureless windows towards zero.
     alpha : float
         Horn-Schunck smoothness weight (in units of the normalised image gradient).
     inner_iterations : int
@@ -97,11 +97,13 @@ class FlowParams:
         Hann-taper the interrogation windows (reduces edge effects; the classic top-hat
         window is ``False``).
     outlier_threshold : float
-        Normalised median test threshold (Westerweel & Scarano 2005); 0 disables.
+        Normalised median test threshold (Westerweel & Scarano 2005), applied on the
+        flow grid (see :func:`deflection_stage`); 0 disables.
     outlier_epsilon : float
         Noise floor of the normalised median test, pixels.
     smoothing_sigma : float
-        Gaussian smoothing of the full-resolution flow, pixels; 0 disables.
+        Gaussian smoothing of the flow, in full-resolution pixels (applied on the flow
+        grid as ``smoothing_sigma / factor``); 0 disables.
     factor : int
         Area-downsampling factor to the flow grid (rows = H // factor, cols = W // factor).
     """

@@ -20,14 +20,18 @@ smoothed by a Gaussian of ``sigma`` voxels), eigen-decomposition with
 gradient direction) and ``alpha + (1 - alpha) exp(-max|g| / (k (lambda0 - lambda_j)^2))``.
 
 Units of the exponent: the Appendix's ``k = 0.5e-5`` is not dimensionless (the exponent
-scales as ``|g|^-3``). We evaluate it on the gradient expressed *per voxel* in units in
-which the field spans ``value_scale`` (255 by default, i.e. an 8-bit volume such as the
-paper's fuel-injection data set): ``g_hat = g * h * value_scale / range_est``, where
-``range_est`` is the largest excursion of the gradient's running integral along the grid
-axes (a cheap estimate of the refractivity range). With ``max|g_hat| = M`` the exponent at
-a sharp edge is about ``1 / (k M^3)``, of order one for ``M ~ 60``, so the anisotropy
-switches on at the strongest edges and ``D = alpha I`` (equivalent to plain Poisson)
-where the structure is isotropic. ``alpha = 1`` gives plain Poisson.
+scales as ``|g|^-3``) and the paper does not give its units. We evaluate it on the
+gradient expressed *per voxel* in units in which the field spans ``value_scale``:
+``g_hat = g * h * value_scale / range_est``, where ``range_est`` is the largest excursion
+of the gradient's running integral along the grid axes (a cheap estimate of the
+refractivity range). With ``max|g_hat| = M`` the exponent at a sharp edge is about
+``1 / (k M^3)``. The default ``value_scale = 65535`` (a 16-bit volume) makes the paper's
+``k`` switch the anisotropy on at the plume's edges; with 8-bit units (255) the exponent
+is > 100 almost everywhere and ``D = alpha I``, i.e. plain Poisson. On the project's
+plume (benchmarks/tomography.py) the 16-bit units with alpha = 0.8 gain 0.6-0.9 dB over
+plain Poisson on tomographic gradients (paper: about 1 dB) and lose 0.4 dB on exact
+gradients (where alpha = 1 is the right choice, as the Appendix says). ``alpha = 1``
+gives plain Poisson.
 """
 
 from __future__ import annotations
@@ -65,7 +69,7 @@ class PoissonParams:
     k : float
         Edge constant of the Appendix, in the units described in the module docstring.
     value_scale : float
-        The field range those units assume (255: 8-bit volume).
+        The field range those units assume (65535: 16-bit volume; see the module notes).
     solver : str
         ``"mg"`` (default: CG preconditioned by one geometric-multigrid V-cycle of the
         hull Laplacian, rebuilt per frame at negligible cost), ``"amg"`` (CG
@@ -80,7 +84,7 @@ class PoissonParams:
     alpha: float = 0.8
     sigma: float = 0.5
     k: float = 0.5e-5
-    value_scale: float = 255.0
+    value_scale: float = 65535.0
     solver: str = "mg"
     tol: float = 1e-6
     max_iter: int = 5000
@@ -108,7 +112,7 @@ def _range_estimate(g: np.ndarray, h: float) -> float:
 
 
 def diffusion_tensor(g: np.ndarray, h: float, *, alpha: float, sigma: float, k: float,
-                     value_scale: float = 255.0, where: np.ndarray | None = None) -> np.ndarray:
+                     value_scale: float = 65535.0, where: np.ndarray | None = None) -> np.ndarray:
     """Edge-preserving diffusion tensor of the Appendix.
 
     Parameters

@@ -3,6 +3,8 @@
 Both read the store directly (no Dask needed: the figures are small and the per-camera
 forward operators are built once); these functions only choose default output paths and
 log, so that ``schlieren report``, ``schlieren export`` and ``schlieren demo`` share them.
+The report itself is built by :func:`schlieren.workers.report_build.build_report`
+(reads via :mod:`schlieren.storage.report`, computes via :mod:`schlieren.pipeline`).
 """
 
 from __future__ import annotations
@@ -12,9 +14,9 @@ import os
 from pathlib import Path
 
 from schlieren.storage.export import ExportResult, export
-from schlieren.storage.report import write_report
+from schlieren.workers.report_build import build_report
 
-__all__ = ["default_report_dir", "default_export_dir", "make_report", "generate_export"]
+__all__ = ["default_report_dir", "default_export_dir", "make_report", "generate_export", "build_report"]
 
 log = logging.getLogger(__name__)
 
@@ -55,7 +57,7 @@ def make_report(store: str | os.PathLike, out_dir: str | os.PathLike | None = No
         Per-camera figures for the first cameras only.
     """
     out = Path(out_dir) if out_dir is not None else default_report_dir(store)
-    index = write_report(store, out, frames=frames, max_cameras=max_cameras, evaluation=evaluation)
+    index = build_report(store, out, frames=frames, max_cameras=max_cameras, evaluation=evaluation)
     log.info("report of %s: %s", store, index)
     return index
 

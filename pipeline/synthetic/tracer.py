@@ -8,10 +8,13 @@ The ray equation ``d/ds (n dx/ds) = grad n`` is integrated as the first-order sy
 with ``d = n * (unit direction)`` and ``s`` the arc length, by the classical fourth-order
 Runge-Kutta method with a fixed step. ``n = 1 + r`` and ``grad n`` are interpolated
 trilinearly from the refractivity ``r`` and its central-difference gradient, both
-sampled at the voxel centres of a :class:`~schlieren.pipeline.geometry.Grid`
-(the interpolated field is continuous, its gradient piecewise smooth; RK4 on it
-converges with order 2 in the step because of the kinks at the cell faces, order 4
-away from them).
+sampled at the voxel centres of a :class:`~schlieren.pipeline.geometry.Grid`.
+The interpolated gradient is continuous but kinked at the cell faces, so RK4 does not
+reach its order 4 here: measured on a strongly deflecting blob (tests), the error drops
+about 20x from a step of one voxel to half a voxel and then roughly halves with each
+halving of the step; it is about 4e-6 of the deflection at a step of one voxel (the
+renderer's default) and 2e-7 at a quarter voxel (this module's default), and the result
+agrees with scipy's adaptive DOP853 on the same field.
 
 Outside the box the medium is ambient and rays are straight. Rays are marched only
 inside the *active* sub-box where ``grad n`` is not negligible (``clip_tol``); the

@@ -20,7 +20,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from schlieren.storage.report import write_report
+from schlieren.workers.report import make_report
 
 WIDTH, HEIGHT = 1280, 2000
 BROWSERS = ("chromium", "chromium-browser", "chromium-headless-shell", "google-chrome", "/usr/bin/chromium")
@@ -57,7 +57,7 @@ def test_report_page_screenshot(tmp_path):
     browser = _browser()
     fx = _fixture_module()
     store = fx.make_store(tmp_path)
-    index = write_report(store, tmp_path / "report")
+    index = make_report(store, tmp_path / "report")
 
     handler = type("H", (_Handler,), {"requested": []})
     server = http.server.ThreadingHTTPServer(("127.0.0.1", 0),

@@ -1,17 +1,22 @@
-"""The HTML report of a small synthetic result store with known answers.
+"""The report's file layer (``storage.report``) on a small synthetic result store with known answers.
 
 ``make_store`` builds a store in the layout of SPEC section 2 / docs/design.md: a hot
 Gaussian blob rising over 3 frames on a 24 x 20 x 16 grid, its exact gradient, a hull,
 derived quantities, and 2 cameras whose flow is the blob's re-projected deflection plus
 Gaussian noise of known RMS (so the report's re-projection residual must equal the noise).
-It is also used by tests/storage/test_export.py and tests/e2e/test_report_browser.py.
+It is also used by tests/workers/test_report_build.py (the report's figures and
+residuals), tests/storage/test_export.py and tests/e2e/test_report_browser.py.
+
+Here: the read model returns the store's plain data exactly, the writer writes what it is
+handed, and this module computes nothing (it imports no pipeline kernel).
 """
 
 from __future__ import annotations
 
+import ast
 import json
-import re
-from html.parser import HTMLParser
+import subprocess
+import sys
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -23,7 +28,7 @@ from schlieren.pipeline.geometry import Camera, FlowGrid, Grid, Medium
 from schlieren.pipeline.residuals import predict_flows
 from schlieren.pipeline.tomography import build_geometry
 from schlieren.storage.errors import StoreError
-from schlieren.storage.report import write_report
+from schlieren.storage.report import ReportPage, ReportReader, ReportWriter, frame_range, html_img, html_table
 
 MEDIUM = Medium()
 R_AMB = MEDIUM.refractivity_ambient
@@ -159,169 +164,179 @@ def make_store(root: Path, *, partial: str | None = None, seed: int = 0) -> Path
     return store_path
 
 
-class _Links(HTMLParser):
-    def __init__(self):
-        super().__init__()
-        self.links = []
 
-    def handle_starttag(self, tag, attrs):
-        for k, v in attrs:
-            if k in ("src", "href") and v and not v.startswith("#"):
-                self.links.append(v)
+STORAGE_REPORT = Path(__file__).resolve().parents[2] / "storage" / "report.py"
+COMPUTING_MODULES = ("schlieren.pipeline.viz", "schlieren.pipeline.residuals", "schlieren.pipeline.tomography")
 
 
 @pytest.fixture(scope="module")
-def report(tmp_path_factory):
-    root = tmp_path_factory.mktemp("report")
-    store = make_store(root)
-    evaluation = {"truth": "truth.zarr", "overall": {"rms": 0.0125, "psnr": 38.06, "mean_psnr": 38.1, "frames": 3},
-                  "frames": [{"frame": k, "time": (1 + k) / FRAME_RATE, "rms": 0.0125, "psnr": 38.06,
-                              "truth_from": "frame"} for k in range(N_FRAMES)]}
-    index = write_report(store, root / "out", evaluation=evaluation)
-    return store, index
+def store(tmp_path_factory):
+    return make_store(tmp_path_factory.mktemp("report_store"))
 
 
-def test_report_writes_page_with_existing_relative_links(report):
-    store, index = report
-    assert index.name == "index.html" and index.exists()
-    parser = _Links()
-    parser.feed(index.read_text())
-    assert len(parser.links) >= 10
-    for link in parser.links:
-        assert not link.startswith(("/", "http:", "https:", "file:")), link
-        assert (index.parent / link).exists(), link
-    html = index.read_text()
-    for name in ("deflection_cam00.png", "deflection_cam01.png", "hull.png", "slices_refractivity.png",
-                 "slices_temperature.png", "render.png", "render.gif", "residual_cam00.png", "timings.png"):
-        assert f"figures/{name}" in html, name
-    assert "synthetic-blob" in html
-    assert "Missing from the store" not in html
-    assert "capture frame 2" in html  # store frame 1 of a run over capture frames 1..3
-    # every navigation link has its section
-    anchors = re.findall(r'<nav>(.*?)</nav>', html)[0]
-    for target in re.findall(r'href="#([^"]+)"', anchors):
-        assert f'<section id="{target}">' in html, target
-    # the accuracy table (SPEC section 4) from the evaluation passed in
-    assert re.search(r"<td>overall</td><td></td><td>1.25</td><td>38.06</td>", html)
+def _stored(store_path, name, index):
+    """What the store holds, cast as the reader casts it (float64)."""
+    return np.asarray(zarr.open_group(str(store_path), mode="r")[name][index]).astype(np.float64)
 
 
-def test_figures_are_real_images(report):
-    _, index = report
-    fig = index.parent / "figures"
-    for name in ("deflection_cam00.png", "hull.png", "slices_temperature.png", "residual_cam01.png"):
-        img = iio.imread(fig / name)
-        assert img.ndim == 3 and img.shape[0] > 200 and img.shape[1] > 300
-        assert img[..., :3].std() > 10  # not a blank canvas
+def test_reader_returns_the_stores_plain_data(store):
+    rd = ReportReader(store)
+    assert rd.name == "synthetic-blob" and rd.n_frames == N_FRAMES and rd.missing_arrays == []
+    grid = rd.grid()
+    assert grid.shape == GRID.shape == (16, 20, 24)
+    np.testing.assert_allclose(grid.vmin, GRID.vmin, atol=1e-12)
+    np.testing.assert_allclose(grid.vmax, GRID.vmax, atol=1e-12)
+    assert grid.voxel_size == pytest.approx(GRID.voxel_size, rel=1e-12)
+    cams, note = rd.cameras()
+    assert note == "" and [c.name for c in cams] == [c.name for c in CAMERAS]
+    for got, want in zip(cams, CAMERAS):
+        np.testing.assert_allclose(got.K, want.K)
+        np.testing.assert_allclose(got.R, want.R)
+        np.testing.assert_allclose(got.t, want.t)
+        assert got.image_size == IMAGE and got.time_offset == 0.0
+    med = rd.medium()
+    assert med.n_ambient == MEDIUM.n_ambient and med.T_ambient == MEDIUM.T_ambient
+    np.testing.assert_array_equal(rd.times(), (1 + np.arange(N_FRAMES)) / FRAME_RATE)
+    assert rd.params["tomography"]["step"] == 0.25
+    assert rd.mask_threshold() == 0.05
+    # volumes come back as float64 with the stored values; the blob of frame 1 is where it was put
+    r1 = rd.volume("refractivity", 1)
+    assert r1.dtype == np.float64 and r1.shape == GRID.shape
+    np.testing.assert_array_equal(r1, _stored(store, "refractivity", 1))
+    np.testing.assert_allclose(r1, blob(1)[0], rtol=0, atol=1e-10)
+    g2 = rd.volume("gradient", 2)
+    np.testing.assert_allclose(g2, blob(2)[1], rtol=1e-6, atol=1e-6 * np.abs(blob(2)[1]).max())
+    assert rd.volume("hull", 0).dtype == bool
+    flow = rd.camera_frame("flow", 1, 2)
+    assert flow.shape == FlowGrid(IMAGE, FACTOR).shape + (2,)
+    np.testing.assert_array_equal(flow, _stored(store, "flow", (1, 2)))
+    assert rd.shape("flow") == (2, N_FRAMES) + FlowGrid(IMAGE, FACTOR).shape + (2,)
+    # store frame f is capture frame 1 + f; the camera image is the PNG make_store wrote there
+    assert [rd.capture_index(f) for f in range(N_FRAMES)] == [1, 2, 3]
+    image, source = rd.camera_image(1, rd.capture_index(1))
+    want = iio.imread(store.parent / "session" / "cam01" / "frames" / "00002.png")
+    np.testing.assert_array_equal(image, want.astype(np.float32))
+    assert "capture frame 2" in source
+    completion = dict((s, (n, t)) for s, n, t in rd.completion())
+    assert completion["integrate"] == (3, 3) and completion["deflection"] == (6, 6)
 
 
-def test_residual_rms_equals_the_known_noise(report):
-    """flow = re-projection of the stored gradient + N(0, NOISE_PX) per component, so the
-    residual vector RMS must be sqrt(2) * NOISE_PX for every camera."""
-    _, index = report
-    summary = json.loads((index.parent / "summary.json").read_text())
-    res = summary["residual_rms_px"]
-    assert set(res) == {"cam00", "cam01"}
-    for cam, r in res.items():
-        assert r["rms"] == pytest.approx(np.sqrt(2) * NOISE_PX, rel=0.08), cam
-        assert r["rms_measured"] > 3 * r["rms"]  # the blob's deflections dominate the noise
-        assert r["frames"] == [0, 1, 2]
-    html = index.read_text()
-    assert re.search(r"<td>cam00</td><td>0\.01\d*</td>", html)
+def test_reader_of_a_partial_run_reads_missing_as_none(tmp_path):
+    rd = ReportReader(make_store(tmp_path / "u", partial="unfinished"))
+    np.testing.assert_array_equal(rd.frame_done("refractivity", N_FRAMES), [True, True, False])
+    np.testing.assert_array_equal(rd.frame_done("hull", N_FRAMES), [True, True, True])
+    assert rd.volume("refractivity", 2) is None and rd.volume("gradient", 2) is None
+    assert rd.volume("refractivity", 1) is not None
+    assert rd.mask_threshold() is None
+    assert dict((s, (n, t)) for s, n, t in rd.completion())["integrate"] == (2, 3)
+    assert "stage_times" in rd.attrs and "integrate" not in rd.attrs["stage_times"]
+
+    rd = ReportReader(make_store(tmp_path / "m", partial="missing"))
+    assert rd.missing_arrays == ["gradient", "temperature"]
+    assert not rd.has("gradient") and rd.has("refractivity")
+    assert rd.volume("gradient", 0) is None and rd.volume("temperature", 0) is None
+    np.testing.assert_array_equal(rd.frame_done("gradient", N_FRAMES), [False] * N_FRAMES)
+    assert "stage_times" not in rd.attrs
+    assert rd.grid().shape == GRID.shape  # from the first volume array present (hull)
 
 
-def test_timings_table_lists_stages_and_total(report):
-    _, index = report
-    html = index.read_text()
-    # wall-clock = completed - started; task time as stored
-    for stage, wall, task in (("deflection", "5", "9.5"), ("tomography", "7.25", "7"), ("integrate", "1.5", "1.25")):
-        assert re.search(rf"<td>{stage}</td><td>[^<]*</td><td>[^<]*</td><td>{re.escape(wall)}</td>"
-                         rf"<td>{re.escape(task)}</td>", html), stage
-    assert re.search(r"<td>run \(first start to last completion\)</td><td></td><td></td><td>13.75</td>"
-                     r"<td>17.75</td>", html)
+def test_reader_without_a_session_frame_source_says_why(store, tmp_path):
+    import shutil
+
+    copy = tmp_path / "run.zarr"
+    shutil.copytree(store, copy)
+    g = zarr.open_group(str(copy), mode="r+")
+    g.attrs["session_path"] = str(tmp_path / "gone" / "session.yaml")
+    image, why = ReportReader(copy).camera_image(0, 1)
+    assert image is None and why.startswith("camera frame not readable")
+    del g.attrs["session_path"]
+    image, why = ReportReader(copy).camera_image(0, 1)
+    assert image is None and why == "the store does not name the session's frames"
 
 
-def test_animation_shows_the_blob_rising(report):
-    """Each GIF frame is one rendering; the glow's centroid moves up the image as z grows."""
-    _, index = report
-    gif = iio.imread(index.parent / "figures" / "render.gif", index=None)
-    assert gif.shape[0] == N_FRAMES
-    rows = []
-    for k in range(N_FRAMES):
-        png = iio.imread(index.parent / "figures" / f"render_{k:05d}.png").astype(float)
-        w = png.sum(axis=-1)
-        w = np.where(w > 0.25 * w.max(), w, 0.0)  # the glow, not the box lines
-        rows.append((w.sum(axis=1) * np.arange(w.shape[0])).sum() / w.sum())
-    assert rows[0] > rows[1] > rows[2]  # image rows grow downwards
+def test_writer_writes_what_it_is_handed(tmp_path):
+    rng = np.random.default_rng(1)
+    out = tmp_path / "out"
+    (out / "figures").mkdir(parents=True)
+    (out / "figures" / "stale.png").write_bytes(b"old")
+    (out / "figures" / "stale.gif").write_bytes(b"old")
+    w = ReportWriter(out)
+    assert not any((out / "figures").iterdir())  # an earlier report's figures are gone
+    rgb = rng.integers(0, 256, (30, 40, 3), dtype=np.uint8)
+    assert w.image("a.png", rgb) == "figures/a.png"
+    np.testing.assert_array_equal(iio.imread(out / "figures" / "a.png"), rgb)
+    frames = np.stack([np.full((8, 10, 3), v, np.uint8) for v in (0, 128, 255)])
+    assert w.animation("anim.gif", frames, fps=10.0) == "figures/anim.gif"
+    back = iio.imread(out / "figures" / "anim.gif", index=None)
+    assert back.shape[0] == 3
+    np.testing.assert_array_equal(back[..., :3].reshape(3, -1).mean(axis=1), [0, 128, 255])
+    with pytest.raises(ValueError):
+        w.image("../escape.png", rgb)
+    with pytest.raises(ValueError):
+        w.image("b.png", rgb.astype(np.float64))
+
+    page = ReportPage(title="schlieren report: <x>")
+    page.missing = ["gradient"]
+    page.add("Numbers (one)", html_table(["a", "b"], [[1, "<2>"]], "num") + html_img("figures/a.png", "A", "cap"),
+             "numbers")
+    page.summary.update({"count": np.int64(3), "value": np.float32(0.5), "bad": np.float32("nan")})
+    index = w.finish(page)
+    assert index == out / "index.html"
+    text = index.read_text()
+    assert "<title>schlieren report: &lt;x&gt;</title>" in text
+    assert '<nav><a href="#numbers">Numbers</a></nav>' in text
+    assert '<section id="numbers"><h2>Numbers (one)</h2>' in text
+    assert "<td>1</td><td>&lt;2&gt;</td>" in text and '<img src="figures/a.png" alt="A">' in text
+    assert "Missing from the store (partial run?): gradient." in text
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary == {"count": 3, "value": 0.5, "bad": None, "figures": ["figures/a.png", "figures/anim.gif"]}
 
 
-def test_store_with_missing_arrays_reports_what_is_missing(tmp_path):
-    store = make_store(tmp_path, partial="missing")
-    index = write_report(store, tmp_path / "out", frames=(1, 3), max_cameras=1)
-    html = index.read_text()
-    assert "Missing from the store" in html
-    for missing in ("gradient", "temperature", "attribute stage_times"):
-        assert missing in html
-    figs = tmp_path / "out" / "figures"
-    assert not (figs / "slices_temperature.png").exists()
-    assert (figs / "slices_refractivity.png").exists()
-    # residuals fall back to central differences of the refractivity
-    assert "central differences of the refractivity" in html
-    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
-    assert summary["frames"] == [1, 3] and summary["shown_frame"] == 2
-    for r in summary["residual_rms_px"].values():
-        assert r["rms"] < 0.5 * r["rms_measured"]  # still explains most of the deflection
-
-
-def test_unfinished_run_shows_completed_frames_only(tmp_path):
-    """The last frame's tomography is not done (NaN chunks, marker unset): the report
-    picks its single-frame figures among finished frames, renders only those, and lists
-    the completion markers."""
-    store = make_store(tmp_path, partial="unfinished")
-    index = write_report(store, tmp_path / "out", max_cameras=1)
-    html = index.read_text()
-    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
-    assert summary["shown_frame"] in (0, 1)
-    assert summary["completion"]["integrate"] == "2 of 3" and summary["completion"]["hull"] == "3 of 3"
-    assert summary["completion"]["threshold"] == "0 of 1" and summary["completion"]["sync"] == "2 of 2"
-    assert "Not reconstructed yet: frames 2" in html
-    figs = tmp_path / "out" / "figures"
-    assert (figs / "render_00001.png").exists() and not (figs / "render_00002.png").exists()
-    assert len(iio.imread(figs / "render.gif", index=None)) == 2
-    for r in summary["residual_rms_px"].values():
-        assert r["frames"] == [0, 1]
-    assert "integrate" not in summary["stage_seconds"]
-
-
-def test_bad_store_is_a_one_line_error(tmp_path):
+def test_bad_store_or_frame_range_is_a_store_error(tmp_path):
     with pytest.raises(StoreError, match="not found"):
-        write_report(tmp_path / "nope.zarr", tmp_path / "out")
+        ReportReader(tmp_path / "nope.zarr")
     g = zarr.open_group(str(tmp_path / "other.zarr"), mode="w")
     g.attrs["format"] = "something-else/2"
     with pytest.raises(StoreError, match="unknown store format"):
-        write_report(tmp_path / "other.zarr", tmp_path / "out")
-    store = make_store(tmp_path / "s", partial="missing")
+        ReportReader(tmp_path / "other.zarr")
     with pytest.raises(StoreError, match="frame range"):
-        write_report(store, tmp_path / "out", frames=(5, 9))
+        frame_range((5, 9), N_FRAMES)
+    assert frame_range((1, None), N_FRAMES) == range(1, 3) and frame_range(None, N_FRAMES) == range(3)
 
 
-def test_report_command_prints_index_path(report, tmp_path, capsys, monkeypatch):
-    """The CLI glue: arguments reach write_report, the default folder sits beside the store,
-    the path of index.html is printed; a missing store is a one-line error (exit 2)."""
-    import schlieren.workers.report as glue
-    from schlieren.workers.cli import main
+def _imported_modules(path: Path) -> set[str]:
+    """Every module an ``import`` statement in ``path`` names (``from a import b`` gives a and a.b)."""
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.Import):
+            names.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            assert node.level == 0, f"relative import in {path.name}: line {node.lineno}"
+            names.add(node.module)
+            names.update(f"{node.module}.{a.name}" for a in node.names)
+    return names
 
-    store, index = report
-    calls = []
 
-    def fake_write_report(store_path, out_dir, *, frames=None, max_cameras=None, evaluation=None):
-        calls.append((Path(store_path), Path(out_dir), frames, max_cameras))
-        return Path(out_dir) / "index.html"
+def test_ast_import_check_sees_computing_imports(tmp_path):
+    """The checker below is not vacuous: it finds each way of importing a kernel module."""
+    src = tmp_path / "m.py"
+    for line in ("from schlieren.pipeline import viz", "import schlieren.pipeline.residuals as r",
+                 "from schlieren.pipeline.tomography import build_geometry",
+                 "def f():\n    from schlieren.pipeline import tomography\n"):
+        src.write_text(line + "\n")
+        assert _imported_modules(src) & set(COMPUTING_MODULES), line
 
-    monkeypatch.setattr(glue, "write_report", fake_write_report)
-    assert main(["report", str(store), "--frames", "0:2", "--cameras", "1"]) == 0
-    assert calls == [(store, store.parent / "run_report", (0, 2), 1)]
-    assert capsys.readouterr().out.strip() == str(store.parent / "run_report" / "index.html")
-    monkeypatch.undo()
-    assert main(["report", str(tmp_path / "missing.zarr")]) == 2
-    err = capsys.readouterr().err
-    assert "not found" in err and len(err.strip().splitlines()) == 1
+
+def test_storage_report_does_not_import_computing_modules():
+    """storage/report.py only reads and writes (STYLE.md): the figures and residuals are
+    made in workers/report_build.py, so no pipeline kernel module is imported here, not
+    even inside a function, and importing it loads none of them (nor matplotlib)."""
+    found = _imported_modules(STORAGE_REPORT)
+    assert "schlieren.pipeline.geometry" in found  # the plain types are allowed (and parsed)
+    assert not found & set(COMPUTING_MODULES), found & set(COMPUTING_MODULES)
+    assert not {m for m in found if m.startswith("schlieren.workers")}
+    code = ("import sys\nimport schlieren.storage.report\n"
+            f"print(','.join(sorted(m for m in sys.modules if m in {COMPUTING_MODULES!r} "
+            "or m.split('.')[0] == 'matplotlib')))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == ""

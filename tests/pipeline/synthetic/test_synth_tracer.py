@@ -99,3 +99,48 @@ def test_time_knots_blend_linearly():
     mid = trace_rays_timed(fields, np.array([0.0, 1.0]), g, orig, d, np.array([0.5]), n_ambient=N_AMB)
     half = trace_rays(0.5 * (r0 + r1), g, orig, d, n_ambient=N_AMB)
     np.testing.assert_allclose(mid.d_out, half.d_out, atol=1e-12)
+
+
+def test_agrees_with_an_adaptive_high_order_integrator():
+    # The same ODE (eq. 2) on the same trilinear field, integrated by scipy's DOP853 with tight
+    # tolerances (an independent integrator), for a strongly deflected ray.
+    from scipy.integrate import solve_ivp
+
+    g, r = _blob(h=0.002, A=-0.01)
+    F = field_stack([r], g)[0].astype(np.float64)
+    nz, ny, nx = g.shape
+    hi = np.array([nx - 1, ny - 1, nz - 1])
+
+    def sample(p):
+        f = np.clip((p - g.origin) / g.voxel_size, 0, hi)
+        i = np.minimum(f.astype(int), hi - 1)
+        a = f - i
+        out = np.zeros(4)
+        for cz in (0, 1):
+            for cy in (0, 1):
+                for cx in (0, 1):
+                    w = (a[2] if cz else 1 - a[2]) * (a[1] if cy else 1 - a[1]) * (a[0] if cx else 1 - a[0])
+                    out += w * F[i[2] + cz, i[1] + cy, i[0] + cx]
+        return out
+
+    L = g.vmax[0]
+    p0 = np.array([-L, 0.007, -0.004])
+    d0 = np.array([1.0, 0.0, 0.0])
+
+    def rhs(s, Y):
+        q = sample(Y[:3])
+        return np.concatenate([Y[3:] / (1 + q[0]), q[1:]])
+
+    def leave(s, Y):
+        return Y[0] - L
+
+    leave.terminal = True
+    sol = solve_ivp(rhs, [0, 1.0], np.concatenate([p0, (1 + sample(p0)[0]) * d0]), method="DOP853",
+                    rtol=1e-13, atol=1e-16, events=leave, max_step=g.voxel_size / 8)
+    v = sol.y[3:, -1]
+    d_ref = v / np.linalg.norm(v)
+    res = trace_rays(r, g, np.array([[-1.0, p0[1], p0[2]]]), d0[None], n_ambient=N_AMB)
+    deflection = np.linalg.norm(d_ref - d0)
+    assert deflection > 0.01
+    assert np.linalg.norm(res.d_out[0] - d_ref) < 1e-6 * deflection
+    np.testing.assert_allclose(res.exit_point[0], sol.y[:3, -1], atol=1e-8)
