@@ -24,7 +24,8 @@ Throughput of ``deflection_stage`` (LK, 1440x1080 -> 360x480 flow grid) with the
 ``PreparedReference`` cached (per worker process, as one task per camera-frame does):
 (a) one process with ``cv2.setNumThreads(2)``; (b) CPU time per frame single-threaded;
 (c) two single-threaded worker processes in parallel (the deployment: Dask workers with
-one thread each) -> camera-frames per second per machine.
+one thread each) -> camera-frames per second per machine; (d) two threads of one process
+(the numba kernels release the GIL, as OpenCV does).
 
 Run: ``/work/main/.venv/bin/python benchmarks/flow.py [--quick]``; writes
 ``benchmarks/results/flow.json`` and ``flow.md``.
@@ -39,6 +40,7 @@ import multiprocessing as mp
 import os
 import platform
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
@@ -206,6 +208,12 @@ def throughput(ref: np.ndarray, frames: list, n: int) -> dict:
     out["single_thread_cpu_ms_per_frame"] = 1e3 * cpu / n
     out["single_thread_wall_ms_per_frame"] = 1e3 * wall1 / n
     out["machine_fps_estimate_from_cpu_time"] = 2 * n / cpu
+    cv2.setNumThreads(1)
+    with ThreadPoolExecutor(2) as ex:  # kernels release the GIL (numba nogil, OpenCV)
+        list(ex.map(_worker, [1, 1]))
+        w0 = time.perf_counter()
+        list(ex.map(_worker, [n, n]))
+        out["one_process_two_worker_threads_fps"] = 2 * n / (time.perf_counter() - w0)
     ctx = mp.get_context("fork")
     with ctx.Pool(2) as pool:
         pool.map(_worker, [1, 1])  # warm the workers
@@ -255,6 +263,8 @@ def write(result: dict) -> None:
               f"| single thread: wall time per frame | {tp['single_thread_wall_ms_per_frame']:.1f} ms |",
               f"| 2 cores from CPU time (2 / cpu per frame) | "
               f"{tp['machine_fps_estimate_from_cpu_time']:.1f} camera-frames/s |",
+              f"| one process, two worker threads (GIL released in the kernels) | "
+              f"{tp['one_process_two_worker_threads_fps']:.1f} camera-frames/s |",
               f"| two single-threaded worker processes (measured wall) | "
               f"{tp['two_worker_processes_fps']:.1f} camera-frames/s |",
               f"| prepare_reference (once per camera) | {tp['prepare_reference_ms']:.1f} ms |", ""]

@@ -45,6 +45,8 @@ __all__ = [
     "smooth_flow",
     "downsample_flow",
     "warp_image",
+    "spline_coefficients",
+    "warp_coefficients",
     "endpoint_error",
 ]
 
@@ -191,7 +193,7 @@ def _bspline_at(cp, x, y, Wm, Hm):
             + ay3 * (ax0 * r3[k] + ax1 * r3[k + 1] + ax2 * r3[k + 2] + ax3 * r3[k + 3]))
 
 
-@nb.njit(fastmath=True, cache=True)
+@nb.njit(fastmath=True, cache=True, nogil=True)
 def _warp_kernel(cp, u, v, out):
     H, W = out.shape
     Wm = _F32(W - 1)
@@ -202,7 +204,7 @@ def _warp_kernel(cp, u, v, out):
             out[r, c] = _bspline_at(cp, _F32(c) + u[r, c], fr + v[r, c], Wm, Hm)
 
 
-@nb.njit(fastmath=True, cache=True)
+@nb.njit(fastmath=True, cache=True, nogil=True)
 def _lk_residual_kernel(cp, frame, gx, gy, u, v, ex, ey):
     # e = frame - ref(q + d(q)) + g . d(q); returns gx * e, gy * e.
     # Per row: first the B-spline indices and weights (a loop LLVM vectorises), then the
@@ -263,7 +265,7 @@ def _lk_residual_kernel(cp, frame, gx, gy, u, v, ex, ey):
             ey[r, c] = g2 * e
 
 
-@nb.njit(fastmath=True, cache=True)
+@nb.njit(fastmath=True, cache=True, nogil=True)
 def _lk_solve_kernel(sxx, sxy, syy, lam, bx, by, u, v):
     # d = (T + lam I)^-1 b per pixel (2x2 closed form); singular windows give d = 0
     H, W = u.shape
@@ -365,6 +367,33 @@ def _spline_coefficients(img: np.ndarray) -> np.ndarray:
     k = _PREFILTER_TAPS
     coef = cv2.sepFilter2D(img, cv2.CV_32F, k, k, borderType=cv2.BORDER_REFLECT_101)
     return cv2.copyMakeBorder(coef, _PAD, _PAD, _PAD, _PAD, cv2.BORDER_REFLECT_101)
+
+
+def spline_coefficients(image: np.ndarray) -> np.ndarray:
+    """Padded cubic B-spline coefficients of a 2-D image, for :func:`warp_coefficients`
+    (prefilter once, warp many times)."""
+    return _spline_coefficients(_as_image(image, "image"))
+
+
+def warp_coefficients(coefficients: np.ndarray, flow: np.ndarray) -> np.ndarray:
+    """:func:`warp_image` from precomputed :func:`spline_coefficients`.
+
+    Parameters
+    ----------
+    coefficients : ndarray, shape (H + 4, W + 4)
+    flow : ndarray, shape (H, W, 2)
+
+    Returns
+    -------
+    ndarray, shape (H, W), float32
+    """
+    flow = np.asarray(flow, dtype=np.float32)
+    H, W = coefficients.shape[0] - 2 * _PAD, coefficients.shape[1] - 2 * _PAD
+    if flow.shape != (H, W, 2):
+        raise ValueError(f"flow shape {flow.shape} does not match the image ({H}, {W})")
+    out = np.empty((H, W), np.float32)
+    _warp_kernel(coefficients, np.ascontiguousarray(flow[..., 0]), np.ascontiguousarray(flow[..., 1]), out)
+    return out
 
 
 def warp_image(image: np.ndarray, flow: np.ndarray) -> np.ndarray:

@@ -274,15 +274,44 @@ def assemble(g: np.ndarray, hull: np.ndarray, h: float, *, params: PoissonParams
 # (condition number of the preconditioned system <= 1 / alpha) and one Laplacian V-cycle
 # preconditions both. Matrix-free numba kernels and no setup beyond coarsening the mask,
 # so it is rebuilt for every frame's hull at negligible cost (pyamg's setup alone costs
-# more than the whole solve at these sizes). Cell-centred hierarchy: a coarse cell is
-# active if any of its 2x2x2 children is; restriction averages the children,
-# prolongation injects the parent value; coarse operators are rediscretised (spacing
-# doubles); damped-Jacobi smoothing before and after the coarse correction keeps the
-# V-cycle symmetric (required inside CG); the coarsest level is solved by sparse LU.
+# more than the whole solve at these sizes). Cell-centred hierarchy on the bounding box
+# of the hull: a coarse cell is active if at least ``min_children`` of its 2x2x2 children
+# are; prolongation is cell-centred trilinear and restriction its transpose / 8; coarse
+# operators are rediscretised (spacing doubles); red-black Gauss-Seidel before and
+# black-red after the coarse correction keeps the V-cycle symmetric (required inside
+# CG); the coarsest level is solved by sparse LU.
 
 
 @nb.njit(parallel=True, cache=True)
-def _lap(u, mask, inv_h2, out):
+def _rbgs(u, f, mask, h2, colour_first):
+    """One symmetric-half red-black Gauss-Seidel sweep (colour ``colour_first`` then the other)."""
+    nz, ny, nx = u.shape
+    for c in range(2):
+        colour = (colour_first + c) % 2
+        for k in nb.prange(nz):
+            for j in range(ny):
+                i0 = (colour + k + j) % 2
+                for i in range(i0, nx, 2):
+                    if not mask[k, j, i]:
+                        continue
+                    s = f[k, j, i] * h2
+                    if i > 0:
+                        s += u[k, j, i - 1]
+                    if i < nx - 1:
+                        s += u[k, j, i + 1]
+                    if j > 0:
+                        s += u[k, j - 1, i]
+                    if j < ny - 1:
+                        s += u[k, j + 1, i]
+                    if k > 0:
+                        s += u[k - 1, j, i]
+                    if k < nz - 1:
+                        s += u[k + 1, j, i]
+                    u[k, j, i] = s / 6.0
+
+
+@nb.njit(parallel=True, cache=True)
+def _residual(u, f, mask, inv_h2, out):
     nz, ny, nx = u.shape
     for k in nb.prange(nz):
         for j in range(ny):
@@ -303,66 +332,91 @@ def _lap(u, mask, inv_h2, out):
                     s -= u[k - 1, j, i]
                 if k < nz - 1:
                     s -= u[k + 1, j, i]
-                out[k, j, i] = s * inv_h2
+                out[k, j, i] = f[k, j, i] - s * inv_h2
 
 
-@nb.njit(parallel=True, cache=True)
-def _jacobi(u, f, mask, inv_h2, omega, tmp):
-    """One damped-Jacobi sweep ``u += omega (f - A u) / diag(A)`` (``tmp`` is scratch)."""
-    _lap(u, mask, inv_h2, tmp)
-    nz, ny, nx = u.shape
-    dinv = omega / (6.0 * inv_h2)
-    for k in nb.prange(nz):
-        for j in range(ny):
-            for i in range(nx):
-                if mask[k, j, i]:
-                    u[k, j, i] += dinv * (f[k, j, i] - tmp[k, j, i])
-
-
-@nb.njit(parallel=True, cache=True)
-def _residual(u, f, mask, inv_h2, out):
-    _lap(u, mask, inv_h2, out)
-    nz, ny, nx = u.shape
-    for k in nb.prange(nz):
-        for j in range(ny):
-            for i in range(nx):
-                out[k, j, i] = f[k, j, i] - out[k, j, i] if mask[k, j, i] else 0.0
+@nb.njit(cache=True)
+def _taps(K, n_fine):
+    """Fine indices and weights feeding coarse index K (cell-centred linear interpolation)."""
+    idx = np.array([2 * K - 1, 2 * K, 2 * K + 1, 2 * K + 2])
+    w = np.array([0.25, 0.75, 0.75, 0.25])
+    return idx, w
 
 
 @nb.njit(parallel=True, cache=True)
 def _restrict(r, mask_c, out):
+    """Transpose of :func:`_prolong_add`, divided by 8 (full weighting)."""
     nz, ny, nx = out.shape
     fz, fy, fx = r.shape
     for K in nb.prange(nz):
+        kz, wz = _taps(K, fz)
         for J in range(ny):
+            jy, wy = _taps(J, fy)
             for I in range(nx):
                 if not mask_c[K, J, I]:
                     out[K, J, I] = 0.0
                     continue
+                ix, wx = _taps(I, fx)
                 s = 0.0
-                for dz in range(2):
-                    k = 2 * K + dz
-                    if k >= fz:
+                for a in range(4):
+                    k = kz[a]
+                    if k < 0 or k >= fz:
                         continue
-                    for dy in range(2):
-                        j = 2 * J + dy
-                        if j >= fy:
+                    for b in range(4):
+                        j = jy[b]
+                        if j < 0 or j >= fy:
                             continue
-                        for dx in range(2):
-                            i = 2 * I + dx
-                            if i < fx:
-                                s += r[k, j, i]
+                        for c in range(4):
+                            i = ix[c]
+                            if i < 0 or i >= fx:
+                                continue
+                            s += wz[a] * wy[b] * wx[c] * r[k, j, i]
                 out[K, J, I] = 0.125 * s
 
 
 @nb.njit(parallel=True, cache=True)
 def _prolong_add(uc, mask_f, uf):
+    """Add the trilinear (cell-centred) interpolation of ``uc`` to the active fine cells."""
     fz, fy, fx = uf.shape
+    cz, cy, cx = uc.shape
     for k in nb.prange(fz):
+        K = k // 2
+        Kn = K - 1 if k % 2 == 0 else K + 1
         for j in range(fy):
+            J = j // 2
+            Jn = J - 1 if j % 2 == 0 else J + 1
             for i in range(fx):
-                if mask_f[k, j, i]:
-                    uf[k, j, i] += uc[k // 2, j // 2, i // 2]
+                if not mask_f[k, j, i]:
+                    continue
+                I = i // 2
+                In = I - 1 if i % 2 == 0 else I + 1
+                s = 0.0
+                for a in range(2):
+                    kk = K if a == 0 else Kn
+                    if kk < 0 or kk >= cz:
+                        continue
+                    wa = 0.75 if a == 0 else 0.25
+                    for b in range(2):
+                        jj = J if b == 0 else Jn
+                        if jj < 0 or jj >= cy:
+                            continue
+                        wb = 0.75 if b == 0 else 0.25
+                        for c in range(2):
+                            ii = I if c == 0 else In
+                            if ii < 0 or ii >= cx:
+                                continue
+                            wc = 0.75 if c == 0 else 0.25
+                            s += wa * wb * wc * uc[kk, jj, ii]
+                uf[k, j, i] += s
+
+
+# Serial twins of the smoothing/transfer kernels for small (coarse) levels, where the
+# cost of waking the thread pool exceeds the work.
+_rbgs_serial = nb.njit(cache=True)(_rbgs.py_func)
+_residual_serial = nb.njit(cache=True)(_residual.py_func)
+_restrict_serial = nb.njit(cache=True)(_restrict.py_func)
+_prolong_add_serial = nb.njit(cache=True)(_prolong_add.py_func)
+_PARALLEL_MIN_CELLS = 200_000
 
 
 def laplacian_matrix(mask: np.ndarray, h: float) -> sp.csr_matrix:
@@ -397,30 +451,48 @@ class LaplaceMultigrid:
     h : float
         Grid spacing (metres) of the finest level.
     smooth : int
-        Damped-Jacobi sweeps before and after the coarse correction.
-    omega : float
-        Jacobi damping (6/7 is optimal for the 7-point stencil in 3-D).
+        Red-black Gauss-Seidel sweeps before (red-black) and after (black-red) the
+        coarse correction; the reversed order keeps the V-cycle symmetric.
     coarse_size : int
         Stop coarsening below this many active cells and solve exactly.
+    min_children : int
+        A coarse cell is active if at least this many of its eight children are.
+
+    Notes
+    -----
+    Works on the bounding box of the mask (plus one cell), so the cost scales with the
+    hull, not with the grid. The coarse operators are rediscretised, not Galerkin, so
+    as a stationary iteration the V-cycle stalls on smooth modes near the irregular hull
+    boundary; as a CG preconditioner (symmetric positive definite) it needs 15-20
+    iterations for a 1e-8 residual on a 134k-voxel plume hull, against about 230 for
+    Jacobi-PCG. Vectors passed to :meth:`apply` are ordered like
+    ``mask[mask]`` (C order).
     """
 
-    def __init__(self, mask: np.ndarray, h: float, *, smooth: int = 2, omega: float = 6.0 / 7.0,
-                 coarse_size: int = 1500):
-        self.masks = [np.ascontiguousarray(mask, dtype=np.bool_)]
+    def __init__(self, mask: np.ndarray, h: float, *, smooth: int = 1, coarse_size: int = 1500,
+                 min_children: int = 1):
+        mask = np.asarray(mask, dtype=np.bool_)
+        nzidx = np.nonzero(mask)
+        if len(nzidx[0]) == 0:
+            raise ValueError("empty mask")
+        lo = [max(int(a.min()) - 1, 0) for a in nzidx]
+        hi = [min(int(a.max()) + 2, s) for a, s in zip(nzidx, mask.shape)]
+        crop = np.ascontiguousarray(mask[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]])
+        self._flat = np.flatnonzero(crop)
+        self.masks = [crop]
         self.hs = [float(h)]
         while self.masks[-1].sum() > coarse_size and min(self.masks[-1].shape) > 2:
             m = self.masks[-1]
             pad = [(0, s % 2) for s in m.shape]
             mp = np.pad(m, pad)
             nz, ny, nx = (s // 2 for s in mp.shape)
-            mc = mp.reshape(nz, 2, ny, 2, nx, 2).any(axis=(1, 3, 5))
+            mc = mp.reshape(nz, 2, ny, 2, nx, 2).sum(axis=(1, 3, 5)) >= min_children
             self.masks.append(np.ascontiguousarray(mc))
             self.hs.append(2 * self.hs[-1])
         self.smooth = int(smooth)
-        self.omega = float(omega)
         self._coarse = spla.splu(laplacian_matrix(self.masks[-1], self.hs[-1]).tocsc())
-        self._work = [(np.zeros(m.shape), np.zeros(m.shape), np.zeros(m.shape)) for m in self.masks]
-        self.n = int(self.masks[0].sum())
+        self._res = [np.zeros(m.shape) for m in self.masks]
+        self.n = int(len(self._flat))
 
     @property
     def levels(self) -> int:
@@ -432,24 +504,27 @@ class LaplaceMultigrid:
             u = np.zeros(mask.shape)
             u[mask] = self._coarse.solve(f[mask])
             return u
-        inv_h2 = 1.0 / self.hs[level] ** 2
-        u, tmp, res = (np.zeros(mask.shape), self._work[level][1], self._work[level][2])
+        h2 = self.hs[level] ** 2
+        par = mask.size >= _PARALLEL_MIN_CELLS
+        rbgs = _rbgs if par else _rbgs_serial
+        u = np.zeros(mask.shape)
+        res = self._res[level]
         for _ in range(self.smooth):
-            _jacobi(u, f, mask, inv_h2, self.omega, tmp)
-        _residual(u, f, mask, inv_h2, res)
-        fc = self._work[level + 1][0]
-        _restrict(res, self.masks[level + 1], fc)
-        uc = self._vcycle(level + 1, fc.copy())
-        _prolong_add(uc, mask, u)
+            rbgs(u, f, mask, h2, 0)
+        (_residual if par else _residual_serial)(u, f, mask, 1.0 / h2, res)
+        fc = np.empty(self.masks[level + 1].shape)
+        (_restrict if par else _restrict_serial)(res, self.masks[level + 1], fc)
+        uc = self._vcycle(level + 1, fc)
+        (_prolong_add if par else _prolong_add_serial)(uc, mask, u)
         for _ in range(self.smooth):
-            _jacobi(u, f, mask, inv_h2, self.omega, tmp)
+            rbgs(u, f, mask, h2, 1)
         return u
 
     def apply(self, r: np.ndarray) -> np.ndarray:
         """One V-cycle from zero for the right-hand side ``r`` (vector over active cells)."""
         f = np.zeros(self.masks[0].shape)
-        f[self.masks[0]] = r
-        return self._vcycle(0, f)[self.masks[0]]
+        f.ravel()[self._flat] = r
+        return self._vcycle(0, f).ravel()[self._flat]
 
     def as_linear_operator(self) -> spla.LinearOperator:
         return spla.LinearOperator((self.n, self.n), matvec=self.apply, dtype=np.float64)

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from schlieren.pipeline.flow import warp_image
+from schlieren.pipeline.flow import spline_coefficients, warp_coefficients
 from schlieren.pipeline.geometry import FlowGrid
 
 __all__ = [
@@ -382,8 +382,12 @@ class ResampleParams:
             raise ValueError(f"ResampleParams.window must be odd and >= 3, got {self.window}")
 
 
-def _warp_channels(field: np.ndarray, disp: np.ndarray) -> np.ndarray:
-    return np.stack([warp_image(field[..., k], disp) for k in range(field.shape[-1])], axis=-1)
+def _coefficients(field: np.ndarray) -> list:
+    return [spline_coefficients(np.ascontiguousarray(field[..., k])) for k in range(field.shape[-1])]
+
+
+def _warp_channels(coefs: list, disp: np.ndarray) -> np.ndarray:
+    return np.stack([warp_coefficients(c, disp) for c in coefs], axis=-1)
 
 
 def field_motion(source: np.ndarray, target: np.ndarray, *, window: int = 15, levels: int = 3,
@@ -440,8 +444,9 @@ def field_motion(source: np.ndarray, target: np.ndarray, *, window: int = 15, le
         syy = box((gy * gy).sum(-1))
         lam = regularisation * float(np.percentile(sxx + syy, 99)) + 1e-12
         det = (sxx + lam) * (syy + lam) - sxy * sxy
+        coefs = _coefficients(t)
         for _ in range(iterations):
-            warped = _warp_channels(t, m)
+            warped = _warp_channels(coefs, m)
             # linearised around each cell's own warp (as in pipeline.flow LK)
             e = s - warped + gx * m[..., 0:1] + gy * m[..., 1:2]
             bx = box((gx * e).sum(-1))
@@ -531,7 +536,7 @@ def resample_flow(raw: np.ndarray, first_frame: int, target_time: float, *, offs
         # per-row displacement fields (only the rows that use this frame pair)
         alpha_rows = np.zeros((h, 1, 1), np.float32)
         alpha_rows[rows] = al
-        wa = _warp_channels(fa, -alpha_rows * m)
-        wb = _warp_channels(fb, (1 - alpha_rows) * m)
+        wa = _warp_channels(_coefficients(fa), -alpha_rows * m)
+        wb = _warp_channels(_coefficients(fb), (1 - alpha_rows) * m)
         out[rows] = ((1 - alpha_rows) * wa + alpha_rows * wb)[rows]
     return out

@@ -11,6 +11,7 @@ annotation is dropped rather than letting tasks wait forever, DASK-ZARR.md pitfa
 from __future__ import annotations
 
 import logging
+import time
 from typing import Callable
 
 from distributed import Client, as_completed
@@ -58,7 +59,13 @@ def run_graph(client: Client, store_path: str, plan: Plan, *,
     receipts: list[dict] = []
     failures: dict[str, str] = {}
     first_error: dict[str, str] = {}
-    for fut in as_completed(list(futures.values())):
+    pending = as_completed(list(futures.values()))
+    for fut in pending:
+        if fut.status not in {"finished", "error", "cancelled"}:
+            # a result lost with its worker is recomputed by the scheduler: wait for it again
+            time.sleep(0.05)
+            pending.add(fut)
+            continue
         if fut.status == "finished":
             r = fut.result()
             receipts.append(r)
@@ -66,7 +73,7 @@ def run_graph(client: Client, store_path: str, plan: Plan, *,
                 on_receipt(r)
             continue
         exc = fut.exception()
-        msg = " ".join(f"{type(exc).__name__}: {exc}".split()) if exc is not None else fut.status
+        msg = " ".join(f"{type(exc).__name__}: {exc}".split()) if exc is not None else f"task {fut.status}"
         if msg.startswith("TaskFailed: "):
             msg = msg[len("TaskFailed: "):]
         origin = first_error.setdefault(msg, fut.key)
