@@ -202,7 +202,7 @@ def accuracy(args):
         "peak_rss_mb": round(peak_rss_mb(), 1), "machine": platform.processor() or platform.machine(),
         "cpus": os.cpu_count(), "note": "timings taken on a shared 2-core machine under contention",
     }
-    write("tomography", out, table_md(out))
+    write("tomography" + args.suffix, out, table_md(out))
 
 
 def semiconvergence(geom, flows, hull, grid, truth, rows):
@@ -323,6 +323,7 @@ def main(argv=None):
     ap.add_argument("--noise", type=float, default=0.05, help="deflection noise, pixels")
     ap.add_argument("--t", type=float, default=0.0, help="phantom time, seconds")
     ap.add_argument("--frames", type=int, default=4)
+    ap.add_argument("--suffix", default="", help="appended to the results file name")
     ap.add_argument("--hull-radius", type=float, default=0.06)
     ap.add_argument("--solver", default="mg")
     args = ap.parse_args(argv)

@@ -70,6 +70,13 @@ class PoissonParams:
         Edge constant of the Appendix, in the units described in the module docstring.
     value_scale : float
         The field range those units assume (65535: 16-bit volume; see the module notes).
+    box_boundary : str
+        Where the hull touches a face of the reconstruction box (a plume rising from a
+        source at the floor, or leaving through the top) the paper's ``n = n_air``
+        outside the hull is wrong. ``"neumann"`` (default) drops the differences that
+        cross the box faces there (natural boundary); ``"dirichlet"`` keeps
+        ``r = r_ambient`` beyond the box as in the paper. Inside the box the hull
+        boundary is always Dirichlet.
     solver : str
         ``"mg"`` (default: CG preconditioned by one geometric-multigrid V-cycle of the
         hull Laplacian, rebuilt per frame at negligible cost), ``"amg"`` (CG
@@ -85,6 +92,7 @@ class PoissonParams:
     sigma: float = 0.5
     k: float = 0.5e-5
     value_scale: float = 65535.0
+    box_boundary: str = "neumann"
     solver: str = "mg"
     tol: float = 1e-6
     max_iter: int = 5000
@@ -160,13 +168,15 @@ def diffusion_tensor(g: np.ndarray, h: float, *, alpha: float, sigma: float, k: 
 
 
 @nb.njit(parallel=True, cache=True)
-def _assemble_rows(hidx, rows_z, rows_y, rows_x, D, v, inv_h, indptr, indices, data, f, count_only):
+def _assemble_rows(hidx, real, rows_z, rows_y, rows_x, D, g, inv_h, indptr, indices, data, f, count_only):
     """Rows of ``A = 1/2 sum_s grad_s^T D grad_s`` and ``f = 1/2 sum_s grad_s^T D g`` (gathered per row).
 
     For row voxel ``p`` the forward/backward difference at voxel ``i`` contributes
     ``D_ab(i) / h^2 (delta_{i + s e_a} - delta_i)(delta_{i + s e_b} - delta_i)^T`` with
     ``i = p`` or ``i = p - s e_a``; the 3x3x3 neighbourhood of ``p`` holds every column.
-    ``hidx`` maps voxels to unknowns (-1 = Dirichlet); the grid is padded so that every
+    ``hidx`` maps voxels to unknowns (-1 = Dirichlet zero); a term is kept only if
+    ``i``, ``i + s e_a`` and ``i + s e_b`` are all ``real`` (differences that would cross
+    a face with a natural boundary are dropped). The arrays are padded so that every
     neighbour index is in bounds.
     """
     n = rows_z.shape[0]
@@ -186,19 +196,24 @@ def _assemble_rows(hidx, rows_z, rows_y, rows_x, D, v, inv_h, indptr, indices, d
                 k1 = k - s * az
                 j1 = j - s * ay
                 i1 = i - s * ax
+                ok1 = real[k1, j1, i1] and real[k, j, i]  # i1 and i1 + s e_a (= p)
+                okp = real[k, j, i] and real[k + s * az, j + s * ay, i + s * ax]
                 for b in range(3):
                     bz = 1 if b == 2 else 0
                     by = 1 if b == 1 else 0
                     bx = 1 if b == 0 else 0
-                    d1 = D[k1, j1, i1, a, b]
-                    dp = D[k, j, i, a, b]
-                    # i1 terms: +d1 at (i1 + s e_b), -d1 at i1 (offsets relative to p)
-                    acc[((-s * az + s * bz) + 1) * 9 + ((-s * ay + s * by) + 1) * 3 + (-s * ax + s * bx) + 1] += d1
-                    acc[(-s * az + 1) * 9 + (-s * ay + 1) * 3 + (-s * ax + 1)] -= d1
-                    # p terms: -dp at (p + s e_b), +dp at p
-                    acc[(s * bz + 1) * 9 + (s * by + 1) * 3 + (s * bx + 1)] -= dp
-                    acc[13] += dp
-                fp += s * (v[k1, j1, i1, a] - v[k, j, i, a])
+                    if ok1 and real[k1 + s * bz, j1 + s * by, i1 + s * bx]:
+                        d1 = D[k1, j1, i1, a, b]
+                        # i1 terms: +d1 at (i1 + s e_b), -d1 at i1 (offsets relative to p)
+                        acc[((-s * az + s * bz) + 1) * 9 + ((-s * ay + s * by) + 1) * 3 + (-s * ax + s * bx) + 1] += d1
+                        acc[(-s * az + 1) * 9 + (-s * ay + 1) * 3 + (-s * ax + 1)] -= d1
+                        fp += s * d1 * g[k1, j1, i1, b]
+                    if okp and real[k + s * bz, j + s * by, i + s * bx]:
+                        dp = D[k, j, i, a, b]
+                        # p terms: -dp at (p + s e_b), +dp at p
+                        acc[(s * bz + 1) * 9 + (s * by + 1) * 3 + (s * bx + 1)] -= dp
+                        acc[13] += dp
+                        fp -= s * dp * g[k, j, i, b]
         row = hidx[k, j, i]
         if count_only:
             c = 0
@@ -217,7 +232,8 @@ def _assemble_rows(hidx, rows_z, rows_y, rows_x, D, v, inv_h, indptr, indices, d
             f[row] = 0.5 * fp * inv_h
 
 
-def assemble(g: np.ndarray, hull: np.ndarray, h: float, *, params: PoissonParams):
+def assemble(g: np.ndarray, hull: np.ndarray, h: float, *, params: PoissonParams,
+             real: np.ndarray | None = None):
     """System ``A u = f`` of the hull-restricted (anisotropic) Poisson problem.
 
     Parameters
@@ -228,6 +244,9 @@ def assemble(g: np.ndarray, hull: np.ndarray, h: float, *, params: PoissonParams
         Unknowns; ``u = 0`` elsewhere. Must not touch the array boundary (pad first).
     h : float
         Voxel size, metres.
+    real : ndarray, shape (nz, ny, nx) bool, optional
+        Cells that exist; differences reaching a non-real cell are dropped (natural
+        boundary). Default: every cell is real (Dirichlet zero outside the hull).
 
     Returns
     -------
@@ -247,7 +266,9 @@ def assemble(g: np.ndarray, hull: np.ndarray, h: float, *, params: PoissonParams
     else:
         Dfull[rows_mask] = diffusion_tensor(g, h, alpha=params.alpha, sigma=params.sigma, k=params.k,
                                             value_scale=params.value_scale, where=rows_mask)
-    v = np.einsum("zyxab,zyxb->zyxa", Dfull, g)
+    if real is None:
+        real = np.ones(hull.shape, bool)
+    real = np.ascontiguousarray(real, dtype=np.bool_)
     n = int(hull.sum())
     hidx = np.full(hull.shape, -1, np.int64)
     hidx[hull] = np.arange(n)
@@ -256,11 +277,11 @@ def assemble(g: np.ndarray, hull: np.ndarray, h: float, *, params: PoissonParams
     f = np.zeros(n)
     empty_i = np.empty(0, np.int32)
     empty_d = np.empty(0, np.float64)
-    _assemble_rows(hidx, rz, ry, rx, Dfull, v, 1.0 / h, indptr, empty_i, empty_d, f, True)
+    _assemble_rows(hidx, real, rz, ry, rx, Dfull, g, 1.0 / h, indptr, empty_i, empty_d, f, True)
     np.cumsum(indptr, out=indptr)
     indices = np.empty(int(indptr[-1]), np.int32)
     data = np.empty(int(indptr[-1]))
-    _assemble_rows(hidx, rz, ry, rx, Dfull, v, 1.0 / h, indptr, indices, data, f, False)
+    _assemble_rows(hidx, real, rz, ry, rx, Dfull, g, 1.0 / h, indptr, indices, data, f, False)
     A = sp.csr_matrix((data, indices, indptr), shape=(n, n))
     A.has_sorted_indices = True
     return A, f
@@ -606,7 +627,17 @@ def integrate(gradient: np.ndarray, hull: np.ndarray, grid: Grid, *, r_ambient: 
     # (u = 0 just outside the grid) for hulls that touch it.
     pad = ((1, 1), (1, 1), (1, 1))
     hull_p = np.pad(hull, pad)
-    A, f = assemble(np.pad(g, pad + ((0, 0),)), hull_p, grid.voxel_size, params=params)
+    if params.box_boundary == "neumann":
+        real = np.pad(np.ones(hull.shape, bool), pad)
+        rim = ndi.binary_dilation(hull, structure=ndi.generate_binary_structure(3, 1)) & ~hull
+        if not rim.any():
+            log.warning("the hull fills the box: no Dirichlet cell left, using box_boundary='dirichlet'")
+            real = None
+    elif params.box_boundary == "dirichlet":
+        real = None
+    else:
+        raise ValueError(f"box_boundary must be 'neumann' or 'dirichlet', not {params.box_boundary!r}")
+    A, f = assemble(np.pad(g, pad + ((0, 0),)), hull_p, grid.voxel_size, params=params, real=real)
     t_asm = time.perf_counter() - t0
     u0 = None if x0 is None else np.asarray(x0, dtype=np.float64)[hull] - r_ambient
     u, it, rel, t_setup, t_solve = _solve(A, f, u0, params.solver, params.tol, params.max_iter,

@@ -412,48 +412,55 @@ def field_motion(source: np.ndarray, target: np.ndarray, *, window: int = 15, le
     tgt = np.asarray(target, np.float32)
     if src.ndim == 2:
         src, tgt = src[..., None], tgt[..., None]
-    pyr_s, pyr_t = [src], [tgt]
+    C = src.shape[-1]
+    # per level: lists of 2-D channel images (fine first)
+    pyr_s = [[np.ascontiguousarray(src[..., k]) for k in range(C)]]
+    pyr_t = [[np.ascontiguousarray(tgt[..., k]) for k in range(C)]]
     for _ in range(levels - 1):
-        if min(pyr_s[-1].shape[:2]) < 2 * window:
+        if min(pyr_s[-1][0].shape) < 2 * window:
             break
-        pyr_s.append(np.stack([cv2.pyrDown(np.ascontiguousarray(pyr_s[-1][..., k]))
-                               for k in range(src.shape[-1])], -1))
-        pyr_t.append(np.stack([cv2.pyrDown(np.ascontiguousarray(pyr_t[-1][..., k]))
-                               for k in range(tgt.shape[-1])], -1))
-    # structure scale from the finest level, so lambda is comparable across levels
-    m = np.zeros(pyr_s[-1].shape[:2] + (2,), np.float32)
+        pyr_s.append([cv2.pyrDown(a) for a in pyr_s[-1]])
+        pyr_t.append([cv2.pyrDown(a) for a in pyr_t[-1]])
+    h, w = pyr_s[-1][0].shape
+    mu = np.zeros((h, w), np.float32)
+    mv = np.zeros((h, w), np.float32)
     taps = np.full(window, 1.0 / window, np.float32)
 
     def box(a):
         return cv2.sepFilter2D(a, cv2.CV_32F, taps, taps, borderType=cv2.BORDER_REFLECT)
 
     for lev in range(len(pyr_s) - 1, -1, -1):
-        s, t = pyr_s[lev], pyr_t[lev]
-        if m.shape[:2] != s.shape[:2]:
-            h, w = s.shape[:2]
-            scale = np.float32(w / m.shape[1]), np.float32(h / m.shape[0])
-            m = cv2.resize(m, (w, h), interpolation=cv2.INTER_LINEAR)
-            m[..., 0] *= scale[0]
-            m[..., 1] *= scale[1]
-        gx = np.stack([cv2.Scharr(np.ascontiguousarray(s[..., k]), cv2.CV_32F, 1, 0, scale=1 / 32)
-                       for k in range(s.shape[-1])], -1)
-        gy = np.stack([cv2.Scharr(np.ascontiguousarray(s[..., k]), cv2.CV_32F, 0, 1, scale=1 / 32)
-                       for k in range(s.shape[-1])], -1)
-        sxx = box((gx * gx).sum(-1))
-        sxy = box((gx * gy).sum(-1))
-        syy = box((gy * gy).sum(-1))
-        lam = regularisation * float(np.percentile(sxx + syy, 99)) + 1e-12
-        det = (sxx + lam) * (syy + lam) - sxy * sxy
-        coefs = _coefficients(t)
+        s_ch, t_ch = pyr_s[lev], pyr_t[lev]
+        h, w = s_ch[0].shape
+        if mu.shape != (h, w):
+            M = np.array([[0.5, 0.0, 0.0], [0.0, 0.5, 0.0]])
+            flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+            mu = 2 * cv2.warpAffine(mu, M, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+            mv = 2 * cv2.warpAffine(mv, M, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+        gx = [cv2.Scharr(a, cv2.CV_32F, 1, 0, scale=1 / 32) for a in s_ch]
+        gy = [cv2.Scharr(a, cv2.CV_32F, 0, 1, scale=1 / 32) for a in s_ch]
+        sxx = box(sum(g * g for g in gx))
+        sxy = box(sum(a * b for a, b in zip(gx, gy)))
+        syy = box(sum(g * g for g in gy))
+        lam = np.float32(regularisation * float(np.percentile((sxx + syy)[::2, ::2], 99)) + 1e-12)
+        pxx = sxx + lam
+        pyy = syy + lam
+        det = pxx * pyy - sxy * sxy
+        coefs = [spline_coefficients(a) for a in t_ch]
         for _ in range(iterations):
-            warped = _warp_channels(coefs, m)
-            # linearised around each cell's own warp (as in pipeline.flow LK)
-            e = s - warped + gx * m[..., 0:1] + gy * m[..., 1:2]
-            bx = box((gx * e).sum(-1))
-            by = box((gy * e).sum(-1))
-            m = np.stack([((syy + lam) * bx - sxy * by) / det,
-                          ((sxx + lam) * by - sxy * bx) / det], -1).astype(np.float32)
-    return m
+            disp = np.stack([mu, mv], -1)
+            bx = np.zeros((h, w), np.float32)
+            by = np.zeros((h, w), np.float32)
+            for k in range(C):
+                # linearised around each cell's own warp (as in pipeline.flow LK)
+                e = s_ch[k] - warp_coefficients(coefs[k], disp) + gx[k] * mu + gy[k] * mv
+                bx += gx[k] * e
+                by += gy[k] * e
+            bx = box(bx)
+            by = box(by)
+            mu = ((pyy * bx - sxy * by) / det).astype(np.float32)
+            mv = ((pxx * by - sxy * bx) / det).astype(np.float32)
+    return np.stack([mu, mv], -1)
 
 
 def resample_flow(raw: np.ndarray, first_frame: int, target_time: float, *, offset: float,

@@ -88,11 +88,18 @@ def context(store_path: str) -> RunContext:
                       raw_first=int(run["raw_first"]), n_raw=int(run["n_raw"]))
 
 
-@functools.lru_cache(maxsize=64)
+@functools.lru_cache(maxsize=32)
 def _reference(store_path: str, c: int) -> np.ndarray:
     ctx = context(store_path)
     s = ctx.session.sources[c]
     return read_reference(s, camera_name=s.name)
+
+
+@functools.lru_cache(maxsize=32)
+def _prepared_reference(store_path: str, c: int):
+    """The reference's pyramid and spline coefficients, prepared once per camera per process."""
+    params = context(store_path).config.flow
+    return flowmod.prepare_reference(_reference(store_path, c), **params.reference_kwargs())
 
 
 @functools.lru_cache(maxsize=2)
@@ -154,7 +161,7 @@ def _clock(ctx: RunContext) -> dict:
 
 def _deflection(ctx: RunContext, c: int, j: int) -> dict:
     img = ctx.frames(c).read(ctx.raw_first + j)
-    d = flowmod.deflection_stage(ctx.reference(c), img, ctx.config.flow)
+    d = flowmod.deflection_stage(_prepared_reference(ctx.store_path, c), img, ctx.config.flow)
     ctx.store.write("flow_raw", (c, j), d.astype(np.float32))
     return {"max_px": float(np.nanmax(np.abs(d))) if d.size else 0.0}
 
@@ -201,8 +208,9 @@ def _mask(ctx: RunContext, c: int, k: int) -> dict:
     h = params.temporal_radius
     ks = [min(max(i, 0), ctx.n_frames - 1) for i in range(k - h, k + h + 1)]
     pots = np.stack([ctx.store.read("potential", (c, i)) for i in ks])
+    flows = np.stack([ctx.store.read("flow", (c, i)) for i in ks])
     thr = float(ctx.store.read("mask_threshold", ())[0])
-    m = masksmod.make_mask(pots, h, thr, **kernel_kwargs(params, masksmod.make_mask))
+    m = masksmod.make_mask(pots, h, thr, flows=flows, **kernel_kwargs(params, masksmod.make_mask))
     ctx.store.write("mask", (c, k), np.asarray(m, dtype=bool))
     return {"fraction": float(np.mean(m))}
 

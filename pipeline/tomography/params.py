@@ -25,7 +25,7 @@ class TomoParams:
         relative to the mean of ``diag(S^T S)`` (dimensionless; 0 = plain least squares,
         which semi-converges with noisy data).
     max_iter : int
-        Iteration cap of the fused CGLS solver.
+        Iteration cap of the fused conjugate-gradient (CGLS-equivalent) solver.
     tol : float
         Stop when the normal-equation residual of every component has dropped by this
         factor relative to its initial value.

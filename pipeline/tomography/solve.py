@@ -9,8 +9,14 @@ the gradient fades to zero at the hull boundary):
 
     min ||S x - b||^2 + mu^2 ||L x||^2,   mu^2 = reg_weight * mean(diag(S^T S)),
 
-solved by CGLS with Jacobi column scaling, optionally stopped by the discrepancy
-principle. Warm start from the previous frame's gradient (on the full grid).
+solved by conjugate gradients on the Jacobi-scaled normal equations (the CGLS iteration;
+one fused pass over ``S`` per iteration applies ``S^T S`` to the three components),
+stopped when the normal residual has dropped by ``tol`` or, optionally, by the
+discrepancy principle. Warm start from the previous frame's gradient (on the full grid).
+The regularisation weight (0.1) and the stop were chosen on the accuracy table of
+benchmarks/tomography.py: with 0.05 px deflection noise plain CG semi-converges
+(48.6 dB after 5 iterations, 38.2 dB after 80) while the regularised solve is stable
+(49.1 dB at its tolerance stop) and costs 0.2 dB on noise-free data.
 """
 
 from __future__ import annotations
@@ -41,7 +47,7 @@ class SolveInfo:
     Attributes
     ----------
     iterations : int
-        CGLS iterations run.
+        Conjugate-gradient iterations run (CGLS-equivalent).
     residual : float
         Largest relative data residual ``||S x - b|| / ||b||`` over the components.
     residual_components : tuple of float
