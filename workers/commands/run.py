@@ -38,7 +38,7 @@ def add_common_run_args(p: argparse.ArgumentParser) -> None:
                    help="folder with ca.pem, client.pem, client-key.pem for a tls:// scheduler")
     p.add_argument("--report", default=None, metavar="FILE", help="write a Dask performance report (HTML)")
     p.add_argument("--params", default=None, metavar="FILE",
-                   help="YAML file of run parameters (see docs/parameters.md), e.g. {tomography: {...}}")
+                   help="YAML file of run parameters (`schlieren params` prints them all with defaults)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
