@@ -30,13 +30,14 @@ gradient expressed *per voxel* in units in which the field spans ``value_scale``
 ``g_hat = g * h * value_scale / range_est``, where ``range_est`` is the largest excursion
 of the gradient's running integral along the grid axes (a cheap estimate of the
 refractivity range). With ``max|g_hat| = M`` the exponent at a sharp edge is about
-``1 / (k M^3)``. The default ``value_scale = 65535`` (a 16-bit volume) makes the paper's
-``k`` switch the anisotropy on at the plume's edges; with 8-bit units (255) the exponent
-is > 100 almost everywhere and ``D = alpha I``, i.e. plain Poisson. On the project's
-plume (benchmarks/tomography.py, 16 cameras) the 16-bit units with alpha = 0.8 gain
-about 0.5 dB over plain Poisson on the young plume (t = 0) and lose 0.5-1.2 dB on the
-developed one (t = 0.5 s); the paper reports about +1 dB. On exact gradients alpha = 1
-is better, as the Appendix says. ``alpha = 1``
+``1 / (k M^3)``. With the default ``value_scale = 255`` (an 8-bit volume, like the
+paper's fuel-injection data set) the exponent is large almost everywhere on our plumes,
+so ``D ~ alpha I`` (equivalent to plain Poisson) except at the sharpest edges. With
+16-bit units (65535) the anisotropy is active at the plume's edges, and on the
+project's plume (benchmarks/tomography.py, 16 cameras, 48 x 48 x 96) alpha = 0.8 then
+*loses* about 1 dB against plain Poisson on tomographic gradients (paper: gains about
+1 dB), and 1.5 dB on exact gradients; that is why the inert 8-bit units are the default.
+``alpha = 1``
 gives plain Poisson.
 """
 
@@ -75,7 +76,7 @@ class PoissonParams:
     k : float
         Edge constant of the Appendix, in the units described in the module docstring.
     value_scale : float
-        The field range those units assume (65535: 16-bit volume; see the module notes).
+        The field range those units assume (255: 8-bit volume; see the module notes).
     box_boundary : str
         Where the hull touches a face of the reconstruction box (a plume rising from a
         source at the floor, or leaving through the top) the paper's ``n = n_air``
@@ -97,7 +98,7 @@ class PoissonParams:
     alpha: float = 0.8
     sigma: float = 0.5
     k: float = 0.5e-5
-    value_scale: float = 65535.0
+    value_scale: float = 255.0
     box_boundary: str = "neumann"
     solver: str = "mg"
     tol: float = 1e-6
@@ -126,7 +127,7 @@ def _range_estimate(g: np.ndarray, h: float) -> float:
 
 
 def diffusion_tensor(g: np.ndarray, h: float, *, alpha: float, sigma: float, k: float,
-                     value_scale: float = 65535.0, where: np.ndarray | None = None) -> np.ndarray:
+                     value_scale: float = 255.0, where: np.ndarray | None = None) -> np.ndarray:
     """Edge-preserving diffusion tensor of the Appendix.
 
     Parameters

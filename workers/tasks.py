@@ -24,6 +24,7 @@ from schlieren.storage import arrays_cache
 from schlieren.storage.frames import open_frames, read_reference
 from schlieren.storage.session import Session, load_session
 from schlieren.storage.store import ResultStore
+from schlieren.workers.monitoring import log_receipt
 
 log = logging.getLogger(__name__)
 
@@ -335,5 +336,5 @@ def run_task(store_path: str, stage_name: str, index: tuple[int, ...], *_deps) -
     ctx.store.mark_done(stage_name, index)
     receipt.update(extra)
     receipt["seconds"] = time.perf_counter() - t0
-    log.info("task done", extra={"receipt": receipt})
+    log_receipt(receipt)
     return receipt

@@ -32,10 +32,14 @@ def test_cli_run_on_an_external_scheduler_matches_serial(external_scheduler, tin
                                                          serial_store, tmp_path):
     out = tmp_path / "ext.zarr"
     proc = subprocess.run([sys.executable, "-m", "schlieren.workers.cli", "run", str(tiny_session.session),
-                           "--out", str(out), "--scheduler", external_scheduler.address, "--no-progress"],
+                           "--out", str(out), "--scheduler", external_scheduler.address, "--no-progress",
+                           "--report", str(tmp_path / "perf.html")],
                           capture_output=True, text=True, timeout=500)
     assert proc.returncode == 0, proc.stderr + external_scheduler.logs()
     assert "dashboard: http://127.0.0.1:" in proc.stderr
+    # the Dask performance report was written and shows our stages
+    perf = (tmp_path / "perf.html").read_text()
+    assert "deflection" in perf and "tomography" in perf
     assert_same_store(serial_store, out)
     # the scheduler's dashboard answers and knows our stages by name
     with urllib.request.urlopen(f"{external_scheduler.dashboard_url}/status", timeout=10) as r:

@@ -1,0 +1,131 @@
+"""``schlieren bench table1 [--quick] [--out DIR] [--rigs half:8,...] [--size WxH] [--frames N]``.
+
+Reproduces the paper's Table 1 (sec. 6) on the project's synthetic plume and writes
+``benchmarks/results/table1.md`` and ``table1.json`` (see :mod:`schlieren.workers.bench`).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from schlieren.workers.cli import CLIError
+
+QUICK_SIZE = (160, 120)
+QUICK_VOXEL = 0.005
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must be WIDTHxHEIGHT, not {text!r}") from None
+    if w < 32 or h < 32:
+        raise argparse.ArgumentTypeError("size must be at least 32x32")
+    return w, h
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser("bench", help="reproduce the paper's benchmark tables on synthetic data",
+                              description="Reproduce a table of the paper on the project's synthetic plume.")
+    p.add_argument("table", choices=["table1"], help="table1: reconstruction errors per rig (paper sec. 6)")
+    p.add_argument("--quick", action="store_true",
+                   help=f"a small subset: one half ring of 3 cameras, {QUICK_SIZE[0]}x{QUICK_SIZE[1]} images, "
+                        f"1 frame, {QUICK_VOXEL * 1000:.0f} mm voxels (for tests)")
+    p.add_argument("--out", metavar="DIR", default=None,
+                   help="work folder for sessions and stores (default: a temporary folder, deleted)")
+    p.add_argument("--results", metavar="DIR", default="benchmarks/results",
+                   help="where table1.md / table1.json go (default benchmarks/results)")
+    p.add_argument("--rigs", default=None, help="comma-separated RING:CAMERAS, default "
+                                                "half:8,half:16,half:32,full:7,full:15,full:31")
+    p.add_argument("--size", type=_size, default=None, help="image WIDTHxHEIGHT (default 480x360)")
+    p.add_argument("--frames", type=int, default=None, help="output frames per rig (default 3)")
+    p.add_argument("--voxel", type=float, default=None, help="reconstruction voxel, metres (default 0.0025)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="local Dask workers for the pipeline runs; 0 = serial (default 2, quick: 0)")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=handler)
+
+
+def _config(args):
+    from schlieren.workers.bench import QUICK_RIGS, Table1Config, parse_rigs
+
+    base = Table1Config(frames=3, workers=2)
+    if args.quick:
+        base = Table1Config(rigs=QUICK_RIGS, size=QUICK_SIZE, frames=1, recon_voxel=QUICK_VOXEL, workers=0,
+                            plain_rig=QUICK_RIGS[0], hull_rig=QUICK_RIGS[0])
+    kw = {"seed": args.seed}
+    if args.rigs:
+        try:
+            kw["rigs"] = parse_rigs(args.rigs)
+        except ValueError as exc:
+            raise CLIError(f"--rigs: {exc}") from None
+    if args.size:
+        kw["size"] = args.size
+    if args.frames is not None:
+        if args.frames < 1:
+            raise CLIError("--frames must be at least 1")
+        kw["frames"] = args.frames
+    if args.voxel is not None:
+        if not 0 < args.voxel < 0.1:
+            raise CLIError("--voxel must be in (0, 0.1) metres")
+        kw["recon_voxel"] = args.voxel
+    if args.workers is not None:
+        if args.workers < 0:
+            raise CLIError("--workers must be >= 0")
+        kw["workers"] = args.workers
+    import dataclasses
+
+    return dataclasses.replace(base, **kw)
+
+
+def _machine() -> str:
+    import os
+    import platform
+
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    return f"{os.cpu_count()} cores ({platform.machine()}), shared with other jobs (1-min load {load:.1f} at the end)"
+
+
+def handler(args) -> int:
+    import contextlib
+    import tempfile
+    import time
+    from pathlib import Path
+
+    from rich.console import Console
+
+    from schlieren.storage import bench_io
+    from schlieren.workers.bench import rig_failures, run_table1, table1_markdown
+
+    console = Console(stderr=True)
+    cfg = _config(args)
+    t0 = time.perf_counter()
+    with contextlib.ExitStack() as stack:
+        if args.out:
+            work = Path(args.out)
+        else:
+            work = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="schlieren-bench-")))
+        client = None
+        executor = "serial"
+        if cfg.workers > 0:
+            from schlieren.workers.cluster import ClusterOptions, open_client
+
+            client, _info = stack.enter_context(open_client(ClusterOptions(workers=cfg.workers,
+                                                                           dashboard_address=":0")))
+            executor = f"local Dask cluster, {cfg.workers} workers x 1 thread"
+        result = run_table1(work, cfg, client=client, progress=lambda m: console.print(m))
+    wall = time.perf_counter() - t0
+    result["wall_seconds"] = wall
+    result["executor"] = executor
+    machine = _machine()
+    result["machine"] = machine
+    md = table1_markdown(result, wall_seconds=wall, executor=executor, machine=machine)
+    out = Path(args.results)
+    bench_io.write_text(out / "table1.md", md)
+    bench_io.write_json(out / "table1.json", result)
+    console.print(f"wrote {out / 'table1.md'} and {out / 'table1.json'} ({wall:.0f} s)")
+    failed = rig_failures(result)
+    if failed:
+        console.print(f"pipeline failures: {', '.join(failed)}")
+        return 1
+    return 0
