@@ -86,7 +86,7 @@ def test_local_cluster_workers_have_thread_caps_and_tomo_slots(local):
         # set before the process started (pre-spawn-environ), not patched in afterwards
         started_with = _proc_environ(rep["pid"])
         for var in THREAD_VARS:
-            assert started_with.get(var) == "1", var
+            assert started_with.get(var) == THREAD_ENV[var], var
 
 
 @pytest.mark.timeout(120)
@@ -152,7 +152,7 @@ def test_external_scheduler_run_and_worker_replacement(external_scheduler):
         for rep in before.values():
             assert rep["cv2_threads"] == 1  # the plugin
             started_with = _proc_environ(rep["pid"])  # deploy/config/bos.yaml via DASK_CONFIG
-            assert all(started_with.get(v) == "1" for v in THREAD_VARS)
+            assert all(started_with.get(v) == THREAD_ENV[v] for v in THREAD_VARS)
         assert set(cluster.worker_pids()) == {r["pid"] for r in before.values()}
 
         killed = cluster.kill_worker(0)

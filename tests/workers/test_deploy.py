@@ -79,8 +79,8 @@ def test_bos_yaml_equals_the_settings_the_code_applies():
 def test_containerfile_sets_thread_caps_and_a_non_root_user():
     text = (DEPLOY / "Containerfile").read_text()
     assert re.search(r"^FROM python:3\.11-slim", text, re.M)
-    for var in THREAD_ENV:
-        assert re.search(rf"\b{var}=1\b", text), var
+    for var, value in THREAD_ENV.items():
+        assert re.search(rf"\b{var}={value}\b", text), var
     assert "DASK_CONFIG=/opt/schlieren/deploy/config" in text and "COPY deploy/config" in text
     users = re.findall(r"^USER\s+(\S+)", text, re.M)
     assert users and users[-1] not in ("root", "0")
@@ -127,7 +127,7 @@ def test_jobqueue_renders_our_job_script(kind, tmp_path):
     worker_line = next(ln for ln in lines if "distributed.cli.dask_worker" in ln)
     # thread caps are exported before the worker command
     for var in THREAD_ENV:
-        exports = [i for i, ln in enumerate(lines) if ln.strip() == f"export {var}=1"]
+        exports = [i for i, ln in enumerate(lines) if ln.strip() == f"export {var}={THREAD_ENV[var]}"]
         assert exports and exports[0] < lines.index(worker_line), var
     args = shlex.split(worker_line)
     assert args[args.index("--resources") + 1] == f"{TOMO}=1"
@@ -201,7 +201,7 @@ def test_rendered_slurm_script_starts_workers_that_join_over_tls(tmp_path, exter
         started_with = dict(
             item.split("=", 1) for item in open(f"/proc/{rep['pid']}/environ").read().split("\0") if "=" in item
         )
-        assert all(started_with.get(v) == "1" for v in THREAD_ENV)
+        assert all(started_with.get(v) == THREAD_ENV[v] for v in THREAD_ENV)
         assert client.submit(pow, 2, 10, key="tomography-job-000000", resources={TOMO: 1}).result(timeout=30) == 1024
 
 
@@ -226,7 +226,7 @@ def test_daskcluster_manifest_structure():
     assert args[args.index("--nthreads") + 1] == "1" and args[args.index("--memory-limit") + 1] == "8GiB"
     assert wc["resources"]["limits"] == wc["resources"]["requests"] == {"cpu": "1", "memory": "8Gi"}
     env = {e["name"]: e["value"] for e in wc["env"]}
-    assert all(env[k] == "1" for k in THREAD_ENV) and env["DASK_CONFIG"] == "/opt/schlieren/deploy/config"
+    assert all(env[k] == THREAD_ENV[k] for k in THREAD_ENV) and env["DASK_CONFIG"] == "/opt/schlieren/deploy/config"
     assert wc["securityContext"]["runAsNonRoot"] is True
     sched = m["spec"]["scheduler"]
     assert sched["service"]["type"] == "ClusterIP"
