@@ -90,4 +90,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    # run the imported module, not this __main__ copy, so CLIError is one class everywhere
+    from schlieren.workers.cli import main as _main
+
+    sys.exit(_main())

@@ -1,0 +1,65 @@
+"""`schlieren run` on bad input: one line, non-zero exit, no traceback, nothing touched."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+
+import yaml
+import zarr
+
+
+def _cli(*args, timeout=300):
+    return subprocess.run([sys.executable, "-m", "schlieren.workers.cli", *map(str, args)],
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def _copy_session(tiny_session, tmp_path):
+    sess = tmp_path / "session"
+    shutil.copytree(tiny_session.session.parent, sess, ignore=shutil.ignore_patterns("truth.zarr"))
+    return sess
+
+
+def test_malformed_manifest_is_refused_before_any_work(tiny_session, tmp_path):
+    sess = _copy_session(tiny_session, tmp_path)
+    m = yaml.safe_load((sess / "session.yaml").read_text())
+    m["cameras"][2]["R"][0][0] = 0.5  # no longer a rotation
+    (sess / "session.yaml").write_text(yaml.safe_dump(m))
+    out = tmp_path / "out.zarr"
+    p = _cli("run", sess, "--out", out, "--serial")
+    assert p.returncode == 2
+    lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1, p.stderr
+    assert "session.yaml" in lines[0] and m["cameras"][2]["name"] in lines[0] and "R" in lines[0]
+    assert "Traceback" not in p.stderr
+    assert not out.exists()  # nothing was created
+
+
+def test_a_misspelled_field_names_the_field(tiny_session, tmp_path):
+    sess = _copy_session(tiny_session, tmp_path)
+    text = (sess / "session.yaml").read_text().replace("frame_rate:", "frame_rte:")
+    (sess / "session.yaml").write_text(text)
+    p = _cli("run", sess, "--out", tmp_path / "o.zarr", "--serial")
+    assert p.returncode == 2 and "frame_rte" in p.stderr and "frame_rate" in p.stderr
+    assert "Traceback" not in p.stderr
+
+
+def test_an_existing_store_of_another_run_is_never_overwritten(tiny_session, serial_store, tmp_path):
+    sess = _copy_session(tiny_session, tmp_path)
+    m = yaml.safe_load((sess / "session.yaml").read_text())
+    m["name"] = "another run"
+    (sess / "session.yaml").write_text(yaml.safe_dump(m))
+    out = tmp_path / "existing.zarr"
+    shutil.copytree(serial_store, out)
+    before = sorted(p.relative_to(out).as_posix() for p in out.rglob("*"))
+    r_before = zarr.open_group(str(out), mode="r")["refractivity"][...]
+    p = _cli("run", sess, "--out", out, "--serial")
+    assert p.returncode == 2 and str(out) in p.stderr and "Traceback" not in p.stderr
+    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*")) == before
+    assert (zarr.open_group(str(out), mode="r")["refractivity"][...] == r_before).all()
+
+
+def test_bad_frame_range_argument(tiny_session, tmp_path):
+    p = _cli("run", tiny_session.session, "--out", tmp_path / "o.zarr", "--frames", "5:2")
+    assert p.returncode == 2 and "--frames" in p.stderr and "Traceback" not in p.stderr
