@@ -242,8 +242,8 @@ class SchlierenWorkerSetup(WorkerPlugin):
 
     def setup(self, worker: Any) -> None:
         n = str(self.threads)
-        for k in THREAD_ENV:
-            os.environ[k] = n
+        for k, v in THREAD_ENV.items():
+            os.environ[k] = n if v == "1" else v  # thread counts follow `threads`; policies as set
         try:
             import cv2
 
