@@ -111,8 +111,9 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
 
     Parameters
     ----------
-    session_path : path
-        The session folder or its ``session.yaml``.
+    session_path : path or Session
+        The session folder or its ``session.yaml`` (or a session already loaded, with
+        ``frames`` applied).
     out_path : path
         The result store (Zarr v3 folder).
     client : distributed.Client, optional
@@ -123,7 +124,7 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
     report : str, optional
         Path of a Dask performance report (HTML), with a client.
     """
-    session = load_session(session_path, frames=frames)
+    session = session_path if isinstance(session_path, Session) else load_session(session_path, frames=frames)
     cfg = bind_medium(config or RunConfig(), session.medium.n_ambient)
     store, ext, token = prepare_store(session, out_path, cfg)
     plan = make_plan(ext, token, done=store.is_done)

@@ -27,7 +27,7 @@ def test_malformed_manifest_is_refused_before_any_work(tiny_session, tmp_path):
     m["cameras"][2]["R"][0][0] = 0.5  # no longer a rotation
     (sess / "session.yaml").write_text(yaml.safe_dump(m))
     out = tmp_path / "out.zarr"
-    p = _cli("run", sess, "--out", out, "--serial")
+    p = _cli("run", sess, "--out", out, "--workers", "2")  # refused before a cluster starts
     assert p.returncode == 2
     lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1, p.stderr

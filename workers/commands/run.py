@@ -86,7 +86,11 @@ def execute(session: str, out: str, frames, args, *, console=None):
     from schlieren.workers.progress import StageProgress
     from schlieren.workers.run import run_session
 
+    from schlieren.storage.session import load_session
+
     cfg = load_params(getattr(args, "params", None))
+    # validate everything before a cluster is even started
+    loaded = load_session(session, frames=frames)
     with client_for(args) as (client, info):
         link = None
         if client is not None:
@@ -96,7 +100,7 @@ def execute(session: str, out: str, frames, args, *, console=None):
             if link:
                 print(f"dashboard: {link}", file=sys.stderr)
         with StageProgress(enabled=not args.no_progress, console=console) as prog:
-            summary = run_session(session, out, client=client, frames=frames,
+            summary = run_session(loaded, out, client=client, frames=frames,
                                   serial=client is None, config=cfg, report=args.report,
                                   on_receipt=prog.receipt, on_failure=prog.failure,
                                   on_plan=prog.plan)
