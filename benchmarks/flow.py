@@ -8,17 +8,24 @@ phantom at each row's rolling-shutter time, pixel-area supersampled rendering, s
 area-averaged to the flow grid (factor 3). "Inside the plume" = cells where the true
 deflection exceeds 0.02 px.
 
-Phantoms: ``tealights`` (three laminar plumes, deflections 0.05-1.8 px: the issue's
-regime) and ``plume`` (buoyant smoke simulation: finer structure, up to ~3 px).
+Phantoms: ``tealights`` (three laminar plumes, peak deflection ~1.8 px), ``plume``
+(buoyant smoke simulation: finer structure, up to ~3 px) and ``tealights_1px`` (the issue's
+regime, deflections 0.05-1 px: the same tea-light plumes with the flame-tip temperature
+lowered from 560 K to 400 K (``tealight_plumes(source_temperature=400.0)``), which scales
+the peak deflection to ~1 px).
 
 Reference images: "noisy" = one frame with 1.5 grey levels of noise like the data
 (worst case); "clean" = noise-free, as ``schlieren synth`` writes it (a reference is an
 average of many frames in practice, SPEC).
 
-Rows: dense pyramidal LK (default ``FlowParams``), LK on 3x area-downsampled images
-(flow x 3, window 5 = 13 / 3), Horn-Schunck, OpenCV DIS (8-bit), classic window
+Rows: dense pyramidal LK (default ``FlowParams``; the same with the symmetric gradient; the
+defaults before issue 4's accuracy work: 13 px box window, presmooth 0.8, flow smoothing
+1 px, no texture correction, no adaptive smoothing), LK on 3x area-downsampled images (flow x 3, box window 5 ~ 13 / 3,
+presmooth 0.8), Horn-Schunck, OpenCV DIS (8-bit), classic window
 cross-correlation (32 px top-hat windows, 50 % overlap, 3-point Gaussian peak fit) and a
-tuned correlation (Hann taper, 75 % overlap).
+tuned correlation (Hann taper, 75 % overlap); both correlations keep the post-processing
+they had before issue 4 (normalised median test, 1 px Gaussian smoothing, no adaptive
+smoothing).
 
 Throughput of ``deflection_stage`` (LK, 1440x1080 -> 360x480 flow grid) with the camera's
 ``PreparedReference`` cached (per worker process, as one task per camera-frame does):
@@ -50,7 +57,7 @@ from schlieren.pipeline import flow as F
 from schlieren.pipeline.geometry import FlowGrid, Grid
 from schlieren.pipeline.synthetic import render as R
 from schlieren.pipeline.synthetic.background import make_background, wavelet_noise_tile
-from schlieren.pipeline.synthetic.phantoms import make_phantom
+from schlieren.pipeline.synthetic.phantoms import make_phantom, tealight_plumes
 from schlieren.pipeline.synthetic.rig import make_rig
 from schlieren.pipeline.synthetic.tracer import active_box, field_stack
 
@@ -60,6 +67,13 @@ FRAME_RATE = 60.0
 LINE_TIME = 1.54e-5
 NOISE = 1.5
 FACTOR = 3
+TEALIGHTS_1PX_TEMPERATURE = 400.0  # K at the flame tip (make_phantom's tealights: 560 K)
+SYMMETRIC = F.FlowParams(gradient="symmetric")
+# correlation baselines keep the post-processing they were benchmarked with before issue 4
+# (median test, 1 px Gaussian smoothing; no adaptive smoothing)
+CORR = F.FlowParams(method="correlation", smoothing_sigma=1.0, adaptive_sigma=0.0)
+OLD_DEFAULTS = F.FlowParams(window=13, window_type="box", presmooth=0.8, smoothing_sigma=1.0,
+                            adaptive_sigma=0.0, texture_correction=False)
 log = logging.getLogger("bench.flow")
 
 
@@ -71,8 +85,14 @@ class Scene:
         self.kind = kind
         self.grid = Grid(*BOX, 0.0025)
         self.fine = Grid(*BOX, 0.00125)
-        self.phantom = make_phantom(kind, self.fine, t_start=t_start, duration=duration, seed=seed,
-                                    knot_dt=1.0 / 240.0)
+        if kind == "tealights_1px":  # the issue's regime: peak deflection ~1 px
+            knot_dt = 1.0 / 240.0
+            kt = t_start + knot_dt * np.arange(int(np.ceil(duration / knot_dt - 1e-9)) + 1)
+            self.phantom = tealight_plumes(self.fine, knot_times=kt, seed=seed,
+                                           source_temperature=TEALIGHTS_1PX_TEMPERATURE)
+        else:
+            self.phantom = make_phantom(kind, self.fine, t_start=t_start, duration=duration,
+                                        seed=seed, knot_dt=1.0 / 240.0)
         rig = make_rig(n_cameras, grid=self.grid, image_size=image_size, line_time=LINE_TIME, seed=seed)
         if offsets is None:
             offsets = np.zeros(n_cameras)
@@ -121,16 +141,21 @@ def area_down(img, f):
     return cv2.resize(img[: H // f * f, : W // f * f], (W // f, H // f), interpolation=cv2.INTER_AREA)
 
 
+LK = "LK (default FlowParams)"
+CLASSIC = "correlation 32 px, 50 % overlap (classic)"
 METHODS = {
-    "LK (default FlowParams)": lambda r, fr: F.deflection_stage(r, fr, F.FlowParams()),
+    LK: lambda r, fr: F.deflection_stage(r, fr, F.FlowParams()),
+    "LK (default, gradient='symmetric')": lambda r, fr: F.deflection_stage(r, fr, SYMMETRIC),
+    "LK (defaults before issue 4 work)": lambda r, fr: F.deflection_stage(r, fr, OLD_DEFAULTS),
     "LK on 3x downsampled images": lambda r, fr: F.deflection_field(
-        area_down(r, FACTOR), area_down(fr, FACTOR), window=5) * FACTOR,
+        area_down(r, FACTOR), area_down(fr, FACTOR), window=5, window_type="box",
+        presmooth=0.8) * FACTOR,
     "Horn-Schunck": lambda r, fr: F.deflection_stage(r, fr, F.FlowParams(method="hs")),
     "OpenCV DIS (medium)": lambda r, fr: F.deflection_stage(r, fr, F.FlowParams(method="dis")),
-    "correlation 32 px, 50 % overlap (classic)": lambda r, fr: F.deflection_stage(
-        r, fr, F.FlowParams(method="correlation")),
+    CLASSIC: lambda r, fr: F.deflection_stage(r, fr, CORR),
     "correlation 32 px, Hann, 75 % overlap": lambda r, fr: F.deflection_stage(
-        r, fr, F.FlowParams(method="correlation", corr_step=8, corr_taper=True)),
+        r, fr, F.FlowParams(method="correlation", corr_step=8, corr_taper=True,
+                            smoothing_sigma=1.0, adaptive_sigma=0.0)),
 }
 
 
@@ -155,7 +180,7 @@ def accuracy(kind: str, frames, n_cameras: int, rng) -> dict:
             stats["plume_fraction"].append(float(inside.mean()))
             for refname, ref in (("noisy", ref_noisy), ("clean", ref_clean)):
                 for name, fn in METHODS.items():
-                    if refname == "clean" and name not in ("LK (default FlowParams)",
+                    if refname == "clean" and name not in (LK, "LK (default, gradient='symmetric')",
                                                            "LK on 3x downsampled images"):
                         continue
                     out = fn(ref, frm)
@@ -166,6 +191,10 @@ def accuracy(kind: str, frames, n_cameras: int, rng) -> dict:
                     r["epe_all"].append(float(err.mean()))
                     r["rms_plume"].append(float(np.sqrt(np.mean(err[inside] ** 2))))
     summary = {k: {m: float(np.mean(v)) for m, v in r.items()} for k, r in rows.items()}
+    c = summary[f"{CLASSIC} | noisy ref"]["epe_plume"]
+    stats["classic_correlation_over_lk"] = {
+        k.split(" | ")[0] + " | " + k.split(" | ")[1]: c / r["epe_plume"]
+        for k, r in summary.items() if k.startswith("LK (")}
     stats["plume_fraction"] = float(np.mean(stats["plume_fraction"]))
     return {"phantom": kind, "camera_frames": n_cameras * len(frames), "stats": stats, "rows": summary}
 
@@ -206,6 +235,15 @@ def throughput(ref: np.ndarray, frames: list, n: int) -> dict:
     _JOB.update(prep=prep, frames=frames, params=params)
     cpu, wall1 = _worker(n)
     out["single_thread_cpu_ms_per_frame"] = 1e3 * cpu / n
+    acc = SYMMETRIC
+    _JOB.update(prep=F.prepare_reference(ref, **acc.reference_kwargs()), params=acc)
+    cpu_acc, _ = _worker(max(2, n // 2))
+    out["symmetric_single_thread_cpu_ms_per_frame"] = 1e3 * cpu_acc / max(2, n // 2)
+    _JOB.update(prep=F.prepare_reference(ref, **OLD_DEFAULTS.reference_kwargs()),
+                params=OLD_DEFAULTS)
+    cpu_old, _ = _worker(max(2, n // 2))
+    out["old_defaults_single_thread_cpu_ms_per_frame"] = 1e3 * cpu_old / max(2, n // 2)
+    _JOB.update(prep=prep, params=params)
     out["single_thread_wall_ms_per_frame"] = 1e3 * wall1 / n
     out["machine_fps_estimate_from_cpu_time"] = 2 * n / cpu
     cv2.setNumThreads(1)
@@ -252,6 +290,11 @@ def write(result: dict) -> None:
             name, ref = k.split(" | ")
             lines.append(f"| {name} | {ref.replace(' ref', '')} | {r['epe_plume']:.4f} | "
                          f"{r['rms_plume']:.4f} | {r['epe_all']:.4f} |")
+        lines += ["", "Classic correlation EPE in plume (noisy reference) / LK EPE in plume "
+                  "(issue 4 target: >= 4):", ""]
+        for k, ratio in st["classic_correlation_over_lk"].items():
+            name, ref = k.split(" | ")
+            lines.append(f"* {name}, {ref}: {ratio:.1f}x")
         lines.append("")
     tp = result["throughput"]
     lines += ["## LK throughput (`deflection_stage`, 1440x1080 -> 480x360 flow grid)", "",
@@ -261,6 +304,10 @@ def write(result: dict) -> None:
               f"{tp['one_process_2_threads_fps_without_prepared_reference']:.1f} camera-frames/s |",
               f"| single thread: CPU time per frame | {tp['single_thread_cpu_ms_per_frame']:.1f} ms |",
               f"| single thread: wall time per frame | {tp['single_thread_wall_ms_per_frame']:.1f} ms |",
+              f"| defaults before issue 4 work, single thread: CPU time per frame | "
+              f"{tp['old_defaults_single_thread_cpu_ms_per_frame']:.1f} ms |",
+              f"| gradient='symmetric', single thread: CPU time per frame | "
+              f"{tp['symmetric_single_thread_cpu_ms_per_frame']:.1f} ms |",
               f"| 2 cores from CPU time (2 / cpu per frame) | "
               f"{tp['machine_fps_estimate_from_cpu_time']:.1f} camera-frames/s |",
               f"| one process, two worker threads (GIL released in the kernels) | "
@@ -282,7 +329,7 @@ def main(argv=None):
               "load_start": load_average(), "accuracy": []}
     frames = [3] if args.quick else [3, 9]
     n_cam = 1 if args.quick else 2
-    for kind in ("tealights", "plume"):
+    for kind in ("tealights", "plume", "tealights_1px"):
         result["accuracy"].append(accuracy(kind, frames, n_cam, rng))
     # throughput on rendered tealight frames
     scene = Scene("tealights", n_cameras=1)

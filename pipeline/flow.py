@@ -78,12 +78,20 @@ class FlowParams:
     fine_iterations : int
         Warping iterations on the full-resolution level (LK and HS). Each LK step
         re-linearises every pixel around its own warp, so with a converged coarse level
-        one full-resolution step reaches the accuracy of several (and costs the most).
+        one full-resolution step reaches the accuracy of several (and costs the most); on
+        the buoyant-plume phantom a second one even raised the error (0.015 -> 0.018 px).
     presmooth : float
         Gaussian sigma (pixels) applied to both images before the flow; 0 disables.
     regularisation : float
         LK Tikhonov weight ``lambda = regularisation * mean(trace T) / 2`` added to the
         structure tensor ``T``: pulls the flow of textureless windows towards zero.
+    gradient : {"frame", "symmetric", "reference"}
+        LK image gradient ``g``: the frame's (Scharr; structure tensor filtered once per
+        level), the mean of the frame's and the warped reference's, or the warped
+        reference's alone (exact B-spline derivative at ``q + d_q``; structure tensor
+        re-filtered every iteration). Sensor noise in ``g`` biases LK towards zero
+        (errors in variables: ``T`` gains the noise energy); a reference averaged over
+        many frames has almost none.
     alpha : float
         Horn-Schunck smoothness weight (in units of the normalised image gradient).
     inner_iterations : int
@@ -106,18 +114,30 @@ class FlowParams:
     smoothing_sigma : float
         Gaussian smoothing of the flow, in full-resolution pixels (applied on the flow
         grid as ``smoothing_sigma / factor``); 0 disables.
+    adaptive_sigma : float
+        Structure-adaptive smoothing (see :func:`deflection_stage`): the larger Gaussian
+        sigma, full-resolution pixels, used where the flow is smooth; 0 disables.
+    adaptive_threshold : float
+        Deviation between the large- and the ``smoothing_sigma``-smoothed flow, in units
+        of its lower quartile over the image (a robust noise scale), at which the large
+        scale is ``1 / e``-weighted.
+    texture_correction : bool
+        LK only, in :func:`deflection_stage`: remove the first-order bias of the
+        texture-weighted window average where the deflection varies inside the window
+        (see :func:`deflection_stage`).
     factor : int
         Area-downsampling factor to the flow grid (rows = H // factor, cols = W // factor).
     """
 
     method: str = "lk"
-    window: int = 13
-    window_type: str = "box"
+    window: int = 17
+    window_type: str = "gaussian"
     levels: int = 3
     iterations: int = 2
     fine_iterations: int = 1
-    presmooth: float = 0.8
+    presmooth: float = 0.6
     regularisation: float = 1e-3
+    gradient: str = "frame"
     alpha: float = 0.3
     inner_iterations: int = 30
     dis_preset: str = "medium"
@@ -126,7 +146,10 @@ class FlowParams:
     corr_taper: bool = False
     outlier_threshold: float = 3.0
     outlier_epsilon: float = 0.01
-    smoothing_sigma: float = 1.0
+    smoothing_sigma: float = 1.5
+    adaptive_sigma: float = 9.0
+    adaptive_threshold: float = 3.0
+    texture_correction: bool = True
     factor: int = 3
 
     def __post_init__(self):
@@ -136,6 +159,9 @@ class FlowParams:
             raise ValueError(f"FlowParams.window must be odd and >= 3, got {self.window}")
         if self.levels < 1 or self.iterations < 1 or self.fine_iterations < 1:
             raise ValueError("FlowParams.levels, iterations and fine_iterations must be >= 1")
+        if self.gradient not in ("frame", "symmetric", "reference"):
+            raise ValueError("FlowParams.gradient must be 'frame', 'symmetric' or 'reference', "
+                             f"got {self.gradient!r}")
         if self.factor < 1:
             raise ValueError(f"FlowParams.factor must be >= 1, got {self.factor}")
 
@@ -146,7 +172,8 @@ class FlowParams:
     def field_kwargs(self) -> dict:
         """Keyword arguments of :func:`deflection_field` taken from these parameters."""
         d = asdict(self)
-        for k in ("outlier_threshold", "outlier_epsilon", "smoothing_sigma", "factor"):
+        for k in ("outlier_threshold", "outlier_epsilon", "smoothing_sigma", "adaptive_sigma",
+                  "adaptive_threshold", "texture_correction", "factor"):
             d.pop(k)
         return d
 
@@ -266,6 +293,92 @@ def _lk_residual_kernel(cp, frame, gx, gy, u, v, ex, ey):
 
 
 @nb.njit(fastmath=True, cache=True, nogil=True)
+def _lk_residual_grad_kernel(cp, frame, fgx, fgy, u, v, mix, gx, gy, ex, ey):
+    # As _lk_residual_kernel, with the gradient g = mix * grad ref(q + d_q) + (1 - mix) *
+    # frame gradient (fgx, fgy), the reference gradient being the exact derivative of the
+    # cubic B-spline at the warped position; writes g to (gx, gy) and g * e to (ex, ey).
+    H, W = frame.shape
+    Wm = _F32(W - 1)
+    Hm = _F32(H - 1)
+    ix = np.empty(W, np.int64)
+    iy = np.empty(W, np.int64)
+    wx = np.empty((4, W), np.float32)
+    wy = np.empty((4, W), np.float32)
+    dx = np.empty((4, W), np.float32)
+    dy = np.empty((4, W), np.float32)
+    sixth = _F32(1.0 / 6.0)
+    half = _F32(0.5)
+    m1 = _F32(1.0) - mix
+    for r in range(H):
+        fr = _F32(r)
+        for c in range(W):
+            x = min(max(_F32(c) + u[r, c], _F32(0.0)), Wm)
+            y = min(max(fr + v[r, c], _F32(0.0)), Hm)
+            x0 = np.floor(x)
+            y0 = np.floor(y)
+            tx = x - x0
+            ty = y - y0
+            ix[c] = int(x0) + 1
+            iy[c] = int(y0) + 1
+            s = _F32(1.0) - tx
+            t2 = tx * tx
+            t3 = t2 * tx
+            a0 = s * s * s * sixth
+            a3 = t3 * sixth
+            a1 = _F32(2.0 / 3.0) - t2 + half * t3
+            wx[0, c] = a0
+            wx[1, c] = a1
+            wx[2, c] = _F32(1.0) - a0 - a1 - a3
+            wx[3, c] = a3
+            d0 = -half * s * s
+            d3 = half * t2
+            d1 = _F32(1.5) * t2 - _F32(2.0) * tx
+            dx[0, c] = d0
+            dx[1, c] = d1
+            dx[2, c] = -d0 - d1 - d3
+            dx[3, c] = d3
+            s = _F32(1.0) - ty
+            t2 = ty * ty
+            t3 = t2 * ty
+            a0 = s * s * s * sixth
+            a3 = t3 * sixth
+            a1 = _F32(2.0 / 3.0) - t2 + half * t3
+            wy[0, c] = a0
+            wy[1, c] = a1
+            wy[2, c] = _F32(1.0) - a0 - a1 - a3
+            wy[3, c] = a3
+            d0 = -half * s * s
+            d3 = half * t2
+            d1 = _F32(1.5) * t2 - _F32(2.0) * ty
+            dy[0, c] = d0
+            dy[1, c] = d1
+            dy[2, c] = -d0 - d1 - d3
+            dy[3, c] = d3
+        for c in range(W):
+            k = ix[c]
+            rr = iy[c]
+            acc = _F32(0.0)
+            accx = _F32(0.0)
+            accy = _F32(0.0)
+            for j in range(4):
+                row = cp[rr + j]
+                h = (wx[0, c] * row[k] + wx[1, c] * row[k + 1]
+                     + wx[2, c] * row[k + 2] + wx[3, c] * row[k + 3])
+                hd = (dx[0, c] * row[k] + dx[1, c] * row[k + 1]
+                      + dx[2, c] * row[k + 2] + dx[3, c] * row[k + 3])
+                acc += wy[j, c] * h
+                accx += wy[j, c] * hd
+                accy += dy[j, c] * h
+            g1 = mix * accx + m1 * fgx[r, c]
+            g2 = mix * accy + m1 * fgy[r, c]
+            e = frame[r, c] - acc + g1 * u[r, c] + g2 * v[r, c]
+            gx[r, c] = g1
+            gy[r, c] = g2
+            ex[r, c] = g1 * e
+            ey[r, c] = g2 * e
+
+
+@nb.njit(fastmath=True, cache=True, nogil=True)
 def _lk_solve_kernel(sxx, sxy, syy, lam, bx, by, u, v):
     # d = (T + lam I)^-1 b per pixel (2x2 closed form); singular windows give d = 0
     H, W = u.shape
@@ -280,6 +393,88 @@ def _lk_solve_kernel(sxx, sxy, syy, lam, bx, by, u, v):
             b2 = by[r, c]
             u[r, c] = (s * b1 - q * b2) * inv
             v[r, c] = (p * b2 - q * b1) * inv
+
+
+@nb.njit(fastmath=True, cache=True, nogil=True)
+def _block_moments_kernel(gx, gy, f, out):
+    # Per f x f block (i, j) of the flow grid, for a in (gx gx, gx gy, gy gy): the block
+    # sum of a, of a * xl and of a * yl, where (xl, yl) is the pixel offset from the block
+    # centre. out: (3, rows, cols, 3): out[0] = A, out[1] = X (x-moment), out[2] = Y
+    # (y-moment), channels (xx, xy, yy).
+    _, rows, cols, _ = out.shape
+    c0 = _F32(0.5) * _F32(f - 1)
+    for i in range(rows):
+        for j in range(cols):
+            s0 = _F32(0.0)
+            s1 = _F32(0.0)
+            s2 = _F32(0.0)
+            x0 = _F32(0.0)
+            x1 = _F32(0.0)
+            x2 = _F32(0.0)
+            y0 = _F32(0.0)
+            y1 = _F32(0.0)
+            y2 = _F32(0.0)
+            for dr in range(f):
+                yl = _F32(dr) - c0
+                ga = gx[i * f + dr]
+                gb = gy[i * f + dr]
+                for dc in range(f):
+                    xl = _F32(dc) - c0
+                    a = ga[j * f + dc]
+                    b = gb[j * f + dc]
+                    pxx = a * a
+                    pxy = a * b
+                    pyy = b * b
+                    s0 += pxx
+                    s1 += pxy
+                    s2 += pyy
+                    x0 += pxx * xl
+                    x1 += pxy * xl
+                    x2 += pyy * xl
+                    y0 += pxx * yl
+                    y1 += pxy * yl
+                    y2 += pyy * yl
+            out[0, i, j, 0] = s0
+            out[0, i, j, 1] = s1
+            out[0, i, j, 2] = s2
+            out[1, i, j, 0] = x0
+            out[1, i, j, 1] = x1
+            out[1, i, j, 2] = x2
+            out[2, i, j, 0] = y0
+            out[2, i, j, 1] = y1
+            out[2, i, j, 2] = y2
+
+
+@nb.njit(fastmath=True, cache=True, nogil=True)
+def _texture_bias_kernel(T, Sx, Sy, flow, inv_f, bu, bv):
+    # b = T^-1 (Sx J[:, 0] + Sy J[:, 1]); J = central differences of the smoothed flow
+    # (one-sided at the edges), divided by the factor f (grid cells -> image pixels).
+    rows, cols = bu.shape
+    for i in range(rows):
+        i0 = max(i - 1, 0)
+        i1 = min(i + 1, rows - 1)
+        for j in range(cols):
+            j0 = max(j - 1, 0)
+            j1 = min(j + 1, cols - 1)
+            sx = inv_f / _F32(max(j1 - j0, 1))
+            sy = inv_f / _F32(max(i1 - i0, 1))
+            ux = (flow[i, j1, 0] - flow[i, j0, 0]) * sx
+            vx = (flow[i, j1, 1] - flow[i, j0, 1]) * sx
+            uy = (flow[i1, j, 0] - flow[i0, j, 0]) * sy
+            vy = (flow[i1, j, 1] - flow[i0, j, 1]) * sy
+            r1 = Sx[i, j, 0] * ux + Sx[i, j, 1] * vx + Sy[i, j, 0] * uy + Sy[i, j, 1] * vy
+            r2 = Sx[i, j, 1] * ux + Sx[i, j, 2] * vx + Sy[i, j, 1] * uy + Sy[i, j, 2] * vy
+            p = T[i, j, 0]
+            q = T[i, j, 1]
+            s = T[i, j, 2]
+            det = p * s - q * q
+            if det > _F32(1e-6) * (p + s) * (p + s):
+                inv = _F32(1.0) / det
+                bu[i, j] = (s * r1 - q * r2) * inv
+                bv[i, j] = (p * r2 - q * r1) * inv
+            else:
+                bu[i, j] = _F32(0.0)
+                bv[i, j] = _F32(0.0)
 
 
 # ----------------------------------------------------------------------------------------
@@ -332,6 +527,68 @@ def _window_taps(window: int, window_type: str) -> np.ndarray:
         k = np.exp(-0.5 * (x / (window / 4.0)) ** 2)
         return (k / k.sum()).astype(np.float32)
     raise ValueError(f"window_type must be 'box' or 'gaussian', got {window_type!r}")
+
+
+def _block_window_taps(window: int, window_type: str, f: int) -> np.ndarray:
+    """LK window weights per f x f block: ``w~_k`` = mean of the window over the pixel
+    offsets ``f k + r - (f - 1) / 2`` of block ``k`` (box: half-open extent window / 2)."""
+    half = (window - 1) // 2
+    K = (half + f // 2 + f - 1) // f
+    r = np.arange(f) - (f - 1) / 2.0
+    d = (np.arange(-K, K + 1)[:, None] * f + r[None, :]).astype(np.float64)
+    if window_type == "box":
+        w = (np.abs(d) <= half + 1e-9).astype(np.float64)
+    else:
+        w = np.where(np.abs(d) <= half + 1e-9, np.exp(-0.5 * (d / (window / 4.0)) ** 2), 0.0)
+    wk = w.mean(axis=1)
+    return (wk / wk.sum()).astype(np.float32)
+
+
+def _texture_bias(gx: np.ndarray, gy: np.ndarray, u: np.ndarray, v: np.ndarray, *,
+                  window: int, window_type: str, factor: int) -> tuple[np.ndarray, np.ndarray]:
+    """First-order bias of the LK window mean on the flow grid, to subtract from ``(u, v)``.
+
+    The LK displacement of pixel ``p`` is ``T_p^-1 sum_q w(q - p) g_q g_q^T d(q)`` (see
+    :func:`_lk_level`). With ``d(q) ~= d(p) + J (q - p)`` this is
+    ``d(p) + T_p^-1 (S_x J[:, 0] + S_y J[:, 1])``, ``S_k = sum_q w(q - p) (q - p)_k g_q g_q^T``:
+    the texture's weighted centroid is not the window centre, so wherever the deflection
+    varies (``J != 0``) the window mean is shifted by a random, texture-dependent amount.
+    ``T`` and ``S_k`` are evaluated at the flow-grid cell centres from per-block gradient
+    moments (exact block sums; the window is taken constant inside a block), ``J`` from
+    the flow grid smoothed with ``sigma = window / 4`` full-resolution pixels.
+
+    Parameters
+    ----------
+    gx, gy : ndarray, shape (H, W)
+        Frame gradients of the finest LK level.
+    u, v : ndarray, shape (rows, cols)
+        LK flow on the flow grid (pixels).
+
+    Returns
+    -------
+    bu, bv : ndarray, shape (rows, cols), float32
+        Bias in pixels.
+    """
+    f = int(factor)
+    rows, cols = u.shape
+    mom = np.empty((3, rows, cols, 3), np.float32)
+    _block_moments_kernel(gx, gy, f, mom)
+    kt = _block_window_taps(window, window_type, f)
+    K = (len(kt) - 1) // 2
+    km = kt * (f * np.arange(-K, K + 1)).astype(np.float32)
+
+    def filt(a, kx, ky):  # correlation: out(p) = sum_k kx[k] ky[l] a(p + (k - K, l - K))
+        return cv2.sepFilter2D(a, cv2.CV_32F, kx, ky, borderType=cv2.BORDER_REFLECT)
+
+    T = filt(mom[0], kt, kt)  # (rows, cols, 3): xx, xy, yy
+    Sx = filt(mom[0], km, kt) + filt(mom[1], kt, kt)
+    Sy = filt(mom[0], kt, km) + filt(mom[2], kt, kt)
+    sig = window / 4.0 / f
+    flow = cv2.GaussianBlur(np.dstack([u, v]), (0, 0), sig, borderType=cv2.BORDER_REFLECT)
+    bu = np.empty((rows, cols), np.float32)
+    bv = np.empty((rows, cols), np.float32)
+    _texture_bias_kernel(T, Sx, Sy, flow, np.float32(1.0 / f), bu, bv)
+    return bu, bv
 
 
 def _window_filter(a: np.ndarray, taps: np.ndarray) -> np.ndarray:
@@ -447,7 +704,7 @@ class PreparedReference:
         return self.image.shape
 
 
-def prepare_reference(reference: np.ndarray, *, presmooth: float = 0.8, levels: int = 3
+def prepare_reference(reference: np.ndarray, *, presmooth: float = 0.6, levels: int = 3
                       ) -> PreparedReference:
     """Pre-process a reference background for :func:`deflection_field`.
 
@@ -473,7 +730,8 @@ def prepare_reference(reference: np.ndarray, *, presmooth: float = 0.8, levels: 
 # ----------------------------------------------------------------------------------------
 # Solvers (one pyramid level each); all share the driver in _pyramid_flow
 # ----------------------------------------------------------------------------------------
-def _lk_level(coef, frame, u, v, *, window, window_type, iterations, regularisation, **_):
+def _lk_level(coef, frame, u, v, *, window, window_type, iterations, regularisation,
+              gradient="frame", keep=None, **_):
     """Dense Lucas-Kanade on one level, warping the reference at every iteration.
 
     Each pixel ``q`` of the window of ``p`` is linearised around its own current warp:
@@ -483,9 +741,31 @@ def _lk_level(coef, frame, u, v, *, window, window_type, iterations, regularisat
     neighbouring pixels, unlike the naive incremental dense update); the iterations
     remove the linearisation error. ``g`` is the frame gradient (fixed, so the structure
     tensor is filtered once per level); the fixed point does not depend on it.
+    The fixed point is the structure-tensor weighted window mean
+    ``T_p^-1 sum_q w g_q g_q^T d_q`` of the true displacement (corrected to first order by
+    :func:`_texture_bias`). ``keep`` (a dict) receives the level's gradients.
     """
     taps = _window_taps(window, window_type)
     gx, gy = _gradients(frame)
+    if gradient != "frame":
+        mix = np.float32(0.5 if gradient == "symmetric" else 1.0)
+        g = (np.empty_like(frame), np.empty_like(frame))
+        ex = np.empty_like(frame)
+        ey = np.empty_like(frame)
+        for _ in range(iterations):
+            _lk_residual_grad_kernel(coef, frame, gx, gy, u, v, mix, g[0], g[1], ex, ey)
+            sxx = _window_filter(g[0] * g[0], taps)
+            sxy = _window_filter(g[0] * g[1], taps)
+            syy = _window_filter(g[1] * g[1], taps)
+            lam = np.float32(regularisation * 0.5 * (float(sxx[::4, ::4].mean())
+                                                     + float(syy[::4, ::4].mean())))
+            _lk_solve_kernel(sxx, sxy, syy, lam, _window_filter(ex, taps),
+                             _window_filter(ey, taps), u, v)
+        if keep is not None:
+            keep["gx"], keep["gy"] = g
+        return u, v
+    if keep is not None:
+        keep["gx"], keep["gy"] = gx, gy
     sxx = _window_filter(gx * gx, taps)
     sxy = _window_filter(gx * gy, taps)
     syy = _window_filter(gy * gy, taps)
@@ -527,15 +807,19 @@ def _hs_level(coef, frame, u, v, *, iterations, alpha, inner_iterations, **_):
 
 
 def _pyramid_flow(level_solver, prep: PreparedReference, frame_pyr, *, iterations,
-                  fine_iterations, **kw):
+                  fine_iterations, keep=None, **kw):
+    kw0 = kw
     h, w = prep.pyramid[-1].shape
     u = np.zeros((h, w), np.float32)
     v = np.zeros((h, w), np.float32)
     for lev in range(len(prep.pyramid) - 1, -1, -1):
+        if "gradient" in kw0:  # coarse levels only initialise: frame gradient (cheapest)
+            kw = dict(kw0, gradient=kw0["gradient"] if lev == 0 else "frame")
         if u.shape != prep.pyramid[lev].shape:
             u, v = _upsample_flow(u, v, prep.pyramid[lev].shape)
         it = fine_iterations if lev == 0 else iterations
-        u, v = level_solver(prep.coefficients[lev], frame_pyr[lev], u, v, iterations=it, **kw)
+        u, v = level_solver(prep.coefficients[lev], frame_pyr[lev], u, v, iterations=it,
+                            keep=keep if lev == 0 else None, **kw)
     return u, v
 
 
@@ -625,13 +909,14 @@ def deflection_field(
     frame: np.ndarray,
     *,
     method: str = "lk",
-    window: int = 13,
-    window_type: str = "box",
+    window: int = 17,
+    window_type: str = "gaussian",
     levels: int = 3,
     iterations: int = 2,
     fine_iterations: int = 1,
-    presmooth: float = 0.8,
+    presmooth: float = 0.6,
     regularisation: float = 1e-3,
+    gradient: str = "frame",
     alpha: float = 0.3,
     inner_iterations: int = 30,
     dis_preset: str = "medium",
@@ -667,9 +952,11 @@ def deflection_field(
 
 
 def _flow_components(reference, frame, *, method, window, window_type, levels, iterations,
-                     fine_iterations, presmooth, regularisation, alpha, inner_iterations,
-                     dis_preset, corr_window, corr_step, corr_taper):
-    """:func:`deflection_field` as two (H, W) float32 arrays (u, v)."""
+                     fine_iterations, presmooth, regularisation, gradient, alpha,
+                     inner_iterations, dis_preset, corr_window, corr_step, corr_taper,
+                     keep=None):
+    """:func:`deflection_field` as two (H, W) float32 arrays (u, v); for LK, ``keep``
+    (a dict) receives the full-resolution frame gradients ``gx``, ``gy``."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     frm = _as_image(frame, "frame")
@@ -694,7 +981,8 @@ def _flow_components(reference, frame, *, method, window, window_type, levels, i
         if method == "lk":
             u, v = _pyramid_flow(_lk_level, prep, fpyr, window=window, window_type=window_type,
                                  iterations=iterations, fine_iterations=fine_iterations,
-                                 regularisation=regularisation)
+                                 regularisation=regularisation, gradient=gradient,
+                                 keep=keep)
         else:
             u, v = _pyramid_flow(_hs_level, prep, fpyr, iterations=iterations,
                                  fine_iterations=fine_iterations, alpha=alpha,
@@ -805,6 +1093,15 @@ def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowPara
     window-sized, not single pixels, and filtering the 9x smaller grid is far cheaper.
     ``smoothing_sigma`` is given in full-resolution pixels (``sigma / factor`` on the grid).
 
+    With ``texture_correction`` (LK), the first-order bias of the LK window mean is
+    subtracted after the outlier test (:func:`_texture_bias`): where the deflection varies
+    across the window, LK returns its structure-tensor weighted mean, centred on the
+    texture's weighted centroid rather than on the pixel. On the buoyant-plume phantom this
+    was the largest error term (benchmarks/flow.py); it costs about 10 % of the stage.
+    Finally, with ``adaptive_sigma`` > 0, :func:`_adaptive_smoothing` smooths more where
+    the flow is smooth (weak, slowly varying deflections: mostly noise) and keeps the
+    ``smoothing_sigma`` result across structure.
+
     Parameters
     ----------
     reference : ndarray, shape (H, W), or PreparedReference
@@ -818,7 +1115,8 @@ def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowPara
     flow : ndarray, shape (H // f, W // f, 2), float32
         Deflection in original-image pixels (component 0 = u, 1 = v).
     """
-    u, v = _flow_components(reference, frame, **params.field_kwargs())
+    keep = {} if params.method == "lk" and params.texture_correction else None
+    u, v = _flow_components(reference, frame, **params.field_kwargs(), keep=keep)
     H, W = u.shape
     rows, cols = FlowGrid((W, H), params.factor).shape
     f = params.factor
@@ -835,12 +1133,42 @@ def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowPara
         if n_out:
             log.debug("deflection_stage: replaced %d outlier vectors (%.3f%%)",
                       n_out, 100.0 * n_out / bad.size)
+    if keep:
+        bu, bv = _texture_bias(keep["gx"], keep["gy"], comps[0], comps[1], window=params.window,
+                               window_type=params.window_type, factor=params.factor)
+        comps = [comps[0] - bu, comps[1] - bv]
     out = np.empty((rows, cols, 2), np.float32)
     sigma = params.smoothing_sigma / params.factor
     for k, comp in enumerate(comps):
         out[..., k] = comp if sigma <= 0 else cv2.GaussianBlur(
             comp, (0, 0), sigmaX=sigma, sigmaY=sigma, borderType=cv2.BORDER_REFLECT)
+    if params.adaptive_sigma > 0:
+        out = _adaptive_smoothing(out, np.dstack(comps), params.adaptive_sigma / params.factor,
+                                  params.adaptive_threshold)
     return out
+
+
+def _adaptive_smoothing(small: np.ndarray, flow: np.ndarray, sigma: float, threshold: float
+                        ) -> np.ndarray:
+    """Blend a strongly smoothed flow into ``small`` where both agree within the noise.
+
+    Two-scale structure-adaptive smoothing (in the spirit of Lepski's scale selection):
+    ``large`` = ``flow`` Gaussian-smoothed with ``sigma`` (grid cells). Where the flow is
+    smooth, ``large`` differs from ``small`` only by noise; across structure it differs by
+    the bias of the large scale. With ``D = |large - small|`` (vector norm) and the robust
+    noise scale ``tau`` = lower quartile of ``D`` over the image (assumes at least a
+    quarter of the image is flow-free or smooth; BOS images mostly are), the result is
+    ``w large + (1 - w) small``, ``w = exp(-(D / (threshold tau))^2)``.
+    """
+    large = cv2.GaussianBlur(flow, (0, 0), sigmaX=sigma, sigmaY=sigma,
+                             borderType=cv2.BORDER_REFLECT)
+    diff = large - small
+    d2 = diff[..., 0] * diff[..., 0] + diff[..., 1] * diff[..., 1]
+    tau2 = float(np.quantile(d2[::2, ::2], 0.25))  # lower quartile of D^2 = of D, squared
+    if not np.isfinite(tau2) or tau2 <= 0:
+        return small
+    w = np.exp(d2 * np.float32(-1.0 / (threshold * threshold * tau2)))
+    return (small + w[..., None] * diff).astype(np.float32)
 
 
 def endpoint_error(flow: np.ndarray, truth: np.ndarray, mask: np.ndarray | None = None) -> float:
