@@ -241,6 +241,7 @@ def write(name, out, md):
 
 def speed(args):
     """Paper scale: ~150k basis functions inside the hull, ~700k rays per frame."""
+    load0 = os.getloadavg()
     t0 = time.perf_counter()
     grid = Grid((-0.075, -0.075, 0.0), (0.075, 0.075, 0.3), 0.0025)  # 60 x 60 x 120
     image = (810, 1440)  # portrait: the 2:1 tall box fills the frame
@@ -285,7 +286,7 @@ def speed(args):
                "n_unknowns": sinfo.n_unknowns, "n_rays": sinfo.n_rays, "nnz": sinfo.nnz,
                "integration_s": round(t_int, 3), "poisson_iterations": pinfo.iterations,
                "total_s": round(t_tomo + t_int, 3), "cpu_s": round(c_tomo + c_int, 3),
-               "psnr_db": round(psnr, 2)}
+               "psnr_db": round(psnr, 2), "load_avg_1min": round(os.getloadavg()[0], 2)}
         results.append(row)
         print(json.dumps(row), flush=True)
     warm = results[1:] if len(results) > 1 else results
@@ -297,17 +298,20 @@ def speed(args):
            "peak_rss_mb": round(peak_rss_mb(), 1), "poisson_solver": args.solver,
            "numba_threads": int(__import__("numba").get_num_threads()),
            "env": {k: os.environ.get(k) for k in ("OMP_WAIT_POLICY", "NUMBA_THREADING_LAYER", "NUMBA_NUM_THREADS")},
+           "load_avg_start": [round(v, 2) for v in load0], "load_avg_end": [round(v, 2) for v in os.getloadavg()],
            "note": "timings taken on a shared 2-core machine under contention"}
     md = ["# Tomography + integration speed at paper scale", "",
+          f"Load averages (1/5/15 min): {out['load_avg_start']} at the start, {out['load_avg_end']} at the end "
+          "(2 cores; anything above ~1 means another process competed for them).", "",
           f"Grid {out['grid']}, 16 cameras, flow grid {out['flow_grid']}, hull {out['hull_voxels']} voxels; "
           f"per-session geometry {out['geometry_seconds']} s ({geom.nbytes / 1e9:.2f} GB); peak RSS "
           f"{out['peak_rss_mb']} MB; Poisson solver {args.solver}. {out['note']}.", "",
-          "| frame | unknowns | rays | nnz | restrict s | CG s (it) | integrate s (it) | total wall s | CPU s |",
-          "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+          "| frame | unknowns | rays | nnz | restrict s | CG s (it) | integrate s (it) | total wall s | CPU s | load |",
+          "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in results:
         md.append(f"| {r['frame']} | {r['n_unknowns']} | {r['n_rays']} | {r['nnz']} | {r['restrict_setup_s']} | "
                   f"{r['cgls_s']} ({r['iterations']}) | {r['integration_s']} ({r['poisson_iterations']}) | "
-                  f"{r['total_s']} | {r['cpu_s']} |")
+                  f"{r['total_s']} | {r['cpu_s']} | {r['load_avg_1min']} |")
     md.append("")
     md.append(f"Mean per warm-started frame: {out['mean_total_s_warm']} s wall, {out['mean_cpu_s_warm']} s CPU "
               f"(process time over both threads; on an idle 2-core machine the wall time is at most this).")

@@ -17,6 +17,11 @@ Everything here is a numba kernel on plain arrays; :class:`RestrictedOperator` w
 per-frame restriction (hull basis functions x rays that hit them) with fused three-column
 forward and adjoint products (one pass over the matrix for the three gradient
 components: scipy's ``S @ X`` with three columns costs about five single SpMVs).
+
+Determinism: the adjoint products accumulate into per-chunk partial sums over a *fixed*
+partition of the rows into :data:`ADJOINT_CHUNKS` contiguous blocks (each block is summed
+serially in row order, the blocks are then added in block order), so every product is
+bit-identical for any number of numba threads; the forward products are per row.
 """
 
 from __future__ import annotations
@@ -29,9 +34,15 @@ __all__ = [
     "clip_rays_to_box",
     "build_projection",
     "restrict_rows_cols",
+    "restrict_with_setup",
     "RestrictedOperator",
     "basis_weights",
+    "ADJOINT_CHUNKS",
 ]
+
+#: Fixed number of row blocks of the adjoint accumulations (independent of the thread
+#: count, so results do not depend on it; also the maximum useful number of threads).
+ADJOINT_CHUNKS = 8
 
 
 def clip_rays_to_box(origins: np.ndarray, dirs: np.ndarray, lo: np.ndarray, hi: np.ndarray):
@@ -284,6 +295,118 @@ def restrict_rows_cols(S: sp.csr_matrix, rows: np.ndarray, colmap: np.ndarray):
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
+def _restrict_setup3(indptr, indices, data, rows, colmap, new_indptr, new_indices, new_data, b, x, n,
+                     nchunks, with_x):
+    """:func:`_restrict_fill` fused with :func:`_setup3` (each restricted row is used while hot)."""
+    m = rows.shape[0]
+    acc_s = np.zeros((nchunks, n))
+    acc_b = np.zeros((nchunks, n, 3))
+    acc_x = np.zeros((nchunks if with_x else 0, n, 3))
+    bounds = np.linspace(0, m, nchunks + 1).astype(np.int64)
+    for c in nb.prange(nchunks):
+        s_ = acc_s[c]
+        ab = acc_b[c]
+        for k in range(bounds[c], bounds[c + 1]):
+            r = rows[k]
+            q = new_indptr[k]
+            for p in range(indptr[r], indptr[r + 1]):
+                j = colmap[indices[p]]
+                if j >= 0:
+                    new_indices[q] = j
+                    new_data[q] = data[p]
+                    q += 1
+            p0 = new_indptr[k]
+            p1 = new_indptr[k + 1]
+            b0 = b[k, 0]
+            b1 = b[k, 1]
+            b2 = b[k, 2]
+            if with_x:
+                ax = acc_x[c]
+                t0 = 0.0
+                t1 = 0.0
+                t2 = 0.0
+                for p in range(p0, p1):
+                    j = new_indices[p]
+                    v = new_data[p]
+                    t0 += v * x[j, 0]
+                    t1 += v * x[j, 1]
+                    t2 += v * x[j, 2]
+                for p in range(p0, p1):
+                    j = new_indices[p]
+                    v = new_data[p]
+                    ax[j, 0] += v * t0
+                    ax[j, 1] += v * t1
+                    ax[j, 2] += v * t2
+            for p in range(p0, p1):
+                j = new_indices[p]
+                v = np.float64(new_data[p])
+                s_[j] += v * v
+                ab[j, 0] += v * b0
+                ab[j, 1] += v * b1
+                ab[j, 2] += v * b2
+    out_s = np.zeros(n)
+    out_b = np.zeros((n, 3))
+    out_x = np.zeros((n, 3))
+    for j in nb.prange(n):
+        for c in range(nchunks):
+            out_s[j] += acc_s[c, j]
+            out_b[j, 0] += acc_b[c, j, 0]
+            out_b[j, 1] += acc_b[c, j, 1]
+            out_b[j, 2] += acc_b[c, j, 2]
+            if with_x:
+                out_x[j, 0] += acc_x[c, j, 0]
+                out_x[j, 1] += acc_x[c, j, 1]
+                out_x[j, 2] += acc_x[c, j, 2]
+    return out_s, out_b, out_x
+
+
+def restrict_with_setup(S: sp.csr_matrix, colmap: np.ndarray, n: int, rhs, x: np.ndarray | None = None):
+    """Restrict ``S`` (all rays, columns by ``colmap``) and run the solver's setup pass with it.
+
+    Equivalent to ``RestrictedOperator.from_full(S, arange(M), colmap, n)`` followed by
+    :meth:`RestrictedOperator.setup_products`, but the products are accumulated while
+    each restricted row is written (one pass over the restricted matrix less).
+
+    Parameters
+    ----------
+    S : scipy.sparse.csr_matrix, shape (M, N)
+    colmap : ndarray, shape (N,) int
+        New column of each old one (-1 = dropped).
+    n : int
+        Number of kept columns.
+    rhs : callable
+        ``rhs(rows) -> (len(rows), 3)`` right-hand side of the kept rays (flat indices).
+    x : ndarray, shape (n, 3), optional
+        Warm start for ``S^T S x``.
+
+    Returns
+    -------
+    op : RestrictedOperator
+    b : ndarray, shape (op.m, 3)
+        ``rhs(op.rows)``.
+    products : tuple
+        ``(diag(S^T S), S^T b, S^T S x)`` as from :meth:`RestrictedOperator.setup_products`.
+    """
+    rows = np.arange(S.shape[0], dtype=np.int64)
+    colmap = np.ascontiguousarray(colmap, dtype=np.int32)
+    counts = np.empty(len(rows), np.int64)
+    _restrict_count(S.indptr, S.indices, rows, colmap, counts)
+    keep = counts > 0
+    rows_k = rows[keep]
+    new_indptr = np.zeros(len(rows_k) + 1, np.int64)
+    np.cumsum(counts[keep], out=new_indptr[1:])
+    nnz = int(new_indptr[-1])
+    new_indices = np.empty(nnz, np.int32)
+    new_data = np.empty(nnz, np.float32)
+    b = np.ascontiguousarray(rhs(rows_k), dtype=np.float64).reshape(len(rows_k), 3)
+    with_x = x is not None
+    xx = np.ascontiguousarray(x, dtype=np.float64).reshape(n, 3) if with_x else np.zeros((0, 3))
+    prods = _restrict_setup3(S.indptr, S.indices, S.data, rows_k, colmap, new_indptr, new_indices, new_data,
+                             b, xx, int(n), ADJOINT_CHUNKS, with_x)
+    return RestrictedOperator(new_indptr, new_indices, new_data, n, rows_k), b, prods
+
+
+@nb.njit(parallel=True, cache=True, fastmath=True)
 def _matvec3(indptr, indices, data, x, y):
     m = indptr.shape[0] - 1
     for r in nb.prange(m):
@@ -367,12 +490,67 @@ def _colsumsq(indices, data, n, nchunks):
     bounds = np.linspace(0, nnz, nchunks + 1).astype(np.int64)
     for c in nb.prange(nchunks):
         for p in range(bounds[c], bounds[c + 1]):
-            v = data[p]
+            v = np.float64(data[p])
             acc[c, indices[p]] += v * v
     out = np.zeros(n)
     for c in range(nchunks):
         out += acc[c]
     return out
+
+
+@nb.njit(parallel=True, cache=True, fastmath=True)
+def _setup3(indptr, indices, data, b, x, n, nchunks, with_x):
+    """``diag(S^T S)``, ``S^T b`` and (if ``with_x``) ``S^T S x`` in one pass over ``S``."""
+    m = indptr.shape[0] - 1
+    acc_s = np.zeros((nchunks, n))
+    acc_b = np.zeros((nchunks, n, 3))
+    acc_x = np.zeros((nchunks if with_x else 0, n, 3))
+    bounds = np.linspace(0, m, nchunks + 1).astype(np.int64)
+    for c in nb.prange(nchunks):
+        s_ = acc_s[c]
+        ab = acc_b[c]
+        for r in range(bounds[c], bounds[c + 1]):
+            b0 = b[r, 0]
+            b1 = b[r, 1]
+            b2 = b[r, 2]
+            if with_x:
+                ax = acc_x[c]
+                t0 = 0.0
+                t1 = 0.0
+                t2 = 0.0
+                for p in range(indptr[r], indptr[r + 1]):
+                    j = indices[p]
+                    v = data[p]
+                    t0 += v * x[j, 0]
+                    t1 += v * x[j, 1]
+                    t2 += v * x[j, 2]
+                for p in range(indptr[r], indptr[r + 1]):
+                    j = indices[p]
+                    v = data[p]
+                    ax[j, 0] += v * t0
+                    ax[j, 1] += v * t1
+                    ax[j, 2] += v * t2
+            for p in range(indptr[r], indptr[r + 1]):
+                j = indices[p]
+                v = np.float64(data[p])
+                s_[j] += v * v
+                ab[j, 0] += v * b0
+                ab[j, 1] += v * b1
+                ab[j, 2] += v * b2
+    out_s = np.zeros(n)
+    out_b = np.zeros((n, 3))
+    out_x = np.zeros((n, 3))
+    for j in nb.prange(n):
+        for c in range(nchunks):
+            out_s[j] += acc_s[c, j]
+            out_b[j, 0] += acc_b[c, j, 0]
+            out_b[j, 1] += acc_b[c, j, 1]
+            out_b[j, 2] += acc_b[c, j, 2]
+            if with_x:
+                out_x[j, 0] += acc_x[c, j, 0]
+                out_x[j, 1] += acc_x[c, j, 1]
+                out_x[j, 2] += acc_x[c, j, 2]
+    return out_s, out_b, out_x
 
 
 class RestrictedOperator:
@@ -397,7 +575,7 @@ class RestrictedOperator:
         self.n = int(n)
         self.m = len(indptr) - 1
         self.rows = rows
-        self._nchunks = max(1, nb.get_num_threads())
+        self._nchunks = ADJOINT_CHUNKS
 
     @classmethod
     def from_full(cls, S: sp.csr_matrix, rows: np.ndarray, colmap: np.ndarray, n: int):
@@ -430,6 +608,26 @@ class RestrictedOperator:
     def column_sumsq(self) -> np.ndarray:
         """``diag(S^T S)``, shape (n,)."""
         return _colsumsq(self.indices, self.data, self.n, self._nchunks)
+
+    def setup_products(self, b: np.ndarray, x: np.ndarray | None = None):
+        """``diag(S^T S)``, ``S^T b`` and ``S^T S x`` in a single pass over the matrix.
+
+        Parameters
+        ----------
+        b : ndarray, shape (m, 3)
+        x : ndarray, shape (n, 3), optional
+            Without it the third output is zero.
+
+        Returns
+        -------
+        colsumsq : ndarray, shape (n,)
+        Stb, StSx : ndarray, shape (n, 3)
+        """
+        b = np.ascontiguousarray(b, dtype=np.float64).reshape(self.m, 3)
+        with_x = x is not None
+        x = (np.ascontiguousarray(x, dtype=np.float64).reshape(self.n, 3) if with_x
+             else np.zeros((0, 3)))
+        return _setup3(self.indptr, self.indices, self.data, b, x, self.n, self._nchunks, with_x)
 
     def to_scipy(self) -> sp.csr_matrix:
         return sp.csr_matrix((self.data, self.indices, self.indptr), shape=(self.m, self.n))

@@ -31,7 +31,7 @@ import scipy.ndimage as ndi
 import scipy.sparse as sp
 
 from schlieren.pipeline.tomography.geometry import TomoGeometry
-from schlieren.pipeline.tomography.operator import RestrictedOperator
+from schlieren.pipeline.tomography.operator import RestrictedOperator, restrict_with_setup
 from schlieren.pipeline.tomography.params import TomoParams
 from schlieren.pipeline.tomography.rays import rhs_from_d_out, rhs_from_flows
 
@@ -230,11 +230,18 @@ class FrameSystem:
     op: RestrictedOperator
     inset: np.ndarray  # (nz, ny, nx) bool: kept basis functions
     L: sp.csr_matrix  # first differences on the set
-    colsumsq: np.ndarray  # diag(S^T S), shape (n,)
+    _colsumsq: np.ndarray | None = None  # diag(S^T S), shape (n,); computed on first use
 
     @property
     def n(self) -> int:
         return self.op.n
+
+    @property
+    def colsumsq(self) -> np.ndarray:
+        """``diag(S^T S)``, shape (n,) (the gradient solve gets it from its fused setup pass)."""
+        if self._colsumsq is None:
+            self._colsumsq = self.op.column_sumsq()
+        return self._colsumsq
 
 
 def prepare_frame(geom: TomoGeometry, hull: np.ndarray, *, dilation: int) -> FrameSystem:
@@ -249,7 +256,7 @@ def prepare_frame(geom: TomoGeometry, hull: np.ndarray, *, dilation: int) -> Fra
     colmap[flat] = np.arange(n, dtype=np.int32)
     op = RestrictedOperator.from_full(geom.S, np.arange(geom.S.shape[0]), colmap, n)
     L = difference_operator(inset)
-    return FrameSystem(op=op, inset=inset, L=L, colsumsq=op.column_sumsq())
+    return FrameSystem(op=op, inset=inset, L=L)
 
 
 def finite_rhs(b: np.ndarray) -> np.ndarray:
@@ -301,18 +308,37 @@ def solve_gradient(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarra
     data = np.asarray(rhs_or_flows)
     if data.shape[:-1] != tuple(geom.flow_shape) or data.shape[-1] not in (2, 3):
         raise ValueError(f"expected shape {tuple(geom.flow_shape)} + (2,) or (3,), got {data.shape}")
-    sys_ = system if system is not None else prepare_frame(geom, hull, dilation=params.hull_dilation)
+
+    def rhs(rows):
+        if data.shape[-1] == 2:
+            b = rhs_from_flows(geom, data, n_ambient=params.n_ambient, rays=rows)
+        else:
+            b = np.asarray(data, dtype=np.float64).reshape(-1, 3)[rows]
+        return finite_rhs(b)
+
+    products = None
+    if system is not None:
+        sys_ = system
+    else:
+        # Restriction fused with the solver's setup pass (diag(S^T S), S^T b, S^T S x0).
+        hull = np.asarray(hull, dtype=bool)
+        if hull.shape != geom.grid.shape:
+            raise ValueError(f"hull shape {hull.shape} does not match the grid {geom.grid.shape}")
+        inset = basis_set(hull, params.hull_dilation)
+        flat = inset.ravel()
+        n = int(flat.sum())
+        colmap = np.full(flat.size, -1, np.int32)
+        colmap[flat] = np.arange(n, dtype=np.int32)
+        x_warm = _warm(x0, inset)
+        op, b_k, products = restrict_with_setup(geom.S, colmap, n, rhs, x_warm)
+        sys_ = FrameSystem(op=op, inset=inset, L=difference_operator(inset), _colsumsq=products[0])
     op = sys_.op
     if op.n == 0 or op.m == 0:
         info = SolveInfo(iterations=0, residual=0.0, residual_components=(0.0, 0.0, 0.0),
                          stop_reason="empty", setup_seconds=time.perf_counter() - t0)
         return np.zeros(geom.grid.shape + (3,), np.float32), info
-    if data.shape[-1] == 2:
-        b = rhs_from_flows(geom, data, n_ambient=params.n_ambient, rays=op.rows)
-    else:
-        b = np.asarray(data, dtype=np.float64).reshape(-1, 3)[op.rows]
-    b = finite_rhs(b)
-    x, it, reason, res, t_solve = _solve_restricted(sys_, b, params, x0, noise_rms)
+    b = b_k if products is not None else rhs(op.rows)
+    x, it, reason, res, t_solve = _solve_restricted(sys_, b, params, x0, noise_rms, products)
     t1 = time.perf_counter()
     grad = _scatter(sys_.inset, x)
     info = SolveInfo(iterations=it, residual=float(np.max(res)), residual_components=tuple(map(float, res)),
@@ -322,23 +348,37 @@ def solve_gradient(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarra
     return grad, info
 
 
-def _solve_restricted(sys_: FrameSystem, b: np.ndarray, params: TomoParams, x0, noise_rms):
+def _warm(x0, inset):
+    """Warm start restricted to the basis set (None for no or an all-zero warm start)."""
+    if x0 is not None and np.any(x0):
+        return np.asarray(x0, dtype=np.float64)[inset]
+    return None
+
+
+def _solve_restricted(sys_: FrameSystem, b: np.ndarray, params: TomoParams, x0, noise_rms, products=None):
     """Jacobi-scaled CG on the regularised normal equations, three columns at once.
 
     ``P (S^T S + mu^2 L^T L) P z = P S^T b``, ``x = P z``. Mathematically the CGLS
     iteration; the normal operator is applied by a fused kernel that reads each row of
     ``S`` once per iteration (half the memory traffic of a forward plus an adjoint
-    product). The data residual ``||S x - b||`` is tracked from
+    product), and ``diag(S^T S)``, ``S^T b`` and the warm start's ``S^T S x0`` come from
+    one more shared pass (:meth:`RestrictedOperator.setup_products`, or fused with the
+    restriction: ``products``). The data residual ``||S x - b||`` is tracked from
     ``||b||^2 - 2 x^T S^T b + x^T S^T S x`` without extra passes.
     """
     t = time.perf_counter()
     op = sys_.op
     L = sys_.L
-    mu2 = params.reg_weight * float(np.mean(sys_.colsumsq))
+    x_warm = _warm(x0, sys_.inset)
+    # One pass over S for diag(S^T S), S^T b and the warm start's S^T S x0 (or already
+    # done while restricting: ``products``).
+    colsumsq, Stb, StSx0 = products if products is not None else op.setup_products(b, x_warm)
+    if sys_._colsumsq is None:
+        sys_._colsumsq = colsumsq
+    mu2 = params.reg_weight * float(np.mean(colsumsq))
     LtL = (L.T @ L).tocsr()
-    diag = sys_.colsumsq + mu2 * LtL.diagonal()
+    diag = colsumsq + mu2 * LtL.diagonal()
     P = (1.0 / np.sqrt(np.where(diag > 0, diag, 1.0)))[:, None]
-    Stb = op.rmatvec3(b)
     bb = np.einsum("ij,ij->j", b, b)
 
     def normal(z):
@@ -348,9 +388,10 @@ def _solve_restricted(sys_: FrameSystem, b: np.ndarray, params: TomoParams, x0, 
         return d, P * (d + reg)
 
     rhs = P * Stb
-    if x0 is not None and np.any(x0):
-        z = np.asarray(x0, dtype=np.float64)[sys_.inset] / P
-        StSx, Nz = normal(z)
+    if x_warm is not None:
+        z = x_warm / P
+        StSx = StSx0
+        Nz = P * (StSx0 + (mu2 * _apply_cols(LtL, x_warm) if mu2 > 0 else 0.0))
     else:
         z = np.zeros((op.n, 3))
         StSx, Nz = np.zeros((op.n, 3)), np.zeros((op.n, 3))

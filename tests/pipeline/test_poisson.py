@@ -13,6 +13,7 @@ from schlieren.pipeline.poisson import (
     diffusion_tensor,
     integrate,
     laplacian_matrix,
+    pcg,
 )
 
 R_AMB = 2.9e-4
@@ -107,6 +108,34 @@ def test_diffusion_tensor_eigenvalues():
                                np.broadcast_to(np.eye(3), D.shape))
 
 
+def test_diffusion_tensor_inert_shortcut_matches_eigendecomposition():
+    """Voxels skipped by the trace bound get exactly alpha I; the rest follow the Appendix."""
+    from schlieren.pipeline.poisson import _range_estimate
+    import scipy.ndimage as ndi
+
+    rng = np.random.default_rng(5)
+    grid, u, g, hull = bump(16)
+    g = g + 1e-4 * rng.standard_normal(g.shape)
+    h, alpha, sigma, k, vs = grid.voxel_size, 0.8, 0.5, 3e-4, 255.0
+    D = diffusion_tensor(g, h, alpha=alpha, sigma=sigma, k=k, value_scale=vs)
+    # Reference: eigendecomposition everywhere (the formula of the Appendix).
+    gh = g * h * vs / _range_estimate(g, h)
+    M = np.sqrt((gh ** 2).sum(-1)).max()
+    J = np.empty(g.shape[:3] + (3, 3))
+    for a in range(3):
+        for b in range(3):
+            J[..., a, b] = ndi.gaussian_filter(gh[..., a] * gh[..., b], sigma, mode="constant")
+    lam, V = np.linalg.eigh(J.reshape(-1, 3, 3))
+    with np.errstate(divide="ignore", over="ignore"):
+        e = [np.where(d > 0, np.exp(-M / (k * d)), 0.0) for d in ((lam[:, 2] - lam[:, 0]) ** 2,
+                                                                   (lam[:, 2] - lam[:, 1]) ** 2)]
+    lt = np.stack([alpha + (1 - alpha) * e[0], alpha + (1 - alpha) * e[1], np.full(len(lam), alpha)], 1)
+    ref = np.einsum("nij,nj,nkj->nik", V, lt, V)
+    np.testing.assert_allclose(D, ref, atol=1e-12)
+    inert = np.all(D == alpha * np.eye(3), axis=(1, 2))
+    assert 0 < inert.sum() < len(D)  # both branches exercised
+
+
 def test_multigrid_preconditioner_is_symmetric_and_converges():
     rng = np.random.default_rng(3)
     grid, u, g, hull = bump(24)
@@ -126,6 +155,31 @@ def test_multigrid_preconditioner_is_symmetric_and_converges():
     # The assembled plain-Poisson operator is exactly this Laplacian.
     A1, _ = assemble(np.pad(g, ((1, 1),) * 3 + ((0, 0),)), mask, grid.voxel_size, params=PoissonParams(alpha=1.0))
     assert abs(A1 - A).max() < 1e-9 * abs(A).max()
+
+
+def test_multigrid_with_natural_faces_matches_assembled_operator():
+    """Hull cut by the top and bottom faces: the V-cycle gets the same natural faces as A."""
+    rng = np.random.default_rng(4)
+    grid, u, g, hull = bump(24)
+    hull = hull.copy()
+    hull[:, 6:18, 6:18] = True  # a column through the whole box: touches both z faces
+    mask = np.pad(hull, 1)
+    real = np.pad(np.ones(hull.shape, bool), 1)
+    A1, _ = assemble(np.pad(g, ((1, 1),) * 3 + ((0, 0),)), mask, grid.voxel_size,
+                     params=PoissonParams(alpha=1.0), real=real)
+    L = laplacian_matrix(mask, grid.voxel_size, real)
+    assert abs(A1 - L).max() < 1e-9 * abs(L).max()
+    assert abs(L - laplacian_matrix(mask, grid.voxel_size)).max() > 0  # the faces matter
+    mg = LaplaceMultigrid(mask, grid.voxel_size, coarse_size=200, real=real)
+    x, y = rng.standard_normal((2, mg.n))
+    assert mg.apply(x) @ y == pytest.approx(x @ mg.apply(y), rel=1e-10)
+    assert mg.apply(x) @ x > 0
+    f = L @ rng.standard_normal(mg.n)
+    its = {}
+    for name, m in (("natural", mg), ("dirichlet", LaplaceMultigrid(mask, grid.voxel_size, coarse_size=200))):
+        sol, its[name] = pcg(L, f, m.apply, tol=1e-8, max_iter=200)
+        assert np.linalg.norm(f - L @ sol) <= 1e-8 * np.linalg.norm(f)
+    assert its["natural"] < its["dirichlet"], its
 
 
 def test_box_boundary_neumann_for_flow_leaving_the_box():

@@ -111,6 +111,68 @@ def test_dot_test_restricted_operator(setup):
     # Restriction keeps exactly the hull-set columns of the full matrix.
     full = geom.S[fs.op.rows][:, np.flatnonzero(fs.inset.ravel())]
     np.testing.assert_allclose(S.toarray(), full.toarray(), rtol=1e-6)
+    # The fused setup pass: diag(S^T S), S^T b and S^T S x in one pass.
+    cs, stb, stsx = fs.op.setup_products(y, x)
+    np.testing.assert_allclose(cs, np.asarray(S.multiply(S).sum(0)).ravel(), rtol=1e-6)
+    np.testing.assert_allclose(stb, S.T @ y, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(stsx, S.T @ (S @ x), rtol=1e-9, atol=1e-12)
+    cs2, stb2, stsx2 = fs.op.setup_products(y)
+    assert np.array_equal(cs2, cs) and np.array_equal(stb2, stb) and not stsx2.any()
+
+
+def test_fused_restriction_matches_prepared_system(setup):
+    """solve_gradient's fused restrict+setup pass equals prepare_frame + setup_products."""
+    from schlieren.pipeline.tomography.operator import restrict_with_setup
+
+    grid, cams, fg, geom = setup
+    hull = np.zeros(grid.shape, bool)
+    hull[5:27, 7:25, 7:25] = True
+    fs = prepare_frame(geom, hull, dilation=1)
+    rng = np.random.default_rng(6)
+    rhs_all = rng.standard_normal((geom.n_rays, 3))
+    x = rng.standard_normal((fs.n, 3))
+    colmap = np.full(hull.size, -1, np.int32)
+    colmap[fs.inset.ravel()] = np.arange(fs.n, dtype=np.int32)
+    op, b, (cs, stb, stsx) = restrict_with_setup(geom.S, colmap, fs.n, lambda rows: rhs_all[rows], x)
+    assert np.array_equal(op.rows, fs.op.rows) and np.array_equal(op.indptr, fs.op.indptr)
+    assert np.array_equal(op.indices, fs.op.indices) and np.array_equal(op.data, fs.op.data)
+    assert np.array_equal(b, rhs_all[fs.op.rows])
+    ref = fs.op.setup_products(b, x)
+    for a, r in zip((cs, stb, stsx), ref):
+        np.testing.assert_allclose(a, r, rtol=1e-12, atol=1e-14 * np.abs(r).max())
+    # Whole solves, cold and warm, through both paths.
+    rhs = rhs_all.reshape(*geom.flow_shape, 3) * 1e-3
+    g0, _ = solve_gradient(geom, rhs, hull)
+    g1, _ = solve_gradient(geom, rhs, hull, system=fs)
+    np.testing.assert_allclose(g0, g1, rtol=1e-5, atol=1e-6 * np.abs(g1).max())
+    w0, i0 = solve_gradient(geom, rhs, hull, x0=0.5 * g1)
+    w1, i1 = solve_gradient(geom, rhs, hull, x0=0.5 * g1, system=fs)
+    assert i0.iterations == i1.iterations
+    np.testing.assert_allclose(w0, w1, rtol=1e-5, atol=1e-6 * np.abs(w1).max())
+
+
+def test_products_do_not_depend_on_thread_count(setup):
+    """Fixed row partition of the adjoint sums: bit-identical results for 1 and 2 threads."""
+    import numba
+
+    grid, cams, fg, geom = setup
+    hull = np.zeros(grid.shape, bool)
+    hull[4:28, 6:26, 6:26] = True
+    fs = prepare_frame(geom, hull, dilation=1)
+    rng = np.random.default_rng(3)
+    x = rng.standard_normal((fs.n, 3))
+    y = rng.standard_normal((fs.op.m, 3))
+    before = numba.get_num_threads()
+    outs = []
+    try:
+        for threads in sorted({1, numba.config.NUMBA_NUM_THREADS}):
+            numba.set_num_threads(threads)
+            outs.append((fs.op.rmatvec3(y), fs.op.normal3(x), fs.op.column_sumsq(),
+                         *fs.op.setup_products(y, x)))
+    finally:
+        numba.set_num_threads(before)
+    for a, b in zip(outs[0], outs[-1]):
+        assert np.array_equal(a, b)
 
 
 def test_regulariser_dot_test():
