@@ -26,6 +26,8 @@ bit-identical for any number of numba threads; the forward products are per row.
 
 from __future__ import annotations
 
+import threading
+
 import numba as nb
 import numpy as np
 import scipy.sparse as sp
@@ -360,7 +362,24 @@ def _restrict_setup3(indptr, indices, data, rows, colmap, new_indptr, new_indice
     return out_s, out_b, out_x
 
 
-def restrict_with_setup(S: sp.csr_matrix, colmap: np.ndarray, n: int, rhs, x: np.ndarray | None = None):
+_SCRATCH = threading.local()
+
+
+def _scratch(name: str, size: int, dtype) -> np.ndarray:
+    """A per-thread reusable buffer of at least ``size`` elements (grown when needed).
+
+    The restricted matrix of a paper-scale frame is ~0.5 GB: writing it into fresh memory
+    every frame costs a page fault per 4 KiB (about a third of a second here).
+    """
+    buf = getattr(_SCRATCH, name, None)
+    if buf is None or buf.size < size or buf.dtype != np.dtype(dtype):
+        buf = np.empty(max(size, 1), dtype)
+        setattr(_SCRATCH, name, buf)
+    return buf[:size]
+
+
+def restrict_with_setup(S: sp.csr_matrix, colmap: np.ndarray, n: int, rhs, x: np.ndarray | None = None,
+                        *, reuse_buffers: bool = False):
     """Restrict ``S`` (all rays, columns by ``colmap``) and run the solver's setup pass with it.
 
     Equivalent to ``RestrictedOperator.from_full(S, arange(M), colmap, n)`` followed by
@@ -378,6 +397,10 @@ def restrict_with_setup(S: sp.csr_matrix, colmap: np.ndarray, n: int, rhs, x: np
         ``rhs(rows) -> (len(rows), 3)`` right-hand side of the kept rays (flat indices).
     x : ndarray, shape (n, 3), optional
         Warm start for ``S^T S x``.
+    reuse_buffers : bool
+        Write the restricted matrix into this thread's scratch buffers instead of fresh
+        memory. The returned operator is then only valid until the next call with
+        ``reuse_buffers=True`` in the same thread.
 
     Returns
     -------
@@ -396,8 +419,12 @@ def restrict_with_setup(S: sp.csr_matrix, colmap: np.ndarray, n: int, rhs, x: np
     new_indptr = np.zeros(len(rows_k) + 1, np.int64)
     np.cumsum(counts[keep], out=new_indptr[1:])
     nnz = int(new_indptr[-1])
-    new_indices = np.empty(nnz, np.int32)
-    new_data = np.empty(nnz, np.float32)
+    if reuse_buffers:
+        new_indices = _scratch("indices", nnz, np.int32)
+        new_data = _scratch("data", nnz, np.float32)
+    else:
+        new_indices = np.empty(nnz, np.int32)
+        new_data = np.empty(nnz, np.float32)
     b = np.ascontiguousarray(rhs(rows_k), dtype=np.float64).reshape(len(rows_k), 3)
     with_x = x is not None
     xx = np.ascontiguousarray(x, dtype=np.float64).reshape(n, 3) if with_x else np.zeros((0, 3))

@@ -330,7 +330,7 @@ def solve_gradient(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarra
         colmap = np.full(flat.size, -1, np.int32)
         colmap[flat] = np.arange(n, dtype=np.int32)
         x_warm = _warm(x0, inset)
-        op, b_k, products = restrict_with_setup(geom.S, colmap, n, rhs, x_warm)
+        op, b_k, products = restrict_with_setup(geom.S, colmap, n, rhs, x_warm, reuse_buffers=True)
         sys_ = FrameSystem(op=op, inset=inset, L=difference_operator(inset), _colsumsq=products[0])
     op = sys_.op
     if op.n == 0 or op.m == 0:
