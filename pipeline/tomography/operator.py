@@ -297,6 +297,25 @@ def restrict_rows_cols(S: sp.csr_matrix, rows: np.ndarray, colmap: np.ndarray):
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
+def _sum_chunks(acc_s, acc_b, acc_x, n, nchunks, with_x):
+    """Sum the per-block partial products in block order (fixed: thread-count independent)."""
+    out_s = np.zeros(n)
+    out_b = np.zeros((n, 3))
+    out_x = np.zeros((n, 3))
+    for j in nb.prange(n):
+        for c in range(nchunks):
+            out_s[j] += acc_s[c, j]
+            out_b[j, 0] += acc_b[c, j, 0]
+            out_b[j, 1] += acc_b[c, j, 1]
+            out_b[j, 2] += acc_b[c, j, 2]
+            if with_x:
+                out_x[j, 0] += acc_x[c, j, 0]
+                out_x[j, 1] += acc_x[c, j, 1]
+                out_x[j, 2] += acc_x[c, j, 2]
+    return out_s, out_b, out_x
+
+
+@nb.njit(parallel=True, cache=True, fastmath=True)
 def _restrict_setup3(indptr, indices, data, rows, colmap, new_indptr, new_indices, new_data, b, x, n,
                      nchunks, with_x):
     """:func:`_restrict_fill` fused with :func:`_setup3` (each restricted row is used while hot)."""
@@ -346,20 +365,7 @@ def _restrict_setup3(indptr, indices, data, rows, colmap, new_indptr, new_indice
                 ab[j, 0] += v * b0
                 ab[j, 1] += v * b1
                 ab[j, 2] += v * b2
-    out_s = np.zeros(n)
-    out_b = np.zeros((n, 3))
-    out_x = np.zeros((n, 3))
-    for j in nb.prange(n):
-        for c in range(nchunks):
-            out_s[j] += acc_s[c, j]
-            out_b[j, 0] += acc_b[c, j, 0]
-            out_b[j, 1] += acc_b[c, j, 1]
-            out_b[j, 2] += acc_b[c, j, 2]
-            if with_x:
-                out_x[j, 0] += acc_x[c, j, 0]
-                out_x[j, 1] += acc_x[c, j, 1]
-                out_x[j, 2] += acc_x[c, j, 2]
-    return out_s, out_b, out_x
+    return _sum_chunks(acc_s, acc_b, acc_x, n, nchunks, with_x)
 
 
 _SCRATCH = threading.local()
@@ -564,20 +570,7 @@ def _setup3(indptr, indices, data, b, x, n, nchunks, with_x):
                 ab[j, 0] += v * b0
                 ab[j, 1] += v * b1
                 ab[j, 2] += v * b2
-    out_s = np.zeros(n)
-    out_b = np.zeros((n, 3))
-    out_x = np.zeros((n, 3))
-    for j in nb.prange(n):
-        for c in range(nchunks):
-            out_s[j] += acc_s[c, j]
-            out_b[j, 0] += acc_b[c, j, 0]
-            out_b[j, 1] += acc_b[c, j, 1]
-            out_b[j, 2] += acc_b[c, j, 2]
-            if with_x:
-                out_x[j, 0] += acc_x[c, j, 0]
-                out_x[j, 1] += acc_x[c, j, 1]
-                out_x[j, 2] += acc_x[c, j, 2]
-    return out_s, out_b, out_x
+    return _sum_chunks(acc_s, acc_b, acc_x, n, nchunks, with_x)
 
 
 class RestrictedOperator:
