@@ -6,22 +6,15 @@ Reproduces the paper's Table 1 (sec. 6) on the project's synthetic plume and wri
 
 from __future__ import annotations
 
-import argparse
 
 from schlieren.workers.cli import CLIError
+from schlieren.workers.commands._args import image_size
 
 QUICK_SIZE = (160, 120)
 QUICK_VOXEL = 0.005
 
 
-def _size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"size must be WIDTHxHEIGHT, not {text!r}") from None
-    if w < 32 or h < 32:
-        raise argparse.ArgumentTypeError("size must be at least 32x32")
-    return w, h
+_size = image_size(32)
 
 
 def add_parser(subparsers) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from pathlib import Path
@@ -28,15 +29,16 @@ def add_parser(sub) -> None:
 
 def handler(args) -> int:
     from schlieren.workers.cli import CLIError
+    from schlieren.workers.commands._args import image_size
     from schlieren.workers.commands.run import execute, print_summary
     from schlieren.workers.evaluate import evaluate
     from schlieren.workers.report import make_report
     from schlieren.workers.synth import synthesize
 
     try:
-        w, h = (int(v) for v in args.size.lower().split("x"))
-    except ValueError:
-        raise CLIError(f"--size {args.size!r}: expected WIDTHxHEIGHT, e.g. 480x360") from None
+        w, h = image_size(16)(args.size)
+    except argparse.ArgumentTypeError as exc:
+        raise CLIError(f"--size {args.size!r}: {exc}, e.g. 480x360") from None
     out = Path(args.out)
     session_dir = out / "session"
     store = out / "result.zarr"

@@ -16,20 +16,9 @@ from __future__ import annotations
 import argparse
 import logging
 
+from schlieren.workers.commands._args import frame_range
+
 log = logging.getLogger(__name__)
-
-
-def _range(text: str, flag: str) -> tuple[int, int]:
-    from schlieren.workers.cli import CLIError
-
-    try:
-        a, b = text.split(":")
-        a, b = int(a), int(b)
-    except ValueError:
-        raise CLIError(f"{flag} {text!r}: expected A:B with integers, e.g. 0:30") from None
-    if a < 0 or b <= a:
-        raise CLIError(f"{flag} {text!r}: the range must be non-empty and start at 0 or later")
-    return a, b
 
 
 def _floats(text: str, n: int, flag: str) -> list[float]:
@@ -116,11 +105,11 @@ def handler(args) -> int:
     names = list(videos)
     path = scaffold_session(
         args.session_dir, videos, args.calibration,
-        reference_frames=_range(args.reference_frames, "--reference-frames"),
+        reference_frames=frame_range(args.reference_frames, "--reference-frames"),
         volume_min=vol[:3], volume_max=vol[3:], voxel_size=args.voxel_size,
         frame_rate=args.frame_rate,
-        frames=_range(args.frames, "--frames") if args.frames else None,
-        strobe_frames=_range(args.strobe_frames, "--strobe-frames") if args.strobe_frames else None,
+        frames=frame_range(args.frames, "--frames") if args.frames else None,
+        strobe_frames=frame_range(args.strobe_frames, "--strobe-frames") if args.strobe_frames else None,
         time_offsets=_per_camera(args.time_offset, "--time-offset", names),
         line_times=_per_camera(args.line_time, "--line-time", names),
         background_distance=_per_camera(args.background_distance, "--background-distance", names),

@@ -12,19 +12,10 @@ log = logging.getLogger(__name__)
 
 
 def parse_frames(text: str | None) -> tuple[int, int] | None:
-    """``"A:B"`` -> ``(A, B)``, a half-open range of session frames."""
-    from schlieren.workers.cli import CLIError
+    """``"A:B"`` -> ``(A, B)``, a half-open range of frames; None stays None."""
+    from schlieren.workers.commands._args import frame_range
 
-    if text is None:
-        return None
-    try:
-        a, b = text.split(":")
-        a, b = int(a), int(b)
-    except ValueError:
-        raise CLIError(f"--frames {text!r}: expected A:B with integers, e.g. 0:120") from None
-    if a < 0 or b <= a:
-        raise CLIError(f"--frames {text!r}: the range must be non-empty and start at 0 or later")
-    return a, b
+    return None if text is None else frame_range(text, "--frames")
 
 
 def add_common_run_args(p: argparse.ArgumentParser) -> None:

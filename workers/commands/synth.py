@@ -2,19 +2,12 @@
 
 from __future__ import annotations
 
-import argparse
 
 from schlieren.workers.cli import CLIError
+from schlieren.workers.commands._args import image_size
 
 
-def _size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"size must be WIDTHxHEIGHT, not {text!r}") from None
-    if w < 16 or h < 16:
-        raise argparse.ArgumentTypeError("size must be at least 16x16")
-    return w, h
+_size = image_size(16)
 
 
 def add_parser(subparsers) -> None:
