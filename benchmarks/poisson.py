@@ -113,9 +113,8 @@ def main():
     out = {"accuracy": acc, "speed": spd, "peak_rss_mb": round(peak, 1), "seconds": round(time.perf_counter() - t0, 1),
            "env": {k: os.environ.get(k) for k in ("OMP_WAIT_POLICY", "NUMBA_NUM_THREADS")},
            "load_avg_start": load0, "load_avg_end": os.getloadavg(),
-           "note": ("timings taken on a shared 2-core machine with another benchmark running (load averages "
-                    f"{load0[0]:.1f} at the start, {os.getloadavg()[0]:.1f} at the end); solve times are the best "
-                    "of three (pyamg: one run)")}
+           "note": (f"load averages {load0[0]:.1f} at the start, {os.getloadavg()[0]:.1f} at the end (2-core "
+                    "machine; a load near 0 means idle); solve times are the best of three (pyamg: one run)")}
     md = ["# Poisson integration", "",
           f"{out['note']}; peak RSS {out['peak_rss_mb']} MB.", "",
           "Multigrid and Jacobi use the same conjugate-gradient loop (`pipeline.poisson.pcg`, serial numba "
