@@ -114,7 +114,7 @@ def main():
            "env": {k: os.environ.get(k) for k in ("OMP_WAIT_POLICY", "NUMBA_NUM_THREADS")},
            "load_avg_start": load0, "load_avg_end": os.getloadavg(),
            "note": (f"load averages {load0[0]:.1f} at the start, {os.getloadavg()[0]:.1f} at the end (2-core "
-                    "machine; a load near 0 means idle); solve times are the best of three (pyamg: one run)")}
+                    "machine; this VM idles at a load of about 1.0); solve times are the best of three (pyamg: one run)")}
     md = ["# Poisson integration", "",
           f"{out['note']}; peak RSS {out['peak_rss_mb']} MB.", "",
           "Multigrid and Jacobi use the same conjugate-gradient loop (`pipeline.poisson.pcg`, serial numba "

@@ -200,7 +200,7 @@ def accuracy(args):
         "image_size": list(image), "rig": "make_rig half ring, radius 2.5 m, background 2.5 m behind the centre",
         "noise_px": noise_px, "rows": rows, "total_seconds": round(time.perf_counter() - t0, 1),
         "peak_rss_mb": round(peak_rss_mb(), 1), "machine": platform.processor() or platform.machine(),
-        "cpus": os.cpu_count(), "note": "timings taken on a shared 2-core machine under contention",
+        "cpus": os.cpu_count(), "note": "total_seconds depends on the machine's load; the accuracy does not",
     }
     write("tomography" + args.suffix, out, table_md(out))
 
@@ -299,7 +299,7 @@ def speed(args):
            "numba_threads": int(__import__("numba").get_num_threads()),
            "env": {k: os.environ.get(k) for k in ("OMP_WAIT_POLICY", "NUMBA_THREADING_LAYER", "NUMBA_NUM_THREADS")},
            "load_avg_start": [round(v, 2) for v in load0], "load_avg_end": [round(v, 2) for v in os.getloadavg()],
-           "note": "timings taken on a shared 2-core machine under contention"}
+           "note": (f"1-min load average {load0[0]:.2f} at the start ({'idle: this VM idles at about 1.0' if load0[0] < 1.3 else 'another process was competing for the 2 cores'})")}
     md = ["# Tomography + integration speed at paper scale", "",
           f"Load averages (1/5/15 min): {out['load_avg_start']} at the start, {out['load_avg_end']} at the end "
           "(2 cores; anything above ~1 means another process competed for them).", "",

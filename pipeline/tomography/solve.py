@@ -26,6 +26,7 @@ import logging
 import time
 from dataclasses import dataclass, field
 
+import numba as nb
 import numpy as np
 import scipy.ndimage as ndi
 import scipy.sparse as sp
@@ -36,7 +37,7 @@ from schlieren.pipeline.tomography.params import TomoParams
 from schlieren.pipeline.tomography.rays import rhs_from_d_out, rhs_from_flows
 
 __all__ = ["SolveInfo", "solve_gradient", "solve_gradient_d_out", "basis_set",
-           "difference_operator", "cgls", "prepare_frame", "FrameSystem", "finite_rhs"]
+           "difference_operator", "difference_normal", "cgls", "prepare_frame", "FrameSystem", "finite_rhs"]
 
 log = logging.getLogger(__name__)
 
@@ -127,11 +128,82 @@ def difference_operator(inset: np.ndarray) -> sp.csr_matrix:
     return sp.csr_matrix((vals, (rows, cols)), shape=(nrow, int(flat.sum())))
 
 
+@nb.njit(cache=True)
+def _difference_normal_kernel(inset, indptr, indices, data):
+    nz, ny, nx = inset.shape
+    idx = np.full(inset.shape, -1, np.int64)
+    n = 0
+    for k in range(nz):
+        for j in range(ny):
+            for i in range(nx):
+                if inset[k, j, i]:
+                    idx[k, j, i] = n
+                    n += 1
+    pos = 0
+    row = 0
+    for k in range(nz):
+        for j in range(ny):
+            for i in range(nx):
+                if not inset[k, j, i]:
+                    continue
+                # neighbours in increasing C order: -z, -y, -x, self, +x, +y, +z
+                deg = (k > 0) + (k < nz - 1) + (j > 0) + (j < ny - 1) + (i > 0) + (i < nx - 1)
+                for dk, dj, di in ((-1, 0, 0), (0, -1, 0), (0, 0, -1), (0, 0, 0), (0, 0, 1), (0, 1, 0),
+                                   (1, 0, 0)):
+                    kk, jj, ii = k + dk, j + dj, i + di
+                    if dk == 0 and dj == 0 and di == 0:
+                        indices[pos] = row
+                        data[pos] = deg
+                        pos += 1
+                    elif 0 <= kk < nz and 0 <= jj < ny and 0 <= ii < nx and inset[kk, jj, ii]:
+                        indices[pos] = idx[kk, jj, ii]
+                        data[pos] = -1.0
+                        pos += 1
+                row += 1
+                indptr[row] = pos
+    return pos
+
+
+def difference_normal(inset: np.ndarray) -> sp.csr_matrix:
+    """``L^T L`` for ``L = difference_operator(inset)``, built directly.
+
+    Every in-grid neighbour pair with at least one voxel in the set is a row of ``L``, so
+    ``L^T L`` is the 7-point graph Laplacian of the set: the diagonal counts a voxel's
+    in-grid neighbours, and neighbours that are both in the set are coupled by -1.
+    """
+    inset = np.ascontiguousarray(inset, dtype=np.bool_)
+    n = int(inset.sum())
+    indptr = np.zeros(n + 1, np.int64)
+    indices = np.empty(7 * n, np.int32)
+    data = np.empty(7 * n)
+    nnz = _difference_normal_kernel(inset, indptr, indices, data)
+    M = sp.csr_matrix((data[:nnz], indices[:nnz], indptr), shape=(n, n))
+    M.has_sorted_indices = True
+    return M
+
+
+@nb.njit(parallel=True, cache=True)
+def _csr_cols3(indptr, indices, data, X, out):
+    for r in nb.prange(indptr.shape[0] - 1):
+        a0 = 0.0
+        a1 = 0.0
+        a2 = 0.0
+        for p in range(indptr[r], indptr[r + 1]):
+            v = data[p]
+            j = indices[p]
+            a0 += v * X[j, 0]
+            a1 += v * X[j, 1]
+            a2 += v * X[j, 2]
+        out[r, 0] = a0
+        out[r, 1] = a1
+        out[r, 2] = a2
+
+
 def _apply_cols(M: sp.csr_matrix, X: np.ndarray) -> np.ndarray:
-    """``M @ X`` for a few columns, one SpMV per column (cheaper than scipy's block path)."""
-    out = np.empty((M.shape[0], X.shape[1]))
-    for k in range(X.shape[1]):
-        out[:, k] = M @ X[:, k]
+    """``M @ X`` for three columns in one pass over ``M``."""
+    X = np.ascontiguousarray(X, dtype=np.float64)
+    out = np.empty((M.shape[0], 3))
+    _csr_cols3(M.indptr, M.indices, M.data, X, out)
     return out
 
 
@@ -229,7 +301,7 @@ class FrameSystem:
 
     op: RestrictedOperator
     inset: np.ndarray  # (nz, ny, nx) bool: kept basis functions
-    L: sp.csr_matrix  # first differences on the set
+    LtL: sp.csr_matrix  # normal matrix of the first differences on the set (difference_normal)
     _colsumsq: np.ndarray | None = None  # diag(S^T S), shape (n,); computed on first use
 
     @property
@@ -255,8 +327,7 @@ def prepare_frame(geom: TomoGeometry, hull: np.ndarray, *, dilation: int) -> Fra
     n = int(flat.sum())
     colmap[flat] = np.arange(n, dtype=np.int32)
     op = RestrictedOperator.from_full(geom.S, np.arange(geom.S.shape[0]), colmap, n)
-    L = difference_operator(inset)
-    return FrameSystem(op=op, inset=inset, L=L)
+    return FrameSystem(op=op, inset=inset, LtL=difference_normal(inset))
 
 
 def finite_rhs(b: np.ndarray) -> np.ndarray:
@@ -331,7 +402,7 @@ def solve_gradient(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarra
         colmap[flat] = np.arange(n, dtype=np.int32)
         x_warm = _warm(x0, inset)
         op, b_k, products = restrict_with_setup(geom.S, colmap, n, rhs, x_warm, reuse_buffers=True)
-        sys_ = FrameSystem(op=op, inset=inset, L=difference_operator(inset), _colsumsq=products[0])
+        sys_ = FrameSystem(op=op, inset=inset, LtL=difference_normal(inset), _colsumsq=products[0])
     op = sys_.op
     if op.n == 0 or op.m == 0:
         info = SolveInfo(iterations=0, residual=0.0, residual_components=(0.0, 0.0, 0.0),
@@ -355,6 +426,61 @@ def _warm(x0, inset):
     return None
 
 
+@nb.njit(cache=True)
+def _cg_apply(P, d, indptr, indices, data, mu2, x, p, q):
+    """``q = P (d + mu2 M x)`` (``M`` in CSR, ``P`` a row scaling); returns ``p . q`` per column."""
+    pq = np.zeros(3)
+    for i in range(q.shape[0]):
+        r0 = d[i, 0]
+        r1 = d[i, 1]
+        r2 = d[i, 2]
+        if mu2 > 0.0:
+            a0 = 0.0
+            a1 = 0.0
+            a2 = 0.0
+            for k in range(indptr[i], indptr[i + 1]):
+                v = data[k]
+                j = indices[k]
+                a0 += v * x[j, 0]
+                a1 += v * x[j, 1]
+                a2 += v * x[j, 2]
+            r0 += mu2 * a0
+            r1 += mu2 * a1
+            r2 += mu2 * a2
+        q[i, 0] = P[i] * r0
+        q[i, 1] = P[i] * r1
+        q[i, 2] = P[i] * r2
+        pq[0] += p[i, 0] * q[i, 0]
+        pq[1] += p[i, 1] * q[i, 1]
+        pq[2] += p[i, 2] * q[i, 2]
+    return pq
+
+
+@nb.njit(cache=True)
+def _cg_update3(z, StSx, r, p, q, Sp, alpha):
+    """``z += alpha p``, ``StSx += alpha Sp``, ``r -= alpha q`` per column; returns ``r . r``."""
+    rr = np.zeros(3)
+    for i in range(z.shape[0]):
+        for c in range(3):
+            a = alpha[c]
+            z[i, c] += a * p[i, c]
+            StSx[i, c] += a * Sp[i, c]
+            v = r[i, c] - a * q[i, c]
+            r[i, c] = v
+            rr[c] += v * v
+    return rr
+
+
+@nb.njit(cache=True)
+def _cg_direction3(p, r, beta, P, x):
+    """``p = r + beta p`` per column and ``x = P p``."""
+    for i in range(p.shape[0]):
+        for c in range(3):
+            v = r[i, c] + beta[c] * p[i, c]
+            p[i, c] = v
+            x[i, c] = P[i] * v
+
+
 def _solve_restricted(sys_: FrameSystem, b: np.ndarray, params: TomoParams, x0, noise_rms, products=None):
     """Jacobi-scaled CG on the regularised normal equations, three columns at once.
 
@@ -368,7 +494,6 @@ def _solve_restricted(sys_: FrameSystem, b: np.ndarray, params: TomoParams, x0, 
     """
     t = time.perf_counter()
     op = sys_.op
-    L = sys_.L
     x_warm = _warm(x0, sys_.inset)
     # One pass over S for diag(S^T S), S^T b and the warm start's S^T S x0 (or already
     # done while restricting: ``products``).
@@ -376,16 +501,12 @@ def _solve_restricted(sys_: FrameSystem, b: np.ndarray, params: TomoParams, x0, 
     if sys_._colsumsq is None:
         sys_._colsumsq = colsumsq
     mu2 = params.reg_weight * float(np.mean(colsumsq))
-    LtL = (L.T @ L).tocsr()
+    LtL = sys_.LtL
     diag = colsumsq + mu2 * LtL.diagonal()
     P = (1.0 / np.sqrt(np.where(diag > 0, diag, 1.0)))[:, None]
     bb = np.einsum("ij,ij->j", b, b)
 
-    def normal(z):
-        x = P * z
-        d = op.normal3(x)
-        reg = mu2 * _apply_cols(LtL, x) if mu2 > 0 else 0.0
-        return d, P * (d + reg)
+    P1 = np.ascontiguousarray(P[:, 0])
 
     rhs = P * Stb
     if x_warm is not None:
@@ -411,24 +532,26 @@ def _solve_restricted(sys_: FrameSystem, b: np.ndarray, params: TomoParams, x0, 
     active = np.sqrt(rr) > params.tol * ref
     it = 0
     reason = "tol" if not np.any(active) else "max_iter"
+    # The vector work of an iteration runs in three fused serial kernels (x = P p with the
+    # new direction; q = P (S^T S x + mu^2 L^T L x) with p.q; the updates with r.r).
+    x = P * p
+    q = np.empty_like(p)
     while it < params.max_iter and np.any(active):
         if stop is not None and np.all(data_res() <= stop):
             reason = "discrepancy"
             break
-        Sp, q = normal(p)
-        pq = np.einsum("ij,ij->j", p, q)
+        Sp = op.normal3(x)
+        pq = _cg_apply(P1, Sp, LtL.indptr, LtL.indices, LtL.data, float(mu2), x, p, q)
         alpha = np.where(active & (pq > 0), rr / np.where(pq > 0, pq, 1.0), 0.0)
-        z += alpha * p
-        StSx += alpha * Sp
-        r -= alpha * q
-        rr_new = np.einsum("ij,ij->j", r, r)
+        rr_new = _cg_update3(z, StSx, r, p, q, Sp, alpha)
         beta = np.where(active, rr_new / np.where(rr > 0, rr, 1.0), 0.0)
-        p = r + beta * p
         rr = np.where(active, rr_new, rr)
         it += 1
         active = active & (np.sqrt(rr) > params.tol * ref)
         if not np.any(active):
             reason = "tol"
+        else:
+            _cg_direction3(p, r, beta, P1, x)
     x = P * z
     rel = data_res() / np.sqrt(np.where(bb > 0, bb, 1.0))
     return x, it, reason, rel, time.perf_counter() - t

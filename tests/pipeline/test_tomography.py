@@ -21,7 +21,7 @@ from schlieren.pipeline.tomography import (
     solve_refractivity,
 )
 from schlieren.pipeline.tomography.operator import basis_weights, clip_rays_to_box
-from schlieren.pipeline.tomography.solve import cgls, difference_operator, prepare_frame
+from schlieren.pipeline.tomography.solve import cgls, difference_normal, difference_operator, prepare_frame
 
 R_AMB = 2.9e-4
 
@@ -185,6 +185,18 @@ def test_regulariser_dot_test():
     # A constant on the whole grid has zero differences inside the set.
     full = difference_operator(np.ones((4, 4, 4), bool))
     np.testing.assert_allclose(full @ np.ones(64), 0.0)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_difference_normal_equals_product(seed):
+    """The directly built L^T L (used by the solver) is exactly the product of L."""
+    rng = np.random.default_rng(seed)
+    inset = rng.random((6, 7, 8)) > 0.4
+    inset[0, 0, 0] = inset[-1, -1, -1] = True  # corners: fewer in-grid neighbours
+    L = difference_operator(inset)
+    M = difference_normal(inset)
+    assert M.shape == (inset.sum(), inset.sum()) and M.has_sorted_indices
+    np.testing.assert_array_equal(M.toarray(), (L.T @ L).toarray())
 
 
 def _line_integral_error(grid, geom, n_cams, centre, sigma, amp):
