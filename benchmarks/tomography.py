@@ -299,7 +299,8 @@ def speed(args):
            "numba_threads": int(__import__("numba").get_num_threads()),
            "env": {k: os.environ.get(k) for k in ("OMP_WAIT_POLICY", "NUMBA_THREADING_LAYER", "NUMBA_NUM_THREADS")},
            "load_avg_start": [round(v, 2) for v in load0], "load_avg_end": [round(v, 2) for v in os.getloadavg()],
-           "note": (f"1-min load average {load0[0]:.2f} at the start ({'idle: this VM idles at about 1.0' if load0[0] < 1.3 else 'another process was competing for the 2 cores'})")}
+           "note": (f"1-min load average {load0[0]:.2f} at the start (this VM idles at about 1.0; the "
+                    "average trails a job that just ended by about a minute)")}
     md = ["# Tomography + integration speed at paper scale", "",
           f"Load averages (1/5/15 min): {out['load_avg_start']} at the start, {out['load_avg_end']} at the end "
           "(2 cores; anything above ~1 means another process competed for them).", "",
