@@ -81,8 +81,11 @@ DASK_SETTINGS: dict[str, Any] = {
     "distributed.worker.memory.recent-to-old-time": "120s",
     # a task whose worker died this many times is declared bad (KilledWorker)
     "distributed.scheduler.allowed-failures": 3,
-    # queue root tasks on the scheduler, one per thread: a killed worker loses less
-    "distributed.scheduler.worker-saturation": 1.0,
+    # queue root tasks on the scheduler, ceil(1.5 x threads) per worker: a killed worker
+    # loses little, and a worker always holds its next task (at 1.0 a single-threaded
+    # worker idled for a scheduler round trip after each of ~700 small tasks: +1.5 s on
+    # the 8-camera x 16-frame scaling session, benchmarks/scaling.py)
+    "distributed.scheduler.worker-saturation": 1.5,
     "distributed.dashboard.link": "{scheme}://{host}:{port}/status",
     **{f"distributed.nanny.pre-spawn-environ.{k}": v for k, v in THREAD_ENV.items()},
     **{f"distributed.nanny.pre-spawn-environ.{k}": v for k, v in MALLOC_ENV.items()},

@@ -52,7 +52,7 @@ def run_graph(client: Client, store_path: str, plan: Plan, *,
         deps = [futures[d] for d in task.deps if d in futures]
         resources = {k: v for k, v in task.resources if k in have} or None
         futures[task.key] = client.submit(
-            run_task, str(store_path), task.stage, task.index, *deps,
+            run_task, str(store_path), task.stage, task.index, *deps, run_token=plan.token,
             key=task.key, resources=resources, retries=retries, pure=False)
     if any(t.resources for t in plan.tasks) and not have:
         log.warning("no worker advertises the TOMO resource; solves are not limited per worker")

@@ -44,6 +44,7 @@ class Task:
 class Plan:
     tasks: list[Task] = field(default_factory=list)
     skipped: int = 0
+    token: str = ""  # the run's token (in every key; tasks key their per-process caches by it)
 
     def by_stage(self) -> dict[str, list[Task]]:
         out: dict[str, list[Task]] = {s.name: [] for s in STAGES}
@@ -108,7 +109,7 @@ def make_plan(ext: Extents, token: str, *, done=None, stages: tuple[Stage, ...] 
     done : callable(stage, index) -> bool, optional
         Completion-marker lookup; complete tasks are dropped and so are edges to them.
     """
-    plan = Plan()
+    plan = Plan(token=token)
     complete: set[tuple[str, tuple[int, ...]]] = set()
     for st in stages:
         for index in _indices(st, ext):

@@ -65,7 +65,7 @@ def _loop(store_path, plan, receipts, failures, on_receipt, on_failure) -> None:
                 on_failure(task.key, failures[task.key])
             continue
         try:
-            r = run_task(store_path, task.stage, task.index)
+            r = run_task(store_path, task.stage, task.index, run_token=plan.token)
         except TaskFailed as exc:
             failures[task.key] = str(exc)
             if on_failure:

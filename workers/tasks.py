@@ -3,8 +3,13 @@
 Tasks take the store path, the stage name and an index, and return a small receipt
 (STYLE.md example 7): frames, flow fields and the projection geometry never travel
 through the task graph. Per-process caches hold the opened store, the session, the
-reference images and the memory-mapped tomography geometry. The completion marker is
-written last, so a task killed midway is simply run again.
+reference images and the memory-mapped tomography geometry, keyed by the store path and
+the run's token (a store deleted and made again for another run at the same path gets
+fresh caches). Values an upstream task has finished writing never change during a run,
+so the context also keeps the small per-camera arrays and the recently read flow and
+potential chunks (a mask task reads three frames of each; each zarr read costs about a
+millisecond, more in a busy worker). The completion marker is written last, so a task
+killed midway is simply run again.
 """
 
 from __future__ import annotations
@@ -12,7 +17,8 @@ from __future__ import annotations
 import functools
 import logging
 import time
-from dataclasses import dataclass
+from collections import OrderedDict
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -53,9 +59,13 @@ class RunContext:
     def cameras(self) -> list[Camera]:
         return self.session.cameras
 
-    @functools.cached_property
-    def _sources(self) -> dict:
-        return {}
+    _sources: dict = field(default_factory=dict, repr=False)
+    _small: dict = field(default_factory=dict, repr=False)
+    _chunks: OrderedDict = field(default_factory=OrderedDict, repr=False)
+    _chunk_bytes: int = 0
+
+    #: Bytes of upstream chunks kept by :meth:`read_upstream` per process.
+    CHUNK_CACHE_BYTES = 64 * 2 ** 20
 
     def frames(self, c: int):
         src = self._sources.get(c)
@@ -64,20 +74,64 @@ class RunContext:
             src = self._sources[c] = open_frames(s, camera_name=s.name)
         return src
 
+    def _once(self, key, make):
+        if key not in self._small:
+            self._small[key] = make()
+        return self._small[key]
+
     def reference(self, c: int) -> np.ndarray:
-        return _reference(self.store_path, c)
+        s = self.session.sources[c]
+        return self._once(("reference", c), lambda: read_reference(s, camera_name=s.name))
+
+    def prepared_reference(self, c: int):
+        """The reference's pyramid and spline coefficients, prepared once per camera per process."""
+        params = self.config.flow
+        return self._once(("prepared_reference", c),
+                          lambda: flowmod.prepare_reference(self.reference(c), **params.reference_kwargs()))
+
+    def time_offset(self, c: int) -> float:
+        return self._once(("time_offset", c), lambda: float(self.store.read("time_offset", (c,))))
 
     def camera_with_offset(self, c: int) -> Camera:
-        off = float(self.store.read("time_offset", (c,)))
-        return self.cameras[c].with_time_offset(off)
+        return self.cameras[c].with_time_offset(self.time_offset(c))
 
     def flash_frames(self, c: int) -> tuple[int, ...]:
-        lo, hi = (int(v) for v in self.store.read("flash_frames", (c,)))
-        return tuple(range(lo, hi + 1)) if lo >= 0 else ()
+        def read():
+            lo, hi = (int(v) for v in self.store.read("flash_frames", (c,)))
+            return tuple(range(lo, hi + 1)) if lo >= 0 else ()
+        return self._once(("flash_frames", c), read)
+
+    def times(self) -> np.ndarray:
+        """The output frames' instants (written once by the clock stage)."""
+        return self._once("time", lambda: np.asarray(self.store.read("time", ()), dtype=np.float64))
+
+    def mask_threshold(self) -> float:
+        return self._once("mask_threshold", lambda: float(self.store.read("mask_threshold", ())[0]))
+
+    def read_upstream(self, name: str, index: tuple[int, ...]) -> np.ndarray:
+        """``store.read(name, index)`` of a chunk an upstream task has finished, cached (LRU).
+
+        Only for chunks whose producer this task depends on: they are final for the run.
+        The returned array is shared: do not modify it.
+        """
+        key = (name, index)
+        a = self._chunks.get(key)
+        if a is not None:
+            self._chunks.move_to_end(key)
+            return a
+        a = self.store.read(name, index)
+        a.flags.writeable = False
+        self._chunks[key] = a
+        self._chunk_bytes += a.nbytes
+        while self._chunk_bytes > self.CHUNK_CACHE_BYTES and len(self._chunks) > 1:
+            _, old = self._chunks.popitem(last=False)
+            self._chunk_bytes -= old.nbytes
+        return a
 
 
 @functools.lru_cache(maxsize=4)
-def context(store_path: str) -> RunContext:
+def context(store_path: str, run_token: str = "") -> RunContext:
+    """The run's context in this process (``run_token`` tells apart runs at one path)."""
     store = ResultStore.open(store_path)
     a = store.attrs
     run = a["run"]
@@ -87,20 +141,6 @@ def context(store_path: str) -> RunContext:
                       flow_grid=FlowGrid(session.cameras[0].image_size, cfg.flow_factor),
                       first_frame=int(run["frames"][0]), n_frames=int(run["n_frames"]),
                       raw_first=int(run["raw_first"]), n_raw=int(run["n_raw"]))
-
-
-@functools.lru_cache(maxsize=32)
-def _reference(store_path: str, c: int) -> np.ndarray:
-    ctx = context(store_path)
-    s = ctx.session.sources[c]
-    return read_reference(s, camera_name=s.name)
-
-
-@functools.lru_cache(maxsize=32)
-def _prepared_reference(store_path: str, c: int):
-    """The reference's pyramid and spline coefficients, prepared once per camera per process."""
-    params = context(store_path).config.flow
-    return flowmod.prepare_reference(_reference(store_path, c), **params.reference_kwargs())
 
 
 @functools.lru_cache(maxsize=2)
@@ -162,7 +202,7 @@ def _clock(ctx: RunContext) -> dict:
 
 def _deflection(ctx: RunContext, c: int, j: int) -> dict:
     img = ctx.frames(c).read(ctx.raw_first + j)
-    d = flowmod.deflection_stage(_prepared_reference(ctx.store_path, c), img, ctx.config.flow)
+    d = flowmod.deflection_stage(ctx.prepared_reference(c), img, ctx.config.flow)
     ctx.store.write("flow_raw", (c, j), d.astype(np.float32))
     return {"max_px": float(np.nanmax(np.abs(d))) if d.size else 0.0}
 
@@ -170,8 +210,8 @@ def _deflection(ctx: RunContext, c: int, j: int) -> dict:
 def _resample(ctx: RunContext, c: int, k: int) -> dict:
     s = ctx.session
     cam = ctx.cameras[c]
-    off = float(ctx.store.read("time_offset", (c,)))
-    t = float(ctx.store.read("time", ())[k])
+    off = ctx.time_offset(c)
+    t = float(ctx.times()[k])
     excluded = ctx.flash_frames(c)
     f0, f1 = sync.frames_needed(t, offset=off, frame_rate=s.frame_rate, line_time=cam.line_time,
                                 height=cam.height, excluded_frames=excluded,
@@ -187,7 +227,7 @@ def _resample(ctx: RunContext, c: int, k: int) -> dict:
 
 
 def _potential(ctx: RunContext, c: int, k: int) -> dict:
-    f = ctx.store.read("flow", (c, k))
+    f = ctx.read_upstream("flow", (c, k))
     p = masksmod.flow_potential(f)
     ctx.store.write("potential", (c, k), np.asarray(p, dtype=np.float32))
     return {}
@@ -196,7 +236,7 @@ def _potential(ctx: RunContext, c: int, k: int) -> dict:
 def _threshold(ctx: RunContext) -> dict:
     params = ctx.config.masks
     kw = kernel_kwargs(params, masksmod.potential_summary)
-    summaries = [masksmod.potential_summary(ctx.store.read("potential", (c, k)), **kw)
+    summaries = [masksmod.potential_summary(ctx.read_upstream("potential", (c, k)), **kw)
                  for c in range(len(ctx.cameras)) for k in range(ctx.n_frames)]
     thr = masksmod.threshold_from_summaries(
         summaries, **kernel_kwargs(params, masksmod.threshold_from_summaries))
@@ -208,9 +248,9 @@ def _mask(ctx: RunContext, c: int, k: int) -> dict:
     params = ctx.config.masks
     h = params.temporal_radius
     ks = [min(max(i, 0), ctx.n_frames - 1) for i in range(k - h, k + h + 1)]
-    pots = np.stack([ctx.store.read("potential", (c, i)) for i in ks])
-    flows = np.stack([ctx.store.read("flow", (c, i)) for i in ks])
-    thr = float(ctx.store.read("mask_threshold", ())[0])
+    pots = np.stack([ctx.read_upstream("potential", (c, i)) for i in ks])
+    flows = np.stack([ctx.read_upstream("flow", (c, i)) for i in ks])
+    thr = ctx.mask_threshold()
     m = masksmod.make_mask(pots, h, thr, flows=flows, **kernel_kwargs(params, masksmod.make_mask))
     ctx.store.write("mask", (c, k), np.asarray(m, dtype=bool))
     return {"fraction": float(np.mean(m))}
@@ -235,7 +275,7 @@ def _hull(ctx: RunContext, k: int) -> dict:
 
 def _tomography(ctx: RunContext, k: int) -> dict:
     geom = _geometry(ctx.store_path, _geometry_key(ctx))
-    flows = np.stack([ctx.store.read("flow", (c, k)) for c in range(len(ctx.cameras))])
+    flows = np.stack([ctx.read_upstream("flow", (c, k)) for c in range(len(ctx.cameras))])
     hull = ctx.store.read("hull", (k,))
     x0 = None
     if k % max(ctx.config.warm_start_block, 1) != 0:
@@ -304,15 +344,16 @@ def _describe(stage_name: str, index: tuple[int, ...], ctx: RunContext | None) -
     return ", ".join(parts)
 
 
-def run_task(store_path: str, stage_name: str, index: tuple[int, ...], *_deps) -> dict:
+def run_task(store_path: str, stage_name: str, index: tuple[int, ...], *_deps, run_token: str = "") -> dict:
     """Run one stage at one index and return its receipt.
 
     Extra positional arguments are the receipts of the tasks this one waits for (the Dask
     executor passes them so the graph carries the dependencies); they are ignored.
+    ``run_token`` (the plan's) keys this process's caches of the run.
     """
     index = tuple(int(i) for i in index)
     t0 = time.perf_counter()
-    ctx = context(str(store_path))
+    ctx = context(str(store_path), str(run_token))
     receipt = {"stage": stage_name, "index": list(index), "skipped": False}
     st = stage(stage_name)
     labels = dict(zip(st.over, index))

@@ -61,6 +61,28 @@ def test_dask_executor_gives_the_identical_store(serial_store, tiny_session, tmp
     assert_same_store(serial_store, out)
 
 
+def test_a_new_run_at_the_same_path_gets_fresh_worker_caches(serial_store, tiny_session, tmp_path):
+    """Tasks cache the run's context per process, keyed by path and run token: a store
+    deleted and made again at the same path by a run with other parameters, in the same
+    process, must not be computed with the first run's settings or cached chunks."""
+    import dataclasses
+
+    from schlieren.pipeline.poisson import PoissonParams
+    from schlieren.pipeline.stages import RunConfig
+
+    other = RunConfig(poisson=PoissonParams(alpha=1.0), masks=dataclasses.replace(RunConfig().masks,
+                                                                                 temporal_radius=0))
+    same, fresh = tmp_path / "same.zarr", tmp_path / "fresh.zarr"
+    assert run_session(tiny_session.session, same, serial=True).ok
+    shutil.rmtree(same)
+    assert run_session(tiny_session.session, same, serial=True, config=other).ok
+    assert run_session(tiny_session.session, fresh, serial=True, config=other).ok
+    assert_same_store(fresh, same)
+    a = zarr.open_group(str(same), mode="r")
+    b = zarr.open_group(str(serial_store), mode="r")
+    assert not np.array_equal(np.asarray(a["mask"][...]), np.asarray(b["mask"][...]))
+
+
 def _markers_set(store: Path) -> int:
     try:
         g = zarr.open_group(str(store), mode="r")

@@ -257,6 +257,27 @@ def test_markers_not_chunk_presence_mean_done(store):
         store.mark_done("nonsense", 0)
 
 
+def test_is_done_answers_from_the_files_in_a_folder_store(tmp_path, monkeypatch):
+    """In a folder store a missing marker chunk answers "not done" without a zarr read;
+    every answer agrees with the marker array, including scalar and multi-chunk regions."""
+    s = ResultStore.create(tmp_path / "run.zarr", layout(), attrs=attrs(), markers=stage_markers())
+    rng = np.random.default_rng(0)
+    marks = {(int(c), int(k)) for c, k in zip(rng.integers(0, 3, 5), rng.integers(0, NF, 5))}
+    for ck in marks:
+        s.mark_done("mask", ck)
+    s.mark_done("threshold", ())
+    expected = s.done("mask")
+    reads = []
+    real_getitem = zarr.Array.__getitem__
+    monkeypatch.setattr(zarr.Array, "__getitem__", lambda self, sel: reads.append(sel) or real_getitem(self, sel))
+    for c in range(3):
+        for k in range(NF):
+            assert s.is_done("mask", (c, k)) == bool(expected[c, k])
+    assert len(reads) == len(marks)  # only the existing chunks were read
+    assert s.is_done("threshold", ()) and not s.is_done("clock", ())
+    assert s.is_done("mask", (slice(None), 0)) == bool(expected[:, 0].all())
+
+
 def test_stage_completion_attrs_and_updates(store):
     store.set_stage_completed("deflection", "2026-11-21T08:00:00+00:00")
     store.set_stage_completed("tomography")
