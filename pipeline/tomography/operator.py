@@ -343,15 +343,7 @@ def _restrict_setup3(indptr, indices, data, rows, colmap, new_indptr, new_indice
             b2 = b[k, 2]
             if with_x:
                 ax = acc_x[c]
-                t0 = 0.0
-                t1 = 0.0
-                t2 = 0.0
-                for p in range(p0, p1):
-                    j = new_indices[p]
-                    v = new_data[p]
-                    t0 += v * x[j, 0]
-                    t1 += v * x[j, 1]
-                    t2 += v * x[j, 2]
+                t0, t1, t2 = row_dot3(new_indptr, new_indices, new_data, x, k)
                 for p in range(p0, p1):
                     j = new_indices[p]
                     v = new_data[p]
@@ -439,22 +431,33 @@ def restrict_with_setup(S: sp.csr_matrix, colmap: np.ndarray, n: int, rhs, x: np
     return RestrictedOperator(new_indptr, new_indices, new_data, n, rows_k), b, prods
 
 
+@nb.njit(cache=True, fastmath=True, inline="always")
+def row_dot3(indptr, indices, data, x, r):
+    """Row ``r`` of a CSR matrix times the three columns of ``x`` (a tuple of three sums)."""
+    a0 = 0.0
+    a1 = 0.0
+    a2 = 0.0
+    for p in range(indptr[r], indptr[r + 1]):
+        j = indices[p]
+        v = data[p]
+        a0 += v * x[j, 0]
+        a1 += v * x[j, 1]
+        a2 += v * x[j, 2]
+    return a0, a1, a2
+
+
 @nb.njit(parallel=True, cache=True, fastmath=True)
-def _matvec3(indptr, indices, data, x, y):
+def matvec3(indptr, indices, data, x, y):
+    """``y = M x`` for a CSR matrix ``M`` and three columns ``x`` (n, 3)."""
     m = indptr.shape[0] - 1
     for r in nb.prange(m):
-        a0 = 0.0
-        a1 = 0.0
-        a2 = 0.0
-        for p in range(indptr[r], indptr[r + 1]):
-            j = indices[p]
-            v = data[p]
-            a0 += v * x[j, 0]
-            a1 += v * x[j, 1]
-            a2 += v * x[j, 2]
+        a0, a1, a2 = row_dot3(indptr, indices, data, x, r)
         y[r, 0] = a0
         y[r, 1] = a1
         y[r, 2] = a2
+
+
+_matvec3 = matvec3
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
@@ -492,15 +495,7 @@ def _normal3(indptr, indices, data, x, n, nchunks):
     for c in nb.prange(nchunks):
         a = acc[c]
         for r in range(bounds[c], bounds[c + 1]):
-            t0 = 0.0
-            t1 = 0.0
-            t2 = 0.0
-            for p in range(indptr[r], indptr[r + 1]):
-                j = indices[p]
-                v = data[p]
-                t0 += v * x[j, 0]
-                t1 += v * x[j, 1]
-                t2 += v * x[j, 2]
+            t0, t1, t2 = row_dot3(indptr, indices, data, x, r)
             for p in range(indptr[r], indptr[r + 1]):
                 j = indices[p]
                 v = data[p]
@@ -548,15 +543,7 @@ def _setup3(indptr, indices, data, b, x, n, nchunks, with_x):
             b2 = b[r, 2]
             if with_x:
                 ax = acc_x[c]
-                t0 = 0.0
-                t1 = 0.0
-                t2 = 0.0
-                for p in range(indptr[r], indptr[r + 1]):
-                    j = indices[p]
-                    v = data[p]
-                    t0 += v * x[j, 0]
-                    t1 += v * x[j, 1]
-                    t2 += v * x[j, 2]
+                t0, t1, t2 = row_dot3(indptr, indices, data, x, r)
                 for p in range(indptr[r], indptr[r + 1]):
                     j = indices[p]
                     v = data[p]

@@ -32,7 +32,7 @@ import scipy.ndimage as ndi
 import scipy.sparse as sp
 
 from schlieren.pipeline.tomography.geometry import TomoGeometry
-from schlieren.pipeline.tomography.operator import RestrictedOperator, restrict_with_setup
+from schlieren.pipeline.tomography.operator import RestrictedOperator, matvec3, restrict_with_setup, row_dot3
 from schlieren.pipeline.tomography.params import TomoParams
 from schlieren.pipeline.tomography.rays import rhs_from_d_out, rhs_from_flows
 
@@ -182,28 +182,11 @@ def difference_normal(inset: np.ndarray) -> sp.csr_matrix:
     return M
 
 
-@nb.njit(parallel=True, cache=True)
-def _csr_cols3(indptr, indices, data, X, out):
-    for r in nb.prange(indptr.shape[0] - 1):
-        a0 = 0.0
-        a1 = 0.0
-        a2 = 0.0
-        for p in range(indptr[r], indptr[r + 1]):
-            v = data[p]
-            j = indices[p]
-            a0 += v * X[j, 0]
-            a1 += v * X[j, 1]
-            a2 += v * X[j, 2]
-        out[r, 0] = a0
-        out[r, 1] = a1
-        out[r, 2] = a2
-
-
 def _apply_cols(M: sp.csr_matrix, X: np.ndarray) -> np.ndarray:
     """``M @ X`` for three columns in one pass over ``M``."""
     X = np.ascontiguousarray(X, dtype=np.float64)
     out = np.empty((M.shape[0], 3))
-    _csr_cols3(M.indptr, M.indices, M.data, X, out)
+    matvec3(M.indptr, M.indices, M.data, X, out)
     return out
 
 
@@ -435,15 +418,7 @@ def _cg_apply(P, d, indptr, indices, data, mu2, x, p, q):
         r1 = d[i, 1]
         r2 = d[i, 2]
         if mu2 > 0.0:
-            a0 = 0.0
-            a1 = 0.0
-            a2 = 0.0
-            for k in range(indptr[i], indptr[i + 1]):
-                v = data[k]
-                j = indices[k]
-                a0 += v * x[j, 0]
-                a1 += v * x[j, 1]
-                a2 += v * x[j, 2]
+            a0, a1, a2 = row_dot3(indptr, indices, data, x, i)
             r0 += mu2 * a0
             r1 += mu2 * a1
             r2 += mu2 * a2
