@@ -344,12 +344,7 @@ def _restrict_setup3(indptr, indices, data, rows, colmap, new_indptr, new_indice
             if with_x:
                 ax = acc_x[c]
                 t0, t1, t2 = row_dot3(new_indptr, new_indices, new_data, x, k)
-                for p in range(p0, p1):
-                    j = new_indices[p]
-                    v = new_data[p]
-                    ax[j, 0] += v * t0
-                    ax[j, 1] += v * t1
-                    ax[j, 2] += v * t2
+                row_scatter3(new_indptr, new_indices, new_data, k, t0, t1, t2, ax)
             for p in range(p0, p1):
                 j = new_indices[p]
                 v = np.float64(new_data[p])
@@ -446,6 +441,30 @@ def row_dot3(indptr, indices, data, x, r):
     return a0, a1, a2
 
 
+@nb.njit(cache=True, fastmath=True, inline="always")
+def row_scatter3(indptr, indices, data, r, t0, t1, t2, a):
+    """``a[j] += S[r, j] * (t0, t1, t2)`` over the entries of CSR row ``r``."""
+    for p in range(indptr[r], indptr[r + 1]):
+        j = indices[p]
+        v = data[p]
+        a[j, 0] += v * t0
+        a[j, 1] += v * t1
+        a[j, 2] += v * t2
+
+
+@nb.njit(parallel=True, cache=True, fastmath=True)
+def _reduce_chunks3(acc):
+    """Sum per-block partial products (nchunks, n, 3) in block order (thread-count independent)."""
+    nchunks, n = acc.shape[0], acc.shape[1]
+    out = np.zeros((n, 3))
+    for j in nb.prange(n):
+        for c in range(nchunks):
+            out[j, 0] += acc[c, j, 0]
+            out[j, 1] += acc[c, j, 1]
+            out[j, 2] += acc[c, j, 2]
+    return out
+
+
 @nb.njit(parallel=True, cache=True, fastmath=True)
 def matvec3(indptr, indices, data, x, y):
     """``y = M x`` for a CSR matrix ``M`` and three columns ``x`` (n, 3)."""
@@ -468,22 +487,8 @@ def _rmatvec3(indptr, indices, data, y, n, nchunks):
     for c in nb.prange(nchunks):
         a = acc[c]
         for r in range(bounds[c], bounds[c + 1]):
-            y0 = y[r, 0]
-            y1 = y[r, 1]
-            y2 = y[r, 2]
-            for p in range(indptr[r], indptr[r + 1]):
-                j = indices[p]
-                v = data[p]
-                a[j, 0] += v * y0
-                a[j, 1] += v * y1
-                a[j, 2] += v * y2
-    out = np.zeros((n, 3))
-    for j in nb.prange(n):
-        for c in range(nchunks):
-            out[j, 0] += acc[c, j, 0]
-            out[j, 1] += acc[c, j, 1]
-            out[j, 2] += acc[c, j, 2]
-    return out
+            row_scatter3(indptr, indices, data, r, y[r, 0], y[r, 1], y[r, 2], a)
+    return _reduce_chunks3(acc)
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
@@ -496,19 +501,8 @@ def _normal3(indptr, indices, data, x, n, nchunks):
         a = acc[c]
         for r in range(bounds[c], bounds[c + 1]):
             t0, t1, t2 = row_dot3(indptr, indices, data, x, r)
-            for p in range(indptr[r], indptr[r + 1]):
-                j = indices[p]
-                v = data[p]
-                a[j, 0] += v * t0
-                a[j, 1] += v * t1
-                a[j, 2] += v * t2
-    out = np.zeros((n, 3))
-    for j in nb.prange(n):
-        for c in range(nchunks):
-            out[j, 0] += acc[c, j, 0]
-            out[j, 1] += acc[c, j, 1]
-            out[j, 2] += acc[c, j, 2]
-    return out
+            row_scatter3(indptr, indices, data, r, t0, t1, t2, a)
+    return _reduce_chunks3(acc)
 
 
 @nb.njit(parallel=True, cache=True)
@@ -544,12 +538,7 @@ def _setup3(indptr, indices, data, b, x, n, nchunks, with_x):
             if with_x:
                 ax = acc_x[c]
                 t0, t1, t2 = row_dot3(indptr, indices, data, x, r)
-                for p in range(indptr[r], indptr[r + 1]):
-                    j = indices[p]
-                    v = data[p]
-                    ax[j, 0] += v * t0
-                    ax[j, 1] += v * t1
-                    ax[j, 2] += v * t2
+                row_scatter3(indptr, indices, data, r, t0, t1, t2, ax)
             for p in range(indptr[r], indptr[r + 1]):
                 j = indices[p]
                 v = np.float64(data[p])
