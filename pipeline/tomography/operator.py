@@ -260,17 +260,39 @@ def _restrict_count(indptr, indices, rows, colmap, counts):
         counts[k] = c
 
 
+@nb.njit(cache=True, inline="always")
+def _restrict_row(indptr, indices, data, r, colmap, new_indices, new_data, q):
+    """Copy row ``r`` from position ``q`` on, keeping the columns ``colmap`` maps (>= 0)."""
+    for p in range(indptr[r], indptr[r + 1]):
+        j = colmap[indices[p]]
+        if j >= 0:
+            new_indices[q] = j
+            new_data[q] = data[p]
+            q += 1
+
+
+@nb.njit(cache=True, fastmath=True, inline="always")
+def _row_setup(indptr, indices, data, r, b, x, with_x, s_, ab, ax):
+    """One row's share of ``diag(S^T S)``, ``S^T b`` and (if ``with_x``) ``S^T S x``."""
+    if with_x:
+        t0, t1, t2 = row_dot3(indptr, indices, data, x, r)
+        row_scatter3(indptr, indices, data, r, t0, t1, t2, ax)
+    b0 = b[r, 0]
+    b1 = b[r, 1]
+    b2 = b[r, 2]
+    for p in range(indptr[r], indptr[r + 1]):
+        j = indices[p]
+        v = np.float64(data[p])
+        s_[j] += v * v
+        ab[j, 0] += v * b0
+        ab[j, 1] += v * b1
+        ab[j, 2] += v * b2
+
+
 @nb.njit(parallel=True, cache=True)
 def _restrict_fill(indptr, indices, data, rows, colmap, new_indptr, new_indices, new_data):
     for k in nb.prange(rows.shape[0]):
-        r = rows[k]
-        q = new_indptr[k]
-        for p in range(indptr[r], indptr[r + 1]):
-            j = colmap[indices[p]]
-            if j >= 0:
-                new_indices[q] = j
-                new_data[q] = data[p]
-                q += 1
+        _restrict_row(indptr, indices, data, rows[k], colmap, new_indices, new_data, new_indptr[k])
 
 
 def restrict_rows_cols(S: sp.csr_matrix, rows: np.ndarray, colmap: np.ndarray):
@@ -327,31 +349,10 @@ def _restrict_setup3(indptr, indices, data, rows, colmap, new_indptr, new_indice
     for c in nb.prange(nchunks):
         s_ = acc_s[c]
         ab = acc_b[c]
+        ax = acc_x[c] if with_x else ab
         for k in range(bounds[c], bounds[c + 1]):
-            r = rows[k]
-            q = new_indptr[k]
-            for p in range(indptr[r], indptr[r + 1]):
-                j = colmap[indices[p]]
-                if j >= 0:
-                    new_indices[q] = j
-                    new_data[q] = data[p]
-                    q += 1
-            p0 = new_indptr[k]
-            p1 = new_indptr[k + 1]
-            b0 = b[k, 0]
-            b1 = b[k, 1]
-            b2 = b[k, 2]
-            if with_x:
-                ax = acc_x[c]
-                t0, t1, t2 = row_dot3(new_indptr, new_indices, new_data, x, k)
-                row_scatter3(new_indptr, new_indices, new_data, k, t0, t1, t2, ax)
-            for p in range(p0, p1):
-                j = new_indices[p]
-                v = np.float64(new_data[p])
-                s_[j] += v * v
-                ab[j, 0] += v * b0
-                ab[j, 1] += v * b1
-                ab[j, 2] += v * b2
+            _restrict_row(indptr, indices, data, rows[k], colmap, new_indices, new_data, new_indptr[k])
+            _row_setup(new_indptr, new_indices, new_data, k, b, x, with_x, s_, ab, ax)
     return _sum_chunks(acc_s, acc_b, acc_x, n, nchunks, with_x)
 
 
@@ -531,21 +532,9 @@ def _setup3(indptr, indices, data, b, x, n, nchunks, with_x):
     for c in nb.prange(nchunks):
         s_ = acc_s[c]
         ab = acc_b[c]
+        ax = acc_x[c] if with_x else ab
         for r in range(bounds[c], bounds[c + 1]):
-            b0 = b[r, 0]
-            b1 = b[r, 1]
-            b2 = b[r, 2]
-            if with_x:
-                ax = acc_x[c]
-                t0, t1, t2 = row_dot3(indptr, indices, data, x, r)
-                row_scatter3(indptr, indices, data, r, t0, t1, t2, ax)
-            for p in range(indptr[r], indptr[r + 1]):
-                j = indices[p]
-                v = np.float64(data[p])
-                s_[j] += v * v
-                ab[j, 0] += v * b0
-                ab[j, 1] += v * b1
-                ab[j, 2] += v * b2
+            _row_setup(indptr, indices, data, r, b, x, with_x, s_, ab, ax)
     return _sum_chunks(acc_s, acc_b, acc_x, n, nchunks, with_x)
 
 
