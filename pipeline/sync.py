@@ -329,7 +329,9 @@ def frames_needed(target_time: float, *, offset: float, frame_rate: float, line_
     """
     phi = _fractional_frame(target_time, [0.0, height - 1.0], offset=offset,
                             frame_rate=frame_rate, line_time=line_time)
-    lo = int(np.floor(phi.min() + 1e-9))
+    # rounding only ever widens the range: a row exposed 1e-11 s before frame f still
+    # needs frame f - 1 (hypothesis found phi = 29.9999999995 dropping it)
+    lo = int(np.floor(phi.min()))
     hi = int(np.floor(phi.max() + 1e-9)) + 1
     excluded = set(int(e) for e in excluded_frames)
     if frame_range is not None:
