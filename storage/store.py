@@ -30,6 +30,7 @@ import numpy as np
 import zarr
 from zarr.codecs import ZstdCodec
 
+from schlieren.storage.chunkio import ChunkLayout, chunk_layout
 from schlieren.storage.errors import StoreError
 from schlieren.storage.layout import STORE_FORMAT, ArraySpec, assert_aligned, normalize_region
 
@@ -127,6 +128,7 @@ class ResultStore:
         self._store_arg = store_arg
         self._mode = mode
         self._arrays: dict[str, zarr.Array] = {}
+        self._layouts: dict[str, ChunkLayout | None] = {}
 
     # -- construction ---------------------------------------------------------------
     @classmethod
@@ -327,6 +329,16 @@ class ResultStore:
             self._arrays[name] = arr
         return arr
 
+    def _chunk_files(self, name: str) -> ChunkLayout | None:
+        """Direct chunk-file access to ``name`` (storage/chunkio.py), or None to use zarr."""
+        try:
+            return self._layouts[name]
+        except KeyError:
+            pass
+        root = os.fspath(self._store_arg) if isinstance(self._store_arg, (str, os.PathLike)) else None
+        lay = self._layouts[name] = chunk_layout(self.array(name), root, name)
+        return lay
+
     def __contains__(self, name: str) -> bool:
         try:
             self.array(name)
@@ -376,15 +388,33 @@ class ResultStore:
         elif a.shape != full:
             raise ValueError(f"{name}: data of shape {a.shape} does not fit the region of shape {full} "
                              f"(or {squeezed} without the indexed dimensions)")
+        lay = self._chunk_files(name)
+        coords = lay.chunk_of(region) if lay is not None else None
+        if coords is not None:  # one whole chunk: write its file directly (same bytes as zarr)
+            lay.write(coords, a.astype(arr.dtype, copy=False))
+            return
         arr[region] = a.astype(arr.dtype, copy=False)
 
     def read(self, name: str, index=()) -> np.ndarray:
         """Read ``array[index]`` (numpy indexing semantics: int entries drop their axis)."""
         arr = self.array(name)
-        if index == () or index is Ellipsis:
-            return np.asarray(arr[...])
+        if index is Ellipsis:
+            index = ()
         if not isinstance(index, tuple):
             index = (index,)
+        lay = self._chunk_files(name)
+        if lay is not None and all(isinstance(i, (int, np.integer)) and not isinstance(i, bool)
+                                   for i in index):
+            try:
+                region = normalize_region(index, arr.shape)
+            except IndexError:
+                region = None
+            coords = lay.chunk_of(region) if region is not None else None
+            if coords is not None:  # exactly one whole chunk: read its file directly
+                a = lay.read(coords, tuple(s.stop - s.start for s in region))
+                return a.reshape(a.shape[len(index):])
+        if index == ():
+            return np.asarray(arr[...])
         return np.asarray(arr[index])
 
     # -- completion markers -----------------------------------------------------------
@@ -409,37 +439,32 @@ class ResultStore:
             raise StoreError("the store is open read-only", file=self._location, field=stage)
         arr = self._marker(stage)
         region = normalize_region(index, arr.shape)
-        arr[region] = np.ones(tuple(s.stop - s.start for s in region), dtype=np.uint8)
+        ones = np.ones(tuple(s.stop - s.start for s in region), dtype=np.uint8)
+        name = f"{MARKER_GROUP}/{stage}"
+        lay = self._chunk_files(name)
+        coords = lay.chunk_of(region) if lay is not None else None
+        if coords is not None:
+            lay.write(coords, ones)
+        else:
+            arr[region] = ones
 
     def is_done(self, stage: str, index) -> bool:
         """True if every position of ``index`` in ``stage``'s marker is set.
 
         Every task asks this before it runs, so in a folder store a single position is
-        first looked up as a file: a marker chunk that was never written holds the fill
-        value 0 (not done), and its absence is certain without a zarr read (about 1 ms
-        through zarr's I/O thread, several in a busy worker). An existing chunk is read.
+        read straight from its marker chunk file (storage/chunkio.py): a chunk never
+        written holds the fill value 0 (not done). Through zarr's I/O thread a read costs
+        about 1 ms, several in a busy worker.
         """
         arr = self._marker(stage)
         region = normalize_region(index, arr.shape)
-        path = self._single_chunk_path(f"{MARKER_GROUP}/{stage}", arr, region)
-        if path is not None and not os.path.exists(path):
-            return False
+        lay = self._chunk_files(f"{MARKER_GROUP}/{stage}")
+        coords = lay.chunk_of(region) if lay is not None else None
+        if coords is not None:
+            if not os.path.exists(lay.path(coords)):
+                return False
+            return bool(np.all(lay.read(coords, tuple(s.stop - s.start for s in region)) == 1))
         return bool(np.all(np.asarray(arr[region]) == 1))
-
-    def _single_chunk_path(self, name: str, arr: zarr.Array, region) -> str | None:
-        """File of the one chunk ``region`` covers, for a folder store; else None."""
-        if not isinstance(self._store_arg, (str, os.PathLike)):
-            return None
-        chunks = arr.metadata.chunks if hasattr(arr.metadata, "chunks") else None
-        if chunks is None or len(chunks) != len(region):
-            return None
-        coords = []
-        for sl, c in zip(region, chunks):
-            if sl.start % c or sl.stop - sl.start != c:
-                return None
-            coords.append(sl.start // c)
-        key = arr.metadata.encode_chunk_key(tuple(coords))
-        return os.path.join(os.fspath(self._store_arg), *name.split("/"), *key.split("/"))
 
     def done(self, stage: str) -> np.ndarray:
         """The whole marker of ``stage`` as a bool array."""
