@@ -65,3 +65,34 @@ def test_completed_tasks_are_skipped_and_their_edges_dropped():
     keys = {t.key for t in plan.tasks}
     for t in plan.tasks:
         assert set(t.deps) <= keys
+
+
+def test_critical_path_priorities_are_upward_ranks():
+    """rank = own cost + the highest rank among the tasks waiting for it (checked by a
+    brute-force longest path), so chained solves start early and leaves rank lowest."""
+    from schlieren.workers.plan import critical_path_priorities
+
+    ext = Extents(camera=2, frame=6, raw_frame=8, raw_offset=1, warm_start_block=3)
+    plan = make_plan(ext, "tok")
+    costs = {s.name: s.cost for s in STAGES}
+    rank = critical_path_priorities(plan)
+    stage_of = {t.key: t.stage for t in plan.tasks}
+    succ = {t.key: [] for t in plan.tasks}
+    for t in plan.tasks:
+        for d in t.deps:
+            succ[d].append(t.key)
+
+    def longest(key):  # brute force over every path to the end
+        return costs[stage_of[key]] + max((longest(s) for s in succ[key]), default=0.0)
+
+    for t in plan.tasks:
+        assert abs(rank[t.key] - longest(t.key)) < 1e-9, t.key
+    tomo = {t.index[0]: rank[t.key] for t in plan.by_stage()["tomography"]}
+    # within a warm-start block the chain's head outranks its tail; heads of blocks tie
+    assert tomo[0] > tomo[1] > tomo[2] and tomo[3] > tomo[4] > tomo[5]
+    assert abs(tomo[0] - tomo[3]) < 1e-9
+    hull = {t.index[0]: rank[t.key] for t in plan.by_stage()["hull"]}
+    assert hull[0] > hull[2] and hull[3] > hull[5]
+    # nothing waits for the frame statistics: they only fill idle slots
+    assert max(rank[t.key] for t in plan.by_stage()["frames"]) == costs["frames"]
+    assert rank[plan.by_stage()["geometry"][0].key] > max(hull.values())
