@@ -125,6 +125,9 @@ class Stage:
         Frames either side read by ``window`` dependencies.
     resources : dict
         Worker resources each task needs (e.g. ``{"TOMO": 1}`` for memory-heavy solves).
+    batch : bool
+        A cheap per-camera-frame stage: a task may compute several consecutive frames
+        of one camera (``frames_per_task`` of :func:`~schlieren.workers.plan.make_plan`).
     cost : float
         Rough seconds per task, used only to order the work (``workers/plan.py``,
         :func:`~schlieren.workers.plan.critical_path_priorities`): the serial in-task
@@ -141,27 +144,28 @@ class Stage:
     after: tuple[tuple[str, str], ...] = ()
     frame_halo: int = 0
     resources: dict = field(default_factory=dict)
+    batch: bool = False
     cost: float = 0.01
 
 
 STAGES: tuple[Stage, ...] = (
     Stage("frames", frame_statistics, None, ("images",), ("frame_stats",), ("camera", "frame"),
-          cost=0.005),
+          batch=True, cost=0.005),
     Stage("sync", _sync.offset_from_flash, None, ("images",), ("time_offset",), ("camera",),
           cost=0.011),
     Stage("clock", _sync.output_times, None, ("time_offset",), ("time",), (),
           after=(("sync", "all"),), cost=0.001),
     Stage("deflection", _flow.deflection_stage, "flow", ("images",), ("flow_raw",),
-          ("camera", "raw_frame"), cost=0.014),
+          ("camera", "raw_frame"), batch=True, cost=0.014),
     Stage("resample", _sync.resample_flow, "resample", ("flow_raw", "time_offset", "time"),
           ("flow",), ("camera", "frame"), after=(("clock", "all"), ("deflection", "window")),
-          frame_halo=2, cost=0.02),
+          frame_halo=2, batch=True, cost=0.02),
     Stage("potential", _masks.flow_potential, "masks", ("flow",), ("potential",),
-          ("camera", "frame"), after=(("resample", "same"),), cost=0.004),
+          ("camera", "frame"), after=(("resample", "same"),), batch=True, cost=0.004),
     Stage("threshold", _masks.threshold_from_summaries, "masks", ("potential",),
           ("mask_threshold",), (), after=(("potential", "all"),), cost=0.37),
     Stage("mask", _masks.make_mask, "masks", ("potential", "mask_threshold"), ("mask",),
-          ("camera", "frame"), after=(("threshold", "all"),), frame_halo=1, cost=0.003),
+          ("camera", "frame"), after=(("threshold", "all"),), frame_halo=1, batch=True, cost=0.003),
     Stage("geometry", _tomo.build_geometry, "tomography", (), ("geometry",), (), cost=1.35),
     Stage("hull", _hull.visual_hull, "hull", ("mask",), ("hull",), ("frame",),
           after=(("mask", "same"),), cost=0.36),

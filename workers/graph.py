@@ -30,7 +30,7 @@ from dask.task_spec import TaskRef
 from distributed import Client
 
 from schlieren.workers.plan import Plan, critical_path_priorities
-from schlieren.workers.tasks import run_task
+from schlieren.workers.tasks import run_tasks
 
 log = logging.getLogger(__name__)
 
@@ -51,15 +51,15 @@ def worker_resources(client: Client) -> set[str]:
 def plan_graphs(store_path: str, plan: Plan, have: set[str]) -> list[tuple[dict | None, dict]]:
     """The plan as Dask graphs, one per distinct resource request: ``[(resources, graph)]``.
 
-    Each node calls :func:`~schlieren.workers.tasks.run_task` with the store path, stage
-    and index, and takes the receipts of the tasks it waits for as extra arguments, so
+    Each node calls :func:`~schlieren.workers.tasks.run_tasks` with the store path, stage
+    and the indices it covers, and takes the receipts of the tasks it waits for as extra arguments, so
     the scheduler orders the work. Resources nobody advertises are dropped.
     """
     groups: dict[tuple, dict] = {}
     for task in plan.tasks:
         res = tuple((k, v) for k, v in task.resources if k in have)
         groups.setdefault(res, {})[task.key] = GraphTask(
-            task.key, run_task, str(store_path), task.stage, tuple(task.index),
+            task.key, run_tasks, str(store_path), task.stage, tuple(task.indices),
             *(TaskRef(d) for d in task.deps), run_token=plan.token)
     # a group's dependencies must already be known to the scheduler: submit in plan order
     return [(dict(res) or None, dsk) for res, dsk in groups.items()]
@@ -116,10 +116,11 @@ def run_graph(client: Client, store_path: str, plan: Plan, *,
         finished = [f for f, st in states if st == "finished"]
         failed = [f for f, st in states if st in _TERMINAL and st != "finished"]
         # a result lost with its worker meanwhile is recomputed by the scheduler: gather waits
-        for r in client.gather(finished) if finished else ():
-            receipts.append(r)
-            if on_receipt:
-                on_receipt(r)
+        for batch in client.gather(finished) if finished else ():
+            for r in batch:
+                receipts.append(r)
+                if on_receipt:
+                    on_receipt(r)
         for fut in failed:
             exc = fut.exception() if fut.status == "error" else None
             msg = " ".join(f"{type(exc).__name__}: {exc}".split()) if exc is not None else f"task {fut.status}"

@@ -41,7 +41,7 @@ class StageProgress:
     def plan(self, plan) -> None:
         counts = {s.name: 0 for s in STAGES}
         for t in plan.tasks:
-            counts[t.stage] += 1
+            counts[t.stage] += len(t.indices)
         if self._progress is None:
             return
         for name, n in counts.items():

@@ -35,6 +35,10 @@ log = logging.getLogger(__name__)
 __all__ = ["run_session", "RunSummary", "prepare_store"]
 
 RAW_MARGIN = 2  # raw frames either side of the output range used by rolling-shutter resampling
+#: Default frames of one camera per task in the cheap per-camera-frame stages
+#: (workers/plan.py make_plan): on benchmarks/scaling.py's session (8 cameras x 16 frames)
+#: it takes the plan from 730 tasks to 150.
+FRAMES_PER_TASK = 8
 
 
 @dataclass
@@ -106,7 +110,7 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
                 on_receipt: Callable[[dict], None] | None = None,
                 on_failure: Callable[[str, str], None] | None = None,
                 on_plan: Callable[[Plan], None] | None = None,
-                progress: bool = False) -> RunSummary:
+                progress: bool = False, frames_per_task: int | None = None) -> RunSummary:
     """Validate ``session_path``, then compute every missing chunk of ``out_path``.
 
     Parameters
@@ -123,11 +127,16 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
     config : RunConfig, optional
     report : str, optional
         Path of a Dask performance report (HTML), with a client.
+    frames_per_task : int, optional
+        Consecutive frames of one camera per task in the cheap 2D stages (default
+        :data:`FRAMES_PER_TASK`; 1 = one task per camera and frame). Results, markers
+        and resume do not depend on it.
     """
     session = session_path if isinstance(session_path, Session) else load_session(session_path, frames=frames)
     cfg = bind_medium(config or RunConfig(), session.medium.n_ambient)
     store, ext, token = prepare_store(session, out_path, cfg)
-    plan = make_plan(ext, token, done=store.is_done)
+    plan = make_plan(ext, token, done=store.is_done,
+                     frames_per_task=FRAMES_PER_TASK if frames_per_task is None else int(frames_per_task))
     if on_plan:
         on_plan(plan)
     summary = RunSummary(store=str(out_path), executor="serial" if (serial or client is None) else "dask",

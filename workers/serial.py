@@ -12,7 +12,7 @@ import logging
 from typing import Callable
 
 from schlieren.workers.plan import Plan
-from schlieren.workers.tasks import TaskFailed, run_task
+from schlieren.workers.tasks import TaskFailed, run_tasks
 
 log = logging.getLogger(__name__)
 
@@ -65,12 +65,13 @@ def _loop(store_path, plan, receipts, failures, on_receipt, on_failure) -> None:
                 on_failure(task.key, failures[task.key])
             continue
         try:
-            r = run_task(store_path, task.stage, task.index, run_token=plan.token)
+            got = run_tasks(store_path, task.stage, task.indices, run_token=plan.token)
         except TaskFailed as exc:
             failures[task.key] = str(exc)
             if on_failure:
                 on_failure(task.key, str(exc))
             continue
-        receipts.append(r)
-        if on_receipt:
-            on_receipt(r)
+        for r in got:
+            receipts.append(r)
+            if on_receipt:
+                on_receipt(r)

@@ -34,7 +34,7 @@ from schlieren.workers.monitoring import log_receipt
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run_task", "TaskFailed", "RunContext", "context"]
+__all__ = ["run_task", "run_tasks", "TaskFailed", "RunContext", "context"]
 
 
 class TaskFailed(Exception):
@@ -379,3 +379,23 @@ def run_task(store_path: str, stage_name: str, index: tuple[int, ...], *_deps, r
     receipt["seconds"] = time.perf_counter() - t0
     log_receipt(receipt)
     return receipt
+
+
+def run_tasks(store_path: str, stage_name: str, indices, *_deps, run_token: str = "") -> list[dict]:
+    """Run one stage at each of ``indices`` in order (a batched task) and return the receipts.
+
+    Every index is attempted even after one fails, so everything computable is written
+    and marked; then the first failure is raised (its message names the camera and
+    frame, with how many more failed in this task).
+    """
+    receipts: list[dict] = []
+    failed: list[str] = []
+    for index in indices:
+        try:
+            receipts.append(run_task(store_path, stage_name, index, run_token=run_token))
+        except TaskFailed as exc:
+            failed.append(str(exc))
+    if failed:
+        more = f" (and {len(failed) - 1} more frame(s) of this task)" if len(failed) > 1 else ""
+        raise TaskFailed(failed[0] + more)
+    return receipts

@@ -55,10 +55,16 @@ def test_dask_executor_gives_the_identical_store(serial_store, tiny_session, tmp
 
     out = tmp_path / "dask.zarr"
     with open_client(ClusterOptions(workers=2)) as (client, _info):
-        summary = run_session(tiny_session.session, out, client=client)
+        # another grouping of frames into tasks than the serial run's default (blocks of
+        # 3 leave partial blocks): the store must not depend on it
+        summary = run_session(tiny_session.session, out, client=client, frames_per_task=3)
     assert summary.ok, summary.failures
     assert summary.executor == "dask"
     assert_same_store(serial_store, out)
+    # one receipt per stage and index, whatever the grouping
+    keys = [(r["stage"], tuple(r["index"])) for r in summary.receipts]
+    assert len(keys) == len(set(keys))
+    assert sum(1 for s, _ in keys if s == "mask") == zarr.open_array(out / "status" / "mask").size
 
 
 def test_a_new_run_at_the_same_path_gets_fresh_worker_caches(serial_store, tiny_session, tmp_path):
@@ -134,4 +140,7 @@ def test_a_corrupt_frame_fails_only_its_tasks(tiny_session, tmp_path):
     g = zarr.open_group(str(out), mode="r")
     defl = np.asarray(g["status/deflection"][...])
     assert defl[0].all() and defl[2].all()  # other cameras complete and kept
+    # in cam01 only the bad frame is missing: the rest of its task's frames were computed
+    raw_bad = first + 1 - int(g.attrs["run"]["raw_first"])
+    assert not defl[1, raw_bad] and defl[1].sum() == defl.shape[1] - 1
     assert not np.asarray(g["status/integrate"][...]).any()

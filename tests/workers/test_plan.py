@@ -96,3 +96,45 @@ def test_critical_path_priorities_are_upward_ranks():
     # nothing waits for the frame statistics: they only fill idle slots
     assert max(rank[t.key] for t in plan.by_stage()["frames"]) == costs["frames"]
     assert rank[plan.by_stage()["geometry"][0].key] > max(hull.values())
+
+
+@settings(max_examples=40, deadline=None)
+@given(extents, st.integers(1, 5))
+def test_batched_tasks_cover_every_index_once_and_keep_every_dependency(ext, per_task):
+    """Blocks of frames of one camera: each (stage, index) is in exactly one task, every
+    per-index dependency becomes an edge to the task holding it (or is inside the task),
+    edges point backwards, and only the batched stages are grouped."""
+    plan = make_plan(ext, "tok", frames_per_task=per_task)
+    unit = make_plan(ext, "tok")
+    owner = {}
+    for t in plan.tasks:
+        for i in t.indices:
+            assert (t.stage, i) not in owner
+            owner[(t.stage, i)] = t.key
+        st_ = next(s for s in STAGES if s.name == t.stage)
+        if st_.batch:
+            assert len(t.indices) <= per_task
+            assert len({i[0] for i in t.indices}) == 1  # one camera
+            assert len({i[1] // per_task for i in t.indices}) == 1  # one fixed block
+        else:
+            assert t.indices == (t.index,)
+    assert set(owner) == {(t.stage, t.index) for t in unit.tasks}
+    unit_deps = {(t.stage, t.index): t.deps for t in unit.tasks}
+    key_of_unit = {t.key: (t.stage, t.index) for t in unit.tasks}
+    seen = set()
+    for t in plan.tasks:
+        need = {owner[key_of_unit[d]] for i in t.indices for d in unit_deps[(t.stage, i)]} - {t.key}
+        assert set(t.deps) == need
+        assert set(t.deps) <= seen
+        seen.add(t.key)
+
+
+def test_a_resumed_plan_batches_only_the_missing_frames():
+    ext = Extents(camera=2, frame=7, raw_frame=9, raw_offset=1, warm_start_block=2)
+    done = {("mask", (0, k)) for k in (0, 1, 2, 5)} | {("mask", (1, k)) for k in range(4)}
+    plan = make_plan(ext, "tok", done=lambda s, i: (s, i) in done, frames_per_task=4)
+    masks = {t.key: t.indices for t in plan.by_stage()["mask"]}
+    assert masks == {task_key("mask", "tok", (0, 0)): ((0, 3),),
+                     task_key("mask", "tok", (0, 4)): ((0, 4), (0, 6)),
+                     task_key("mask", "tok", (1, 4)): ((1, 4), (1, 5), (1, 6))}
+    assert plan.skipped == len(done)

@@ -33,3 +33,14 @@ def image_size(minimum: int = 16):
         return w, h
 
     return parse
+
+
+def positive_int(text: str) -> int:
+    """An argparse ``type`` for an integer of at least 1."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, not {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, not {n}")
+    return n

@@ -31,6 +31,11 @@ def add_common_run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--params", default=None, metavar="FILE",
                    help="YAML file of run parameters (`schlieren params` prints them all with defaults)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    from schlieren.workers.commands._args import positive_int
+
+    p.add_argument("--frames-per-task", type=positive_int, default=None, metavar="N",
+                   help="frames of one camera per task in the cheap 2D stages (default 8; "
+                        "results and resume do not depend on it)")
 
 
 def add_parser(sub) -> None:
@@ -94,7 +99,7 @@ def execute(session: str, out: str, frames, args, *, console=None):
             summary = run_session(loaded, out, client=client, frames=frames,
                                   serial=client is None, config=cfg, report=args.report,
                                   on_receipt=prog.receipt, on_failure=prog.failure,
-                                  on_plan=prog.plan)
+                                  on_plan=prog.plan, frames_per_task=args.frames_per_task)
         summary.dashboard = link
     return summary
 

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from schlieren.workers.cli import CLIError
+from schlieren.workers.commands._args import positive_int
 
 KINDS = ("slurm", "pbs", "kubernetes")
 
@@ -39,6 +40,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--params", default=None, metavar="FILE", help="YAML file of run parameters")
     p.add_argument("--report", default=None, metavar="FILE", help="write a Dask performance report (HTML)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--frames-per-task", type=positive_int, default=None, metavar="N",
+                   help="frames of one camera per task in the cheap 2D stages (default 8)")
     p.add_argument("--dry-run", action="store_true", help="print the job script / manifest and exit")
     p.set_defaults(func=handler)
 
@@ -132,6 +135,7 @@ def handler(args: argparse.Namespace) -> int:
                     on_receipt=prog.receipt,
                     on_failure=prog.failure,
                     on_plan=prog.plan,
+                    frames_per_task=args.frames_per_task,
                 )
             summary.dashboard = info.dashboard_link
     print_summary(summary, stream=sys.stderr)  # the stream of now (tests swap sys.stderr)
