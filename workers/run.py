@@ -35,10 +35,19 @@ log = logging.getLogger(__name__)
 __all__ = ["run_session", "RunSummary", "prepare_store"]
 
 RAW_MARGIN = 2  # raw frames either side of the output range used by rolling-shutter resampling
-#: Default frames of one camera per task in the cheap per-camera-frame stages
-#: (workers/plan.py make_plan): on benchmarks/scaling.py's session (8 cameras x 16 frames)
-#: it takes the plan from 730 tasks to 150.
-FRAMES_PER_TASK = 8
+#: Image pixels per task the cheap per-camera-frame stages aim for by default (their
+#: cost grows with the image; deflection takes ~12 ms per 480x360 frame here): 8 frames
+#: per task at 480x360, 2 at 960x720, 1 from 1440x1080 up. On benchmarks/scaling.py's
+#: 480x360 session (8 cameras x 16 frames) it takes the plan from 730 tasks to 150.
+PIXELS_PER_TASK = 1.4e6
+MAX_FRAMES_PER_TASK = 8
+
+
+def default_frames_per_task(image_size: tuple[int, int]) -> int:
+    """Frames of one camera per task for images of ``(width, height)``: about
+    :data:`PIXELS_PER_TASK` pixels, between 1 and :data:`MAX_FRAMES_PER_TASK`."""
+    w, h = image_size
+    return int(min(MAX_FRAMES_PER_TASK, max(1, round(PIXELS_PER_TASK / max(1, w * h)))))
 
 
 @dataclass
@@ -129,14 +138,15 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
         Path of a Dask performance report (HTML), with a client.
     frames_per_task : int, optional
         Consecutive frames of one camera per task in the cheap 2D stages (default
-        :data:`FRAMES_PER_TASK`; 1 = one task per camera and frame). Results, markers
-        and resume do not depend on it.
+        :func:`default_frames_per_task` of the image size; 1 = one task per camera and
+        frame). Results, markers and resume do not depend on it.
     """
     session = session_path if isinstance(session_path, Session) else load_session(session_path, frames=frames)
     cfg = bind_medium(config or RunConfig(), session.medium.n_ambient)
     store, ext, token = prepare_store(session, out_path, cfg)
-    plan = make_plan(ext, token, done=store.is_done,
-                     frames_per_task=FRAMES_PER_TASK if frames_per_task is None else int(frames_per_task))
+    if frames_per_task is None:
+        frames_per_task = default_frames_per_task(session.cameras[0].image_size)
+    plan = make_plan(ext, token, done=store.is_done, frames_per_task=int(frames_per_task))
     if on_plan:
         on_plan(plan)
     summary = RunSummary(store=str(out_path), executor="serial" if (serial or client is None) else "dask",

@@ -138,3 +138,13 @@ def test_a_resumed_plan_batches_only_the_missing_frames():
                      task_key("mask", "tok", (0, 4)): ((0, 4), (0, 6)),
                      task_key("mask", "tok", (1, 4)): ((1, 4), (1, 5), (1, 6))}
     assert plan.skipped == len(done)
+
+
+def test_default_frames_per_task_follows_the_image_size():
+    from schlieren.workers.run import MAX_FRAMES_PER_TASK, default_frames_per_task
+
+    assert default_frames_per_task((480, 360)) == 8
+    assert default_frames_per_task((960, 720)) == 2
+    assert default_frames_per_task((1440, 1080)) == 1
+    assert default_frames_per_task((4096, 3072)) == 1
+    assert default_frames_per_task((32, 24)) == MAX_FRAMES_PER_TASK

@@ -41,7 +41,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--report", default=None, metavar="FILE", help="write a Dask performance report (HTML)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--frames-per-task", type=positive_int, default=None, metavar="N",
-                   help="frames of one camera per task in the cheap 2D stages (default 8)")
+                   help="frames of one camera per task in the cheap 2D stages "
+                        "(default: about 1.4 megapixels per task)")
     p.add_argument("--dry-run", action="store_true", help="print the job script / manifest and exit")
     p.set_defaults(func=handler)
 
