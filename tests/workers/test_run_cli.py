@@ -63,3 +63,18 @@ def test_an_existing_store_of_another_run_is_never_overwritten(tiny_session, ser
 def test_bad_frame_range_argument(tiny_session, tmp_path):
     p = _cli("run", tiny_session.session, "--out", tmp_path / "o.zarr", "--frames", "5:2")
     assert p.returncode == 2 and "--frames" in p.stderr and "Traceback" not in p.stderr
+
+
+def test_demo_runs_every_stage_and_writes_its_report(tmp_path):
+    """`schlieren demo` (the README's main command) end to end on a tiny rig."""
+    out = tmp_path / "demo"
+    proc = _cli("demo", "--out", str(out), "--workers", "1", "--cameras", "4", "--frames", "3",
+                "--size", "96x72", "--no-progress", timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr
+    stores = [p for p in out.iterdir() if p.suffix == ".zarr"]
+    assert stores, list(out.iterdir())
+    g = zarr.open_group(str(stores[0]), mode="r")
+    assert bool(g["status/integrate"][...].all())
+    assert "demo: PSNR" in proc.stdout
+    assert (out / "report").is_dir() and any((out / "report").iterdir())
