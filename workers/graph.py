@@ -61,7 +61,14 @@ def plan_graphs(store_path: str, plan: Plan, have: set[str]) -> list[tuple[dict 
         groups.setdefault(res, {})[task.key] = GraphTask(
             task.key, run_tasks, str(store_path), task.stage, tuple(task.indices),
             *(TaskRef(d) for d in task.deps), run_token=plan.token)
-    # a group's dependencies must already be known to the scheduler: submit in plan order
+    # each group is one update-graph: its dependencies must be in it or in an earlier group
+    sent: set[str] = set()
+    for dsk in groups.values():
+        for key, node in dsk.items():
+            late = [d for d in node.dependencies if d not in sent and d not in dsk]
+            if late:  # pragma: no cover - the stage table orders resource stages last
+                raise ValueError(f"task {key} depends on {late[0]}, submitted in a later graph")
+        sent.update(dsk)
     return [(dict(res) or None, dsk) for res, dsk in groups.items()]
 
 
