@@ -318,6 +318,16 @@ def restrict_rows_cols(S: sp.csr_matrix, rows: np.ndarray, colmap: np.ndarray):
     return new_indptr, new_indices, new_data, keep
 
 
+@nb.njit(inline="always", cache=True)
+def _setup_accumulators(m, n, nchunks, with_x):
+    """Per-block partial sums of the setup products, and the row bounds of ``nchunks`` blocks."""
+    acc_s = np.zeros((nchunks, n))
+    acc_b = np.zeros((nchunks, n, 3))
+    acc_x = np.zeros((nchunks if with_x else 0, n, 3))
+    bounds = np.linspace(0, m, nchunks + 1).astype(np.int64)
+    return acc_s, acc_b, acc_x, bounds
+
+
 @nb.njit(parallel=True, cache=True, fastmath=True)
 def _sum_chunks(acc_s, acc_b, acc_x, n, nchunks, with_x):
     """Sum the per-block partial products in block order (fixed: thread-count independent)."""
@@ -341,11 +351,7 @@ def _sum_chunks(acc_s, acc_b, acc_x, n, nchunks, with_x):
 def _restrict_setup3(indptr, indices, data, rows, colmap, new_indptr, new_indices, new_data, b, x, n,
                      nchunks, with_x):
     """:func:`_restrict_fill` fused with :func:`_setup3` (each restricted row is used while hot)."""
-    m = rows.shape[0]
-    acc_s = np.zeros((nchunks, n))
-    acc_b = np.zeros((nchunks, n, 3))
-    acc_x = np.zeros((nchunks if with_x else 0, n, 3))
-    bounds = np.linspace(0, m, nchunks + 1).astype(np.int64)
+    acc_s, acc_b, acc_x, bounds = _setup_accumulators(rows.shape[0], n, nchunks, with_x)
     for c in nb.prange(nchunks):
         s_ = acc_s[c]
         ab = acc_b[c]
@@ -524,11 +530,7 @@ def _colsumsq(indices, data, n, nchunks):
 @nb.njit(parallel=True, cache=True, fastmath=True)
 def _setup3(indptr, indices, data, b, x, n, nchunks, with_x):
     """``diag(S^T S)``, ``S^T b`` and (if ``with_x``) ``S^T S x`` in one pass over ``S``."""
-    m = indptr.shape[0] - 1
-    acc_s = np.zeros((nchunks, n))
-    acc_b = np.zeros((nchunks, n, 3))
-    acc_x = np.zeros((nchunks if with_x else 0, n, 3))
-    bounds = np.linspace(0, m, nchunks + 1).astype(np.int64)
+    acc_s, acc_b, acc_x, bounds = _setup_accumulators(indptr.shape[0] - 1, n, nchunks, with_x)
     for c in nb.prange(nchunks):
         s_ = acc_s[c]
         ab = acc_b[c]
