@@ -49,6 +49,7 @@ def main(argv=None) -> int:
         synthesize(session, cameras=args.cameras, frames=args.frames, size=(w, h), phantom="plume", seed=1)
 
     busy = {}
+    cpu = {}
     runs: dict[str, list[float]] = {}
 
     def timed(label, client=None):
@@ -65,6 +66,7 @@ def main(argv=None) -> int:
             if best is None or dt < best:
                 best = dt
                 busy[label] = dict(s.stage_seconds)
+                cpu[label] = dict(s.stage_cpu_seconds)
             print(f"{label} run {i}: {dt:.1f} s", file=sys.stderr)
         return best
 
@@ -84,6 +86,7 @@ def main(argv=None) -> int:
                     "load_before": os.getloadavg()},
         "repeats": args.repeats,
         "task_seconds_by_stage": busy,
+        "task_cpu_seconds_by_stage": cpu,
         "all_runs_seconds": runs,
     }
     RESULTS.mkdir(parents=True, exist_ok=True)
@@ -101,6 +104,12 @@ def main(argv=None) -> int:
     for stage in busy["serial"]:
         md.append(f"| {stage} | " + " | ".join(f"{busy[k].get(stage, 0.0):.2f}" for k in busy) + " |")
     md.append("| total | " + " | ".join(f"{sum(b.values()):.1f}" for b in busy.values()) + " |")
+    md += ["", "CPU of the task threads per stage (seconds, same runs; below the time inside the",
+           "tasks when other processes or threads took the core):", "",
+           "| stage | " + " | ".join(cpu) + " |", "| --- |" + " ---: |" * len(cpu)]
+    for stage in cpu["serial"]:
+        md.append(f"| {stage} | " + " | ".join(f"{cpu[k].get(stage, 0.0):.2f}" for k in cpu) + " |")
+    md.append("| total | " + " | ".join(f"{sum(c.values()):.1f}" for c in cpu.values()) + " |")
     md.append("")
     (RESULTS / f"scaling{args.suffix}.md").write_text("\n".join(md))
     print("\n".join(md))

@@ -33,6 +33,7 @@ CONTEXT_FIELDS: tuple[str, ...] = (
     "camera",
     "frame",
     "seconds",
+    "cpu_seconds",
     "iterations",
     "residual",
     "status",

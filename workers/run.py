@@ -59,6 +59,7 @@ class RunSummary:
     failures: dict[str, str] = field(default_factory=dict)
     seconds: float = 0.0
     stage_seconds: dict[str, float] = field(default_factory=dict)
+    stage_cpu_seconds: dict[str, float] = field(default_factory=dict)
     receipts: list[dict] = field(default_factory=list)
     dashboard: str | None = None
 
@@ -155,6 +156,7 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
     stage_first: dict[str, float] = {}
     stage_last: dict[str, float] = {}
     stage_busy: dict[str, float] = {}
+    stage_cpu: dict[str, float] = {}
 
     def _receipt(r: dict) -> None:
         now = time.time()
@@ -162,6 +164,7 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
         stage_first.setdefault(s, now - r.get("seconds", 0.0))
         stage_last[s] = now
         stage_busy[s] = stage_busy.get(s, 0.0) + float(r.get("seconds", 0.0))
+        stage_cpu[s] = stage_cpu.get(s, 0.0) + float(r.get("cpu_seconds", 0.0))
         if on_receipt:
             on_receipt(r)
 
@@ -185,6 +188,7 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
     summary.failures = failures
     summary.seconds = time.time() - t0
     summary.stage_seconds = dict(stage_busy)
+    summary.stage_cpu_seconds = dict(stage_cpu)
     times = dict(store.attrs.get("stage_times") or {})
     done_stages = {t.stage for t in plan.tasks} - {k.split("-")[0] for k in failures}
     for s in done_stages:

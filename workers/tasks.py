@@ -353,6 +353,7 @@ def run_task(store_path: str, stage_name: str, index: tuple[int, ...], *_deps, r
     """
     index = tuple(int(i) for i in index)
     t0 = time.perf_counter()
+    c0 = time.thread_time()
     ctx = context(str(store_path), str(run_token))
     receipt = {"stage": stage_name, "index": list(index), "skipped": False}
     st = stage(stage_name)
@@ -366,6 +367,7 @@ def run_task(store_path: str, stage_name: str, index: tuple[int, ...], *_deps, r
     if ctx.store.is_done(stage_name, index):
         receipt["skipped"] = True
         receipt["seconds"] = time.perf_counter() - t0
+        receipt["cpu_seconds"] = time.thread_time() - c0
         return receipt
     try:
         extra = _GLUE[stage_name](ctx, *index)
@@ -377,6 +379,8 @@ def run_task(store_path: str, stage_name: str, index: tuple[int, ...], *_deps, r
     ctx.store.mark_done(stage_name, index)
     receipt.update(extra)
     receipt["seconds"] = time.perf_counter() - t0
+    # CPU of this thread only: below ``seconds`` when other processes took the core
+    receipt["cpu_seconds"] = time.thread_time() - c0
     log_receipt(receipt)
     return receipt
 
