@@ -60,6 +60,10 @@ def _schlieren_json_handlers() -> int:
     return sum(bool(getattr(h, "_schlieren_json_handler", False)) for h in logging.getLogger("schlieren").handlers)
 
 
+def _profile_callback_ms(dask_worker) -> float:
+    return float(dask_worker.periodic_callbacks["profile"].callback_time)
+
+
 # ---------------------------------------------------------------------------------------
 # local mode
 
@@ -87,6 +91,10 @@ def test_local_cluster_workers_have_thread_caps_and_tomo_slots(local):
         started_with = _proc_environ(rep["pid"])
         for var in THREAD_VARS:
             assert started_with.get(var) == THREAD_ENV[var], var
+    # the monitoring cadence of DASK_SETTINGS reached the worker processes (profile on,
+    # sampled every 50 ms rather than Dask's 10 ms)
+    cadence = client.run(_profile_callback_ms)
+    assert set(cadence.values()) == {50.0}
 
 
 @pytest.mark.timeout(120)
