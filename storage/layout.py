@@ -97,7 +97,7 @@ def _f32(name, dims, shape, chunks, attrs, fill=np.nan, dtype="float32") -> Arra
 
 def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tuple[int, int],
                   grid: Grid, n_stats: int = 4, first_frame: int = 0, n_raw: int | None = None,
-                  raw_first: int | None = None) -> list[ArraySpec]:
+                  raw_first: int | None = None, n_summary: int = 2001) -> list[ArraySpec]:
     """Every array of a run's store (SPEC section 2 and docs/design.md).
 
     Parameters
@@ -121,6 +121,9 @@ def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tup
         Capture index of ``flow_raw``'s first frame (values of the ``raw_frame``
         coordinate). Defaults to ``first_frame`` when ``n_raw`` is not given; without it
         and with a different ``n_raw``, no ``raw_frame`` coordinate is written.
+    n_summary : int
+        Length of each camera-frame's ``potential_summary`` (pixel count, then
+        ``MaskParams.n_quantiles`` quantiles of the potential's magnitude).
 
     Returns
     -------
@@ -189,6 +192,9 @@ def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tup
         _f32("potential", ("camera", "frame", "v", "u"), (C, F, h, w), (1, 1, h, w),
              {"long_name": "2-D integral (potential) of the deflection field", "units": "pixel * flow cell",
               "stage": "potential", **cam, **t}),
+        _f32("potential_summary", ("camera", "frame", "summary"), (C, F, int(n_summary)), (1, 1, int(n_summary)),
+             {"long_name": "pixel count, then quantiles of the smoothed |potential| (mask threshold input)",
+              "units": "pixel * flow cell", "stage": "potential", **cam, **t}, dtype="float64"),
         _f32("mask_threshold", ("scalar",), (1,), (1,),
              {"long_name": "flow-mask threshold on the potential", "units": "pixel * flow cell",
               "stage": "threshold"}, dtype="float64"),

@@ -96,7 +96,8 @@ def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig) -> tup
     fp = _fingerprint(session, cfg, (a, b))
     layout = result_layout(camera_names=[c.name for c in session.cameras], n_frames=n_frames,
                            flow_shape=fg.shape, grid=session.grid, first_frame=a,
-                           n_raw=ext.raw_frame, raw_first=raw_first)
+                           n_raw=ext.raw_frame, raw_first=raw_first,
+                           n_summary=cfg.masks.n_quantiles + 1)
     attrs = {
         "session": session.manifest,
         "session_path": str(Path(session.manifest_path).resolve()),

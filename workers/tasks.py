@@ -227,17 +227,32 @@ def _resample(ctx: RunContext, c: int, k: int) -> dict:
 
 
 def _potential(ctx: RunContext, c: int, k: int) -> dict:
+    """Potential of one camera-frame (the flow Poisson-integrated, paper sec. 4) and its summary.
+
+    The summary (:func:`~schlieren.pipeline.masks.potential_summary`) is the map step of
+    the sequence-wide threshold, computed here while the potential is in memory so the
+    single ``threshold`` task that every mask waits for only pools small vectors.
+    """
     f = ctx.read_upstream("flow", (c, k))
-    p = masksmod.flow_potential(f)
-    ctx.store.write("potential", (c, k), np.asarray(p, dtype=np.float32))
+    p = np.asarray(masksmod.flow_potential(f), dtype=np.float32)
+    kw = kernel_kwargs(ctx.config.masks, masksmod.potential_summary)
+    ctx.store.write("potential", (c, k), p)
+    ctx.store.write("potential_summary", (c, k), masksmod.potential_summary(p, **kw))
     return {}
+
+
+def _summary(ctx: RunContext, c: int, k: int, kw: dict) -> np.ndarray:
+    s = ctx.store.read("potential_summary", (c, k))
+    if not np.all(np.isfinite(s)):
+        # potential computed by a version that kept no summary (a resumed older store)
+        s = masksmod.potential_summary(ctx.store.read("potential", (c, k)), **kw)
+    return s
 
 
 def _threshold(ctx: RunContext) -> dict:
     params = ctx.config.masks
     kw = kernel_kwargs(params, masksmod.potential_summary)
-    summaries = [masksmod.potential_summary(ctx.read_upstream("potential", (c, k)), **kw)
-                 for c in range(len(ctx.cameras)) for k in range(ctx.n_frames)]
+    summaries = [_summary(ctx, c, k, kw) for c in range(len(ctx.cameras)) for k in range(ctx.n_frames)]
     thr = masksmod.threshold_from_summaries(
         summaries, **kernel_kwargs(params, masksmod.threshold_from_summaries))
     ctx.store.write("mask_threshold", (), np.array([thr], dtype=np.float64))

@@ -50,6 +50,37 @@ def test_reconstruction_matches_truth(serial_store, tiny_session):
     assert 250 < np.nanmin(temp) and np.nanmax(temp) < 800
 
 
+def test_threshold_pools_the_summaries_the_potential_tasks_wrote(serial_store, tmp_path):
+    from schlieren.pipeline import masks
+    from schlieren.workers.tasks import run_task
+
+    g = zarr.open_group(str(serial_store), mode="r")
+    pots = np.asarray(g["potential"][...])
+    sums = np.asarray(g["potential_summary"][...])
+    n_q = sums.shape[-1] - 1
+    C, F = pots.shape[:2]
+    # the map step: each camera-frame's summary is that of its stored potential
+    for c in range(C):
+        for k in range(F):
+            np.testing.assert_array_equal(sums[c, k], masks.potential_summary(pots[c, k], n_quantiles=n_q))
+    # the reduction: the 95th percentile of every smoothed |P| of the sequence, within
+    # the quantile spacing of one summary
+    pooled = np.concatenate([masks._magnitude(pots[c, k], 1.0).ravel() for c in range(C) for k in range(F)])
+    thr = float(g["mask_threshold"][0])
+    lo, hi = np.percentile(pooled, [95.0 - 100.0 / n_q, 95.0 + 100.0 / n_q])
+    assert lo <= thr <= hi
+    # a store resumed from a version that wrote no summaries: the threshold task falls
+    # back to summarising the potentials and gets the same value
+    old = tmp_path / "old.zarr"
+    shutil.copytree(serial_store, old)
+    shutil.rmtree(old / "potential_summary" / "c")
+    zarr.open_array(old / "status" / "threshold", mode="r+")[...] = 0
+    zarr.open_array(old / "mask_threshold", mode="r+")[...] = np.nan
+    receipt = run_task(str(old), "threshold", (), run_token="old-store")
+    assert not receipt["skipped"] and receipt["threshold"] == thr
+    assert float(zarr.open_group(str(old), mode="r")["mask_threshold"][0]) == thr
+
+
 def test_dask_executor_gives_the_identical_store(serial_store, tiny_session, tmp_path):
     from schlieren.workers.cluster import ClusterOptions, open_client
 

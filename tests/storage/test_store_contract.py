@@ -69,6 +69,7 @@ def test_layout_matches_the_design_table():
         "flow_raw": (("camera", "raw_frame", "v", "u", "component"), (C, F, h, w, 2), "float32"),
         "flow": (("camera", "frame", "v", "u", "component"), (C, F, h, w, 2), "float32"),
         "potential": (("camera", "frame", "v", "u"), (C, F, h, w), "float32"),
+        "potential_summary": (("camera", "frame", "summary"), (C, F, 2001), "float64"),
         "mask_threshold": (("scalar",), (1,), "float64"),
         "mask": (("camera", "frame", "v", "u"), (C, F, h, w), "bool"),
         "hull": (("frame", "z", "y", "x"), (F, nz, ny, nx), "bool"),
