@@ -164,8 +164,13 @@ STAGES: tuple[Stage, ...] = (
           ("camera", "frame"), after=(("resample", "same"),), batch=True, cost=0.004),
     Stage("threshold", _masks.threshold_from_summaries, "masks", ("potential_summary",),
           ("mask_threshold",), (), after=(("potential", "all"),), cost=0.02),
+    # the potential edges are implied by the threshold's, but without them Dask counts
+    # masks as root tasks (one small dependency group) and holds them in its scheduler
+    # queue until a worker runs out of hull and solve tasks: at 960x720 the last masks
+    # ran 7 s after the threshold, and the last warm-start chain ran alone at the end
     Stage("mask", _masks.make_mask, "masks", ("potential", "mask_threshold"), ("mask",),
-          ("camera", "frame"), after=(("threshold", "all"),), frame_halo=1, batch=True, cost=0.003),
+          ("camera", "frame"), after=(("threshold", "all"), ("potential", "window")), frame_halo=1,
+          batch=True, cost=0.003),
     Stage("geometry", _tomo.build_geometry, "tomography", (), ("geometry",), (), cost=1.35),
     Stage("hull", _hull.visual_hull, "hull", ("mask",), ("hull",), ("frame",),
           after=(("mask", "same"),), cost=0.36),

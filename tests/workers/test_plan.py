@@ -45,6 +45,18 @@ def test_resample_waits_for_raw_frames_within_the_halo(ext):
         assert task_key("clock", "tok", ()) in t.deps
 
 
+@settings(max_examples=40, deadline=None)
+@given(extents)
+def test_masks_wait_for_the_threshold_and_the_potentials_they_read(ext):
+    # the potential edges keep Dask from queueing masks as root tasks (stages.py)
+    plan = make_plan(ext, "tok")
+    for t in plan.by_stage()["mask"]:
+        c, k = t.index
+        pots = sorted(tuple(int(x) for x in d.split("-")[-2:]) for d in t.deps if d.startswith("potential-"))
+        assert pots == [(c, j) for j in range(ext.frame) if abs(j - k) <= 1]
+        assert task_key("threshold", "tok", ()) in t.deps
+
+
 @settings(max_examples=30, deadline=None)
 @given(extents)
 def test_tomography_chain_follows_warm_start_blocks(ext):
