@@ -243,7 +243,7 @@ def _potential(ctx: RunContext, c: int, k: int) -> dict:
 
 def _summary(ctx: RunContext, c: int, k: int, kw: dict) -> np.ndarray:
     s = ctx.store.read("potential_summary", (c, k))
-    if not np.all(np.isfinite(s)):
+    if np.isnan(s[0]):  # the pixel count: NaN only where the chunk was never written
         # potential computed by a version that kept no summary (a resumed older store)
         s = masksmod.potential_summary(ctx.store.read("potential", (c, k)), **kw)
     return s
