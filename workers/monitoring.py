@@ -161,14 +161,71 @@ def log_receipt(
         logged at ERROR regardless.
     """
     lg = logger if logger is not None else logging.getLogger(RECEIPT_LOGGER)
+    failed = receipt.get("status") == "failed" or bool(receipt.get("error"))
+    lg.log(logging.ERROR if failed else level, message, extra=_extra(receipt))
+
+
+def _extra(fields: Mapping[str, Any]) -> dict[str, Any]:
+    """``fields`` as a ``LogRecord`` ``extra``: JSON-able, clashing names prefixed ``receipt_``."""
     extra: dict[str, Any] = {}
-    for k, v in receipt.items():
+    for k, v in fields.items():
         name = str(k)
         if name in _RECORD_ATTRS:
             name = f"receipt_{name}"
         extra[name] = _jsonable(v)
-    failed = receipt.get("status") == "failed" or bool(receipt.get("error"))
-    lg.log(logging.ERROR if failed else level, message, extra=extra)
+    return extra
+
+
+class RunLog:
+    """The JSON-lines log of one run (``--log FILE``), written by the client process.
+
+    One line per task receipt (stage, index, camera, frame, seconds, cpu_seconds, worker,
+    and the stage's own fields such as tomography's iterations and residual), one ERROR
+    line per failed or not-run task, and a closing ``run finished`` line. The receipts
+    come back to the client in every mode (local, external scheduler, batch cluster,
+    serial loop), so this one file covers them all; lines are appended.
+    """
+
+    def __init__(self, path: str | os.PathLike[str] | None, *, session: str | None = None):
+        self.path = None if path is None else Path(path)
+        self.session = session
+        self._logger: logging.Logger | None = None
+        if self.path is not None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            lg = logging.Logger("schlieren.run", logging.INFO)  # standalone: no parent, no global state
+            handler = logging.FileHandler(self.path, mode="a", encoding="utf-8")
+            handler.setFormatter(JsonFormatter())
+            lg.addHandler(handler)
+            self._logger = lg
+
+    def _context(self, fields: Mapping[str, Any]) -> dict[str, Any]:
+        return {"session": self.session, **fields} if self.session else dict(fields)
+
+    def receipt(self, receipt: Mapping[str, Any]) -> None:
+        if self._logger is not None:
+            log_receipt(self._context(receipt), logger=self._logger)
+
+    def failure(self, key: str, message: str) -> None:
+        if self._logger is not None:
+            log_receipt(self._context({"stage": key.split("-", 1)[0], "key": key, "status": "failed",
+                                       "error": message}), logger=self._logger, message="task failed")
+
+    def finished(self, **fields: Any) -> None:
+        if self._logger is not None:
+            self._logger.info("run finished", extra=_extra(self._context(fields)))
+
+    def close(self) -> None:
+        if self._logger is not None:
+            for h in list(self._logger.handlers):
+                self._logger.removeHandler(h)
+                h.close()
+            self._logger = None
+
+    def __enter__(self) -> "RunLog":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 @contextlib.contextmanager

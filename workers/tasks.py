@@ -359,6 +359,16 @@ def _describe(stage_name: str, index: tuple[int, ...], ctx: RunContext | None) -
     return ", ".join(parts)
 
 
+def _worker_address() -> str | None:
+    """The Dask worker running this task, or None (the serial loop)."""
+    try:
+        from distributed import get_worker
+
+        return str(get_worker().address)
+    except (ImportError, ValueError):
+        return None
+
+
 def run_task(store_path: str, stage_name: str, index: tuple[int, ...], *_deps, run_token: str = "") -> dict:
     """Run one stage at one index and return its receipt.
 
@@ -371,6 +381,9 @@ def run_task(store_path: str, stage_name: str, index: tuple[int, ...], *_deps, r
     c0 = time.thread_time()
     ctx = context(str(store_path), str(run_token))
     receipt = {"stage": stage_name, "index": list(index), "skipped": False}
+    worker = _worker_address()
+    if worker:
+        receipt["worker"] = worker
     st = stage(stage_name)
     labels = dict(zip(st.over, index))
     if "camera" in labels:

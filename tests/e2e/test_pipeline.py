@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -163,11 +164,20 @@ def test_a_corrupt_frame_fails_only_its_tasks(tiny_session, tmp_path):
     bad.write_bytes(data[: len(data) // 2])  # header intact, pixel data truncated
     out = tmp_path / "bad.zarr"
     proc = subprocess.run([sys.executable, "-m", "schlieren.workers.cli", "run", str(sess), "--out",
-                           str(out), "--serial", "--no-progress"], capture_output=True, text=True,
-                          timeout=600)
+                           str(out), "--serial", "--no-progress", "--log", str(tmp_path / "run.jsonl")],
+                          capture_output=True, text=True, timeout=600)
     assert proc.returncode == 1, proc.stderr
     assert "cam01" in proc.stderr and f"frame {first + 1}" in proc.stderr
     assert "Traceback" not in proc.stderr
+    # --log: the two tasks that read the frame (statistics, deflection) fail naming camera
+    # and frame; tasks downstream of them are logged as not run
+    lines = [json.loads(x) for x in (tmp_path / "run.jsonl").read_text().splitlines()]
+    failed = [x for x in lines if x["message"] == "task failed"]
+    roots = [x for x in failed if not x["error"].startswith("not run")]
+    assert sorted(x["stage"] for x in roots) == ["deflection", "frames"]
+    assert all(f"camera cam01, frame {first + 1}:" in x["error"] for x in roots)
+    assert {x["stage"] for x in failed} >= {"threshold", "integrate"}
+    assert lines[-1]["message"] == "run finished" and lines[-1]["failed"] == 2
     g = zarr.open_group(str(out), mode="r")
     defl = np.asarray(g["status/deflection"][...])
     assert defl[0].all() and defl[2].all()  # other cameras complete and kept

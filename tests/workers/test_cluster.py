@@ -266,3 +266,28 @@ def test_json_formatter_and_log_receipt():
     third = json.loads(stream.getvalue().splitlines()[2])
     assert third["stage"] == "integrate" and "RuntimeError: boom" in third["exc_info"]
     assert isinstance(JsonFormatter().format(logging.makeLogRecord({"msg": "x"})), str)
+
+
+def test_run_log_writes_receipts_failures_and_the_end_and_appends(tmp_path):
+    from schlieren.workers.monitoring import RunLog
+
+    path = tmp_path / "logs" / "run.jsonl"
+    with RunLog(path, session="plume") as rl:
+        rl.receipt({"stage": "hull", "index": [1], "frame": 11, "seconds": 0.3, "voxels": 1200})
+        rl.failure("deflection-abc-000002-000005", "deflection, camera cam2, frame 5: ValueError: bad frame")
+        rl.finished(tasks=2, failed=1)
+    with RunLog(path, session="plume") as rl:  # a resumed run appends
+        rl.finished(tasks=0, failed=0)
+    lines = [json.loads(x) for x in path.read_text().splitlines()]
+    assert [x["message"] for x in lines] == ["task receipt", "task failed", "run finished", "run finished"]
+    assert all(x["session"] == "plume" for x in lines)
+    assert lines[0]["voxels"] == 1200 and lines[0]["level"] == "INFO"
+    assert lines[1]["level"] == "ERROR" and lines[1]["stage"] == "deflection" and lines[1]["status"] == "failed"
+    assert "camera cam2, frame 5" in lines[1]["error"]
+    assert (lines[2]["tasks"], lines[2]["failed"]) == (2, 1)
+    # without a path nothing is written and nothing fails
+    with RunLog(None) as rl:
+        rl.receipt({"stage": "hull"})
+        rl.failure("hull-x-000000", "boom")
+        rl.finished(tasks=1)
+    assert not logging.getLogger("schlieren.run").handlers

@@ -8,6 +8,7 @@ the rest starts real workers, which must join with our resources, thread caps an
 from __future__ import annotations
 
 import copy
+import json
 import os
 import re
 import shlex
@@ -295,7 +296,7 @@ def test_submit_dry_run_and_config_errors(tmp_path, capsys):
 
 
 @pytest.mark.timeout(120)
-def test_submit_runs_the_session_on_the_cluster_it_creates(tmp_path, monkeypatch, capsys):
+def test_submit_runs_the_session_on_the_cluster_it_creates(tiny_session, tmp_path, monkeypatch, capsys):
     """The submit glue: config -> cluster -> client (plugin, TOMO) -> run_session -> exit code.
 
     A LocalCluster on 127.0.0.1 stands in for the batch system, which is not reachable here.
@@ -317,12 +318,13 @@ def test_submit_runs_the_session_on_the_cluster_it_creates(tmp_path, monkeypatch
 
     calls: list = []
 
-    def run_session(session, out, *, client, frames, config, report, **callbacks):
-        calls.append((session, out, frames))
+    def run_session(session, out, *, client, config, report, on_receipt, **callbacks):
+        calls.append((session.name, out, session.frames))
         threads = client.run(worker_thread_report)  # the worker setup plugin was registered
         assert {r["cv2_threads"] for r in threads.values()} == {1}
         value = client.submit(sum, [1, 2, 3], key="tomography-submit-000000", resources={TOMO: 1}).result(timeout=30)
         failures = {} if value == 6 else {"tomography-submit-000000": "wrong"}
+        on_receipt({"stage": "tomography", "index": [0], "frame": 2, "seconds": 0.5, "iterations": 7})
         return run_mod.RunSummary(store=str(out), executor="dask", tasks=1, failures=failures)
 
     monkeypatch.setattr(cluster_mod, "make_batch_cluster", local_batch_cluster)
@@ -333,8 +335,9 @@ def test_submit_runs_the_session_on_the_cluster_it_creates(tmp_path, monkeypatch
     cfg_path.write_text(yaml.safe_dump(cfg))
     saved = {k: os.environ.get(k) for k in THREAD_ENV}  # in-process nannies export them here
     try:
-        code = cli_main(["submit", "sess", "--out", str(tmp_path / "store"), "--cluster", "slurm",
-                         "--config", str(cfg_path), "--scale", "3", "--frames", "2:5", "--no-progress"])
+        code = cli_main(["submit", str(tiny_session.session), "--out", str(tmp_path / "store"), "--cluster", "slurm",
+                         "--config", str(cfg_path), "--scale", "3", "--frames", "1:3", "--no-progress",
+                         "--log", str(tmp_path / "run.jsonl")])
     finally:
         for k, v in saved.items():
             if v is None:
@@ -343,7 +346,12 @@ def test_submit_runs_the_session_on_the_cluster_it_creates(tmp_path, monkeypatch
                 os.environ[k] = v
     assert code == 0
     assert made["kind"] == "slurm" and made["scale"] == 3
-    assert calls == [("sess", str(tmp_path / "store"), (2, 5))]
+    name = yaml.safe_load(Path(tiny_session.session).read_text())["name"]
+    assert calls == [(name, str(tmp_path / "store"), (1, 3))]
+    lines = [json.loads(x) for x in (tmp_path / "run.jsonl").read_text().splitlines()]
+    assert [x["message"] for x in lines] == ["task receipt", "run finished"]
+    assert lines[0]["session"] == name and lines[0]["iterations"] == 7 and lines[0]["frame"] == 2
+    assert lines[1]["tasks"] == 1 and lines[1]["failed"] == 0 and lines[1]["executor"] == "dask"
     assert made["cluster"].status.name == "closed"  # submit shuts the cluster down
     err = capsys.readouterr().err
     assert "dashboard: http://127.0.0.1:" in err

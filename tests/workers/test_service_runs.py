@@ -5,6 +5,7 @@ Scheduler and workers are subprocesses on 127.0.0.1 (fixture ``external_schedule
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 import threading
@@ -33,10 +34,20 @@ def test_cli_run_on_an_external_scheduler_matches_serial(external_scheduler, tin
     out = tmp_path / "ext.zarr"
     proc = subprocess.run([sys.executable, "-m", "schlieren.workers.cli", "run", str(tiny_session.session),
                            "--out", str(out), "--scheduler", external_scheduler.address, "--no-progress",
-                           "--report", str(tmp_path / "perf.html")],
+                           "--report", str(tmp_path / "perf.html"), "--log", str(tmp_path / "run.jsonl")],
                           capture_output=True, text=True, timeout=500)
     assert proc.returncode == 0, proc.stderr + external_scheduler.logs()
     assert "dashboard: http://127.0.0.1:" in proc.stderr
+    # --log: one JSON line per stage and index, naming the worker that ran it, then the end
+    lines = [json.loads(x) for x in (tmp_path / "run.jsonl").read_text().splitlines()]
+    receipts, last = lines[:-1], lines[-1]
+    g = zarr.open_group(str(out), mode="r")
+    assert len(receipts) == sum(int(np.asarray(m[...]).size) for _, m in g["status"].arrays())
+    assert len({(r["stage"], tuple(r["index"])) for r in receipts}) == len(receipts)
+    assert all(r["worker"].startswith("tcp://127.0.0.1:") and 0 <= r["cpu_seconds"] for r in receipts)
+    solves = [r for r in receipts if r["stage"] == "tomography"]
+    assert solves and all(r["iterations"] > 0 and r["residual"] >= 0 for r in solves)
+    assert last["message"] == "run finished" and last["failed"] == 0 and last["tasks"] > 0
     # the Dask performance report was written and shows our stages
     perf = (tmp_path / "perf.html").read_text()
     assert "deflection" in perf and "tomography" in perf

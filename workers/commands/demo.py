@@ -51,7 +51,7 @@ def handler(args) -> int:
     else:
         print(f"demo: reusing the synthetic session in {session_dir}", file=sys.stderr)
     run_args = SimpleNamespace(serial=args.workers <= 1, workers=args.workers, scheduler=None,
-                               tls=None, report=None, params=None, no_progress=args.no_progress,
+                               tls=None, report=None, log=None, params=None, no_progress=args.no_progress,
                                frames_per_task=None)
     summary = execute(str(session_dir), str(store), None, run_args)
     print_summary(summary)

@@ -28,6 +28,7 @@ def add_common_run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tls", default=None, metavar="DIR",
                    help="folder with ca.pem, client.pem, client-key.pem for a tls:// scheduler")
     p.add_argument("--report", default=None, metavar="FILE", help="write a Dask performance report (HTML)")
+    add_log_arg(p)
     p.add_argument("--params", default=None, metavar="FILE",
                    help="YAML file of run parameters (`schlieren params` prints them all with defaults)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -36,6 +37,20 @@ def add_common_run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--frames-per-task", type=positive_int, default=None, metavar="N",
                    help="frames of one camera per task in the cheap 2D stages (default: about 1.4 "
                         "megapixels per task, 8 frames at 480x360; results and resume do not depend on it)")
+
+
+def add_log_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--log", default=None, metavar="FILE",
+                   help="append one JSON line per task receipt (stage, camera, frame, seconds, cpu_seconds, "
+                        "worker, solver iterations and residual) and per failure to FILE")
+
+
+def fan_out(*callbacks):
+    """One callback calling each of ``callbacks`` in turn."""
+    def call(*args):
+        for cb in callbacks:
+            cb(*args)
+    return call
 
 
 def add_parser(sub) -> None:
@@ -79,10 +94,10 @@ def client_for(args):
 
 def execute(session: str, out: str, frames, args, *, console=None):
     """Run a session with progress bars; returns the RunSummary."""
+    from schlieren.storage.session import load_session
+    from schlieren.workers.monitoring import RunLog
     from schlieren.workers.progress import StageProgress
     from schlieren.workers.run import run_session
-
-    from schlieren.storage.session import load_session
 
     cfg = load_params(getattr(args, "params", None))
     # validate everything before a cluster is even started
@@ -95,13 +110,24 @@ def execute(session: str, out: str, frames, args, *, console=None):
             link = dashboard_link(client)
             if link:
                 print(f"dashboard: {link}", file=sys.stderr)
-        with StageProgress(enabled=not args.no_progress, console=console) as prog:
+        with RunLog(getattr(args, "log", None), session=loaded.name) as run_log, \
+                StageProgress(enabled=not args.no_progress, console=console) as prog:
             summary = run_session(loaded, out, client=client, frames=frames,
                                   serial=client is None, config=cfg, report=args.report,
-                                  on_receipt=prog.receipt, on_failure=prog.failure,
+                                  on_receipt=fan_out(prog.receipt, run_log.receipt),
+                                  on_failure=fan_out(prog.failure, run_log.failure),
                                   on_plan=prog.plan, frames_per_task=args.frames_per_task)
+            log_finished(run_log, summary)
         summary.dashboard = link
     return summary
+
+
+def log_finished(run_log, summary) -> None:
+    """The closing line of ``--log``: counts, wall time and executor of the run."""
+    run_log.finished(store=summary.store, executor=summary.executor, tasks=summary.tasks,
+                     skipped=summary.skipped, seconds=round(summary.seconds, 3),
+                     failed=len(summary.root_failures()),
+                     not_run=len(summary.failures) - len(summary.root_failures()))
 
 
 def print_summary(summary, *, stream=None) -> None:

@@ -39,6 +39,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--frames", default=None, metavar="A:B", help="half-open frame range to process")
     p.add_argument("--params", default=None, metavar="FILE", help="YAML file of run parameters")
     p.add_argument("--report", default=None, metavar="FILE", help="write a Dask performance report (HTML)")
+    from schlieren.workers.commands.run import add_log_arg  # stdlib-only module
+
+    add_log_arg(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--frames-per-task", type=positive_int, default=None, metavar="N",
                    help="frames of one camera per task in the cheap 2D stages "
@@ -104,12 +107,16 @@ def handler(args: argparse.Namespace) -> int:
         raise CLIError(f"config {args.config}: {exc}") from None
 
     # the run entry points belong to the executor; imported here so this module loads without them
-    from schlieren.workers.commands.run import load_params, parse_frames, print_summary
+    from schlieren.workers.commands.run import fan_out, load_params, log_finished, parse_frames, print_summary
+    from schlieren.workers.monitoring import RunLog
     from schlieren.workers.progress import StageProgress
     from schlieren.workers.run import run_session
 
+    from schlieren.storage.session import load_session
+
     frames = parse_frames(args.frames)
     run_config = load_params(args.params)
+    session = load_session(args.session, frames=frames)  # bad input refused before any job starts
     try:
         cluster = make_batch_cluster(args.cluster, config)
     except (ValueError, TypeError, FileNotFoundError, RuntimeError) as exc:
@@ -125,19 +132,20 @@ def handler(args: argparse.Namespace) -> int:
         ) as (client, info):
             if info.dashboard_link:
                 print(f"dashboard: {info.dashboard_link}", file=sys.stderr)
-            with StageProgress(enabled=not args.no_progress) as prog:
+            with RunLog(args.log, session=session.name) as run_log, \
+                    StageProgress(enabled=not args.no_progress) as prog:
                 summary = run_session(
-                    args.session,
+                    session,
                     args.out,
                     client=client,
-                    frames=frames,
                     config=run_config,
                     report=args.report,
-                    on_receipt=prog.receipt,
-                    on_failure=prog.failure,
+                    on_receipt=fan_out(prog.receipt, run_log.receipt),
+                    on_failure=fan_out(prog.failure, run_log.failure),
                     on_plan=prog.plan,
                     frames_per_task=args.frames_per_task,
                 )
+                log_finished(run_log, summary)
             summary.dashboard = info.dashboard_link
     print_summary(summary, stream=sys.stderr)  # the stream of now (tests swap sys.stderr)
     return 0 if summary.ok else 1
