@@ -65,6 +65,16 @@ def test_bad_frame_range_argument(tiny_session, tmp_path):
     assert p.returncode == 2 and "--frames" in p.stderr and "Traceback" not in p.stderr
 
 
+def test_an_unwritable_log_path_is_refused_before_any_work(tiny_session, tmp_path):
+    blocker = tmp_path / "not-a-folder"
+    blocker.write_text("x")
+    out = tmp_path / "o.zarr"
+    p = _cli("run", tiny_session.session, "--out", out, "--workers", "2", "--log", blocker / "run.jsonl")
+    assert p.returncode == 2 and "Traceback" not in p.stderr
+    assert f"--log {blocker / 'run.jsonl'}: cannot write it" in p.stderr
+    assert "dashboard:" not in p.stderr and not out.exists()  # no cluster, no store
+
+
 def test_demo_runs_every_stage_and_writes_its_report(tmp_path):
     """`schlieren demo` (the README's main command) end to end on a tiny rig."""
     out = tmp_path / "demo"

@@ -95,14 +95,13 @@ def client_for(args):
 def execute(session: str, out: str, frames, args, *, console=None):
     """Run a session with progress bars; returns the RunSummary."""
     from schlieren.storage.session import load_session
-    from schlieren.workers.monitoring import RunLog
     from schlieren.workers.progress import StageProgress
     from schlieren.workers.run import run_session
 
     cfg = load_params(getattr(args, "params", None))
     # validate everything before a cluster is even started
     loaded = load_session(session, frames=frames)
-    with client_for(args) as (client, info):
+    with open_run_log(getattr(args, "log", None), loaded.name) as run_log, client_for(args) as (client, info):
         link = None
         if client is not None:
             from schlieren.workers.cluster import dashboard_link
@@ -110,8 +109,7 @@ def execute(session: str, out: str, frames, args, *, console=None):
             link = dashboard_link(client)
             if link:
                 print(f"dashboard: {link}", file=sys.stderr)
-        with RunLog(getattr(args, "log", None), session=loaded.name) as run_log, \
-                StageProgress(enabled=not args.no_progress, console=console) as prog:
+        with StageProgress(enabled=not args.no_progress, console=console) as prog:
             summary = run_session(loaded, out, client=client, frames=frames,
                                   serial=client is None, config=cfg, report=args.report,
                                   on_receipt=fan_out(prog.receipt, run_log.receipt),
@@ -120,6 +118,17 @@ def execute(session: str, out: str, frames, args, *, console=None):
             log_finished(run_log, summary)
         summary.dashboard = link
     return summary
+
+
+def open_run_log(path, session_name: str):
+    """The ``--log`` file (a no-op log without a path); an unwritable path is a CLI error."""
+    from schlieren.workers.cli import CLIError
+    from schlieren.workers.monitoring import RunLog
+
+    try:
+        return RunLog(path, session=session_name)
+    except OSError as exc:
+        raise CLIError(f"--log {path}: cannot write it: {exc.strerror or exc}") from None
 
 
 def log_finished(run_log, summary) -> None:

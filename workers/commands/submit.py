@@ -107,23 +107,22 @@ def handler(args: argparse.Namespace) -> int:
         raise CLIError(f"config {args.config}: {exc}") from None
 
     # the run entry points belong to the executor; imported here so this module loads without them
-    from schlieren.workers.commands.run import fan_out, load_params, log_finished, parse_frames, print_summary
-    from schlieren.workers.monitoring import RunLog
+    from schlieren.storage.session import load_session
+    from schlieren.workers.commands.run import (fan_out, load_params, log_finished, open_run_log, parse_frames,
+                                                print_summary)
     from schlieren.workers.progress import StageProgress
     from schlieren.workers.run import run_session
-
-    from schlieren.storage.session import load_session
 
     frames = parse_frames(args.frames)
     run_config = load_params(args.params)
     session = load_session(args.session, frames=frames)  # bad input refused before any job starts
-    try:
-        cluster = make_batch_cluster(args.cluster, config)
-    except (ValueError, TypeError, FileNotFoundError, RuntimeError) as exc:
-        raise CLIError(f"config {args.config}: {exc}") from None
-    timeout = sec["wait_timeout"]
-    with cluster:
-        with connect(
+    with open_run_log(args.log, session.name) as run_log:
+        try:
+            cluster = make_batch_cluster(args.cluster, config)
+        except (ValueError, TypeError, FileNotFoundError, RuntimeError) as exc:
+            raise CLIError(f"config {args.config}: {exc}") from None
+        timeout = sec["wait_timeout"]
+        with cluster, connect(
             cluster,
             ClusterOptions(tomo_slots=sec["tomo_slots"]),
             mode=args.cluster,
@@ -132,8 +131,7 @@ def handler(args: argparse.Namespace) -> int:
         ) as (client, info):
             if info.dashboard_link:
                 print(f"dashboard: {info.dashboard_link}", file=sys.stderr)
-            with RunLog(args.log, session=session.name) as run_log, \
-                    StageProgress(enabled=not args.no_progress) as prog:
+            with StageProgress(enabled=not args.no_progress) as prog:
                 summary = run_session(
                     session,
                     args.out,
@@ -145,7 +143,7 @@ def handler(args: argparse.Namespace) -> int:
                     on_plan=prog.plan,
                     frames_per_task=args.frames_per_task,
                 )
-                log_finished(run_log, summary)
+            log_finished(run_log, summary)
             summary.dashboard = info.dashboard_link
     print_summary(summary, stream=sys.stderr)  # the stream of now (tests swap sys.stderr)
     return 0 if summary.ok else 1
