@@ -75,6 +75,28 @@ def test_an_unwritable_log_path_is_refused_before_any_work(tiny_session, tmp_pat
     assert "dashboard:" not in p.stderr and not out.exists()  # no cluster, no store
 
 
+def test_bad_worker_counts_and_demo_sizes_are_refused(tiny_session, tmp_path):
+    for n in ("0", "-3"):
+        p = _cli("run", tiny_session.session, "--out", tmp_path / "o.zarr", "--workers", n)
+        assert p.returncode == 2 and "--workers" in p.stderr and "must be at least 1" in p.stderr
+    assert not (tmp_path / "o.zarr").exists()
+    for flag, value in (("--cameras", "1"), ("--frames", "0"), ("--workers", "0")):
+        p = _cli("demo", "--out", tmp_path / "d", flag, value)
+        assert p.returncode == 2 and flag in p.stderr and "Traceback" not in p.stderr, p.stderr
+    assert not (tmp_path / "d").exists()
+
+
+def test_demo_refuses_to_reuse_a_session_of_another_size(tiny_session, tmp_path):
+    # a session already in --out (4 cameras x 3 frames at 192x144) is reused only if it
+    # is what the flags ask for
+    shutil.copytree(tiny_session.session.parent, tmp_path / "d" / "session",
+                    ignore=shutil.ignore_patterns("truth.zarr"))
+    p = _cli("demo", "--out", tmp_path / "d")
+    assert p.returncode == 2 and "Traceback" not in p.stderr
+    assert "holds a demo session of 4 cameras x 3 frames at 192x144, not the 8 x 4 at 480x360" in p.stderr
+    assert not (tmp_path / "d" / "result.zarr").exists()
+
+
 def test_demo_runs_every_stage_and_writes_its_report(tmp_path):
     """`schlieren demo` (the README's main command) end to end on a tiny rig."""
     out = tmp_path / "demo"

@@ -39,6 +39,12 @@ def handler(args) -> int:
         w, h = image_size(16)(args.size)
     except argparse.ArgumentTypeError as exc:
         raise CLIError(f"--size {args.size!r}: {exc}, e.g. 480x360") from None
+    if args.cameras < 2:
+        raise CLIError("--cameras must be at least 2")
+    if args.frames < 1:
+        raise CLIError("--frames must be at least 1")
+    if args.workers < 1:
+        raise CLIError("--workers must be at least 1 (1 = the serial loop)")
     out = Path(args.out)
     session_dir = out / "session"
     store = out / "result.zarr"
@@ -49,6 +55,7 @@ def handler(args) -> int:
         synthesize(session_dir, cameras=args.cameras, ring="half", phantom="plume",
                    frames=args.frames, size=(w, h), seed=args.seed)
     else:
+        _check_reusable(session_dir, args.cameras, args.frames, (w, h))
         print(f"demo: reusing the synthetic session in {session_dir}", file=sys.stderr)
     run_args = SimpleNamespace(serial=args.workers <= 1, workers=args.workers, scheduler=None,
                                tls=None, report=None, log=None, params=None, no_progress=args.no_progress,
@@ -65,3 +72,18 @@ def handler(args) -> int:
           f"over {len(result['frames'])} frames ({time.time() - t0:.0f} s)")
     print(f"demo: report {report}")
     return 0
+
+
+def _check_reusable(session_dir: Path, cameras: int, frames: int, size: tuple[int, int]) -> None:
+    """Refuse to reuse a demo session made with other ``--cameras``, ``--frames`` or ``--size``."""
+    from schlieren.storage.session import load_session
+    from schlieren.workers.cli import CLIError
+
+    have = load_session(session_dir)
+    a, b = have.frames
+    got = (len(have.cameras), b - a, tuple(have.cameras[0].image_size))
+    if got != (cameras, frames, tuple(size)):
+        raise CLIError(
+            f"{session_dir} holds a demo session of {got[0]} cameras x {got[1]} frames at "
+            f"{got[2][0]}x{got[2][1]}, not the {cameras} x {frames} at {size[0]}x{size[1]} asked for; "
+            f"give another --out or delete that folder")

@@ -19,8 +19,10 @@ def parse_frames(text: str | None) -> tuple[int, int] | None:
 
 
 def add_common_run_args(p: argparse.ArgumentParser) -> None:
+    from schlieren.workers.commands._args import positive_int
+
     mode = p.add_mutually_exclusive_group()
-    mode.add_argument("--workers", type=int, default=None, metavar="N",
+    mode.add_argument("--workers", type=positive_int, default=None, metavar="N",
                       help="local cluster of N worker processes (threads capped); 1 = serial loop")
     mode.add_argument("--scheduler", default=None, metavar="ADDRESS",
                       help="an existing Dask scheduler, tcp://host:port or tls://host:port")
@@ -32,8 +34,6 @@ def add_common_run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--params", default=None, metavar="FILE",
                    help="YAML file of run parameters (`schlieren params` prints them all with defaults)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
-    from schlieren.workers.commands._args import positive_int
-
     p.add_argument("--frames-per-task", type=positive_int, default=None, metavar="N",
                    help="frames of one camera per task in the cheap 2D stages (default: about 1.4 "
                         "megapixels per task, 8 frames at 480x360; results and resume do not depend on it)")

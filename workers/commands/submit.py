@@ -35,7 +35,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="result store (Zarr v3 folder)")
     p.add_argument("--cluster", required=True, choices=KINDS, help="batch system")
     p.add_argument("--config", required=True, metavar="FILE", help="cluster config YAML (deploy/slurm/jobqueue.yaml, ...)")
-    p.add_argument("--scale", type=int, default=None, metavar="N", help="worker jobs (SLURM/PBS) or pods (Kubernetes)")
+    p.add_argument("--scale", type=positive_int, default=None, metavar="N",
+                   help="worker jobs (SLURM/PBS) or pods (Kubernetes)")
     p.add_argument("--frames", default=None, metavar="A:B", help="half-open frame range to process")
     p.add_argument("--params", default=None, metavar="FILE", help="YAML file of run parameters")
     p.add_argument("--report", default=None, metavar="FILE", help="write a Dask performance report (HTML)")
