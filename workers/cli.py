@@ -77,7 +77,10 @@ def _configure_logging(verbose: int) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # argparse printed the usage error (or --help): return its code
+        return exc.code if isinstance(exc.code, int) else 2
     _configure_logging(args.verbose)
     try:
         return int(args.func(args) or 0)

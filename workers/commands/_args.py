@@ -35,12 +35,20 @@ def image_size(minimum: int = 16):
     return parse
 
 
-def positive_int(text: str) -> int:
-    """An argparse ``type`` for an integer of at least 1."""
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, not {text!r}") from None
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, not {n}")
-    return n
+def int_at_least(low: int):
+    """An argparse ``type`` for an integer of at least ``low``."""
+
+    def parse(text: str) -> int:
+        try:
+            n = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number, not {text!r}") from None
+        if n < low:
+            raise argparse.ArgumentTypeError(f"must be at least {low}, not {n}")
+        return n
+
+    return parse
+
+
+#: An argparse ``type`` for an integer of at least 1.
+positive_int = int_at_least(1)

@@ -18,9 +18,11 @@ def add_parser(sub) -> None:
                                    "buoyant plume, a few frames), runs the whole pipeline on a local "
                                    "cluster, evaluates it against its ground truth and writes the report.")
     p.add_argument("--out", default="demo-out", help="folder for the session, store and report (default demo-out)")
-    p.add_argument("--workers", type=int, default=2, help="local worker processes (1 = serial loop)")
-    p.add_argument("--cameras", type=int, default=DEFAULTS["cameras"])
-    p.add_argument("--frames", type=int, default=DEFAULTS["frames"])
+    from schlieren.workers.commands._args import int_at_least, positive_int
+
+    p.add_argument("--workers", type=positive_int, default=2, help="local worker processes (1 = serial loop)")
+    p.add_argument("--cameras", type=int_at_least(2), default=DEFAULTS["cameras"])
+    p.add_argument("--frames", type=positive_int, default=DEFAULTS["frames"])
     p.add_argument("--size", default="480x360", help="image size WxH (default 480x360)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-progress", action="store_true")
@@ -39,12 +41,6 @@ def handler(args) -> int:
         w, h = image_size(16)(args.size)
     except argparse.ArgumentTypeError as exc:
         raise CLIError(f"--size {args.size!r}: {exc}, e.g. 480x360") from None
-    if args.cameras < 2:
-        raise CLIError("--cameras must be at least 2")
-    if args.frames < 1:
-        raise CLIError("--frames must be at least 1")
-    if args.workers < 1:
-        raise CLIError("--workers must be at least 1 (1 = the serial loop)")
     out = Path(args.out)
     session_dir = out / "session"
     store = out / "result.zarr"

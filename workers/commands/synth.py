@@ -4,7 +4,7 @@ from __future__ import annotations
 
 
 from schlieren.workers.cli import CLIError
-from schlieren.workers.commands._args import image_size
+from schlieren.workers.commands._args import image_size, int_at_least, positive_int
 
 
 _size = image_size(16)
@@ -14,10 +14,10 @@ def add_parser(subparsers) -> None:
     p = subparsers.add_parser("synth", help="write a synthetic session and its ground truth",
                               description="Render a synthetic BOS capture (paper sec. 6) and its ground truth.")
     p.add_argument("out_dir", metavar="OUT_DIR")
-    p.add_argument("--cameras", type=int, default=16)
+    p.add_argument("--cameras", type=int_at_least(2), default=16)
     p.add_argument("--ring", choices=["half", "full"], default="half")
     p.add_argument("--phantom", choices=["plume", "tealights", "blob"], default="plume")
-    p.add_argument("--frames", type=int, default=8, help="frames to process (N)")
+    p.add_argument("--frames", type=positive_int, default=8, help="frames to process (N)")
     p.add_argument("--size", type=_size, default=(1440, 1080), help="WIDTHxHEIGHT (default 1440x1080)")
     p.add_argument("--flow-factor", type=int, default=3)
     p.add_argument("--seed", type=int, default=0)
@@ -55,10 +55,6 @@ def handler(args) -> int:
         console.print(f"wrote {info['path']}: {info['width_mm']:.1f} x {info['height_mm']:.1f} mm at "
                       f"{info['dpi']:.0f} dpi")
         return 0
-    if args.cameras < 2:
-        raise CLIError("--cameras must be at least 2")
-    if args.frames < 1:
-        raise CLIError("--frames must be at least 1")
     if args.flow_factor < 1:
         raise CLIError("--flow-factor must be at least 1")
     if args.video and args.bit_depth != 8:
