@@ -5,6 +5,11 @@ the result store; every tomography task maps the files read-only (``mmap_mode="r
 instead of receiving the matrix through the task graph (DASK-ZARR.md item 6).
 The directory is written under a temporary name and renamed when complete, so a crash
 never leaves a half-written cache that looks valid.
+
+A store on object storage (an fsspec URL) has no files to map: the folder's files are
+uploaded there with ``manifest.json`` last (its presence means complete), and each
+machine that loads them stages one local copy (:func:`schlieren.storage.location.stage_folder`,
+keyed by the URL and the manifest's version) and maps that.
 """
 
 from __future__ import annotations
@@ -17,20 +22,28 @@ from pathlib import Path
 
 import numpy as np
 
+from schlieren.storage import location
+
 __all__ = ["cache_dir", "save_arrays", "load_arrays", "has_arrays"]
 
 
-def cache_dir(store_path: str | os.PathLike, name: str, key: str) -> Path:
-    """Folder for a cached set of arrays: ``<store>/_cache/<name>-<key>``."""
+def cache_dir(store_path: str | os.PathLike, name: str, key: str) -> Path | str:
+    """Folder for a cached set of arrays: ``<store>/_cache/<name>-<key>`` (a URL for object stores)."""
+    if location.is_url(location.normalize(store_path)):
+        return location.join(store_path, "_cache", f"{name}-{key}")
     return Path(store_path) / "_cache" / f"{name}-{key}"
 
 
 def has_arrays(path: str | os.PathLike) -> bool:
+    if location.is_url(location.normalize(path)):
+        return location.isfile(location.join(path, "manifest.json"))
     return (Path(path) / "manifest.json").is_file()
 
 
-def save_arrays(path: str | os.PathLike, arrays: dict) -> Path:
+def save_arrays(path: str | os.PathLike, arrays: dict) -> Path | str:
     """Write a dict of arrays (and JSON-able scalars) atomically as ``.npy`` files."""
+    if location.is_url(location.normalize(path)):
+        return _upload_arrays(location.normalize(path), arrays)
     path = Path(path)
     if has_arrays(path):
         return path
@@ -52,9 +65,27 @@ def save_arrays(path: str | os.PathLike, arrays: dict) -> Path:
     return path
 
 
+def _upload_arrays(url: str, arrays: dict) -> str:
+    """:func:`save_arrays` to an object store: written locally, uploaded, ``manifest.json`` last."""
+    if has_arrays(url):
+        return url
+    local = location.local_cache_dir("upload") / f"{location.basename(url)}.{uuid.uuid4().hex}"
+    try:
+        save_arrays(local, arrays)
+        files = {location.join(url, f.name): f.read_bytes() for f in local.iterdir() if f.name != "manifest.json"}
+        location.write_many(files)
+        location.write_bytes(location.join(url, "manifest.json"), (local / "manifest.json").read_bytes())
+    finally:
+        shutil.rmtree(local, ignore_errors=True)
+    return url
+
+
 def load_arrays(path: str | os.PathLike, *, mmap: bool = True) -> dict:
-    """Read arrays saved by :func:`save_arrays` (memory-mapped read-only by default)."""
-    path = Path(path)
+    """Read arrays saved by :func:`save_arrays` (memory-mapped read-only by default).
+
+    From an object store the folder is first staged once per machine (see the module doc).
+    """
+    path = Path(location.stage_folder(path, complete_marker="manifest.json"))
     meta = json.loads((path / "manifest.json").read_text())
     out = dict(meta["scalars"])
     for k in meta["arrays"]:

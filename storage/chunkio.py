@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["ChunkLayout", "chunk_layout"]
+__all__ = ["ChunkLayout", "chunk_layout", "chunk_of"]
 
 
 @dataclass(frozen=True)
@@ -45,15 +45,7 @@ class ChunkLayout:
 
     def chunk_of(self, region: tuple[slice, ...]) -> tuple[int, ...] | None:
         """Grid coordinates of the single whole chunk ``region`` covers, or None."""
-        if len(region) != len(self.chunks):
-            return None
-        out = []
-        for sl, c, n in zip(region, self.chunks, self.shape):
-            start, stop = sl.start, sl.stop
-            if start % c or stop - start != min(c, n - start):
-                return None
-            out.append(start // c)
-        return tuple(out)
+        return chunk_of(region, self.chunks, self.shape)
 
     def path(self, coords: tuple[int, ...]) -> str:
         if not coords:  # a 0-d array has the single chunk "c"
@@ -110,6 +102,19 @@ class ChunkLayout:
             except OSError:
                 pass
             raise
+
+
+def chunk_of(region: tuple[slice, ...], chunks: tuple[int, ...], shape: tuple[int, ...]) -> tuple[int, ...] | None:
+    """Grid coordinates of the single whole chunk ``region`` covers (any store), or None."""
+    if len(region) != len(chunks):
+        return None
+    out = []
+    for sl, c, n in zip(region, chunks, shape):
+        start, stop = sl.start, sl.stop
+        if start % c or stop - start != min(c, n - start):
+            return None
+        out.append(start // c)
+    return tuple(out)
 
 
 def _all_fill(a: np.ndarray, fill) -> bool:

@@ -9,20 +9,28 @@ deflections are sub-pixel).
 Readers open their files lazily and drop open handles when pickled, so a
 :class:`FrameSource` can be built on the coordinator and shipped to a worker.
 
+Paths may be fsspec URLs (``s3://bucket/capture/cam00/frames/%05d.png``): image files
+are then fetched and decoded from memory (one request per frame, the same decoder as
+for files), and a video is staged once per machine into a local file that OpenCV reads
+(:func:`schlieren.storage.location.stage`).
+
 Errors are :class:`~schlieren.storage.errors.SessionError` naming the file, the camera
 and the frame index (as ``frames[i]``, 0-based within the source).
 """
 
 from __future__ import annotations
 
+import io
 import logging
 import os
+import posixpath
 import re
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from schlieren.storage import location
 from schlieren.storage.errors import SessionError
 
 __all__ = [
@@ -110,9 +118,18 @@ def read_image(path: str | os.PathLike, *, camera_name: str | None = None,
         The file's sample type (uint8, uint16, float32, ...).
     """
     p = os.fspath(path)
-    if not os.path.isfile(p):
+    if location.is_url(p):
+        try:
+            blob = location.read_bytes(p)
+        except (FileNotFoundError, IsADirectoryError):
+            raise SessionError("file not found", file=p, camera=camera_name, field=field) from None
+        except OSError as exc:
+            raise SessionError(f"cannot read the file ({exc})", file=p, camera=camera_name, field=field) from None
+        img = cv2.imdecode(np.frombuffer(blob, dtype=np.uint8), cv2.IMREAD_UNCHANGED) if blob else None
+    elif not os.path.isfile(p):
         raise SessionError("file not found", file=p, camera=camera_name, field=field)
-    img = cv2.imread(p, cv2.IMREAD_UNCHANGED)  # any depth, any channels, as stored
+    else:
+        img = cv2.imread(p, cv2.IMREAD_UNCHANGED)  # any depth, any channels, as stored
     if img is None or img.size == 0:
         raise SessionError("cannot decode the image (corrupt or unsupported format)", file=p,
                            camera=camera_name, field=field)
@@ -130,8 +147,11 @@ def image_header(path: str | os.PathLike) -> tuple[int, int] | None:
         from PIL import Image, UnidentifiedImageError
     except ImportError:  # pragma: no cover - Pillow comes with matplotlib
         return None
+    p = os.fspath(path)
     try:
-        with Image.open(os.fspath(path)) as im:
+        # an object store: the first 64 KiB in one ranged request hold any usual header
+        src = io.BytesIO(location.read_bytes(p, 0, 1 << 16)) if location.is_url(p) else p
+        with Image.open(src) as im:
             return int(im.size[0]), int(im.size[1])
     except (OSError, UnidentifiedImageError, ValueError, SyntaxError):
         return None
@@ -210,12 +230,12 @@ class ImageSequence(FrameSource):
         self._raw_dtype = None
 
     def _scan(self) -> tuple[int, int]:
-        directory, base = os.path.split(self.path)
+        directory, base = (posixpath if location.is_url(self.path) else os.path).split(self.path)
         directory = directory or "."
         if _DIRECTIVE.search(directory):
             return self._scan_by_stat()
         try:
-            names = os.listdir(directory)
+            names = location.listdir(directory)
         except OSError:
             raise SessionError("the frame folder does not exist or cannot be listed",
                                file=self.path, camera=self.camera_name) from None
@@ -248,16 +268,16 @@ class ImageSequence(FrameSource):
         return first, n
 
     def _scan_by_stat(self) -> tuple[int, int]:
-        if os.path.isfile(self.path % 0):
+        if location.isfile(self.path % 0):
             first = 0
-        elif os.path.isfile(self.path % 1):
+        elif location.isfile(self.path % 1):
             first = 1
         else:
             raise SessionError(
                 f"no frame file found: neither {self.path % 0} nor {self.path % 1} exists",
                 file=self.path, camera=self.camera_name, field="frames[0]")
         n = 0
-        while os.path.isfile(self.path % (first + n)):
+        while location.isfile(self.path % (first + n)):
             n += 1
         return first, n
 
@@ -294,13 +314,15 @@ class VideoFrames(FrameSource):
     jumps ahead, up to ``FORWARD_GRAB_LIMIT`` frames) reuse the open decoder. If a seek is
     refused or lands elsewhere, the reader reopens the file and decodes sequentially up to
     the frame. A frame that cannot be decoded raises
-    :class:`SessionError` naming the file, the camera and the frame index.
+    :class:`SessionError` naming the file, the camera and the frame index. A video at a
+    URL is decoded from a local copy staged once per machine.
     """
 
     def __init__(self, path: str | os.PathLike, *, camera_name: str | None = None):
         self.path = os.fspath(path)
         self.camera_name = camera_name
-        if not os.path.isfile(self.path):
+        self._file = None  # the local file OpenCV reads (a staged copy for a URL)
+        if not location.isfile(self.path):
             raise SessionError("video file not found", file=self.path, camera=camera_name)
         self._cap = None
         self._next = 0  # index of the frame the open decoder returns next
@@ -313,9 +335,18 @@ class VideoFrames(FrameSource):
         self._count = n
 
     # -- handle management ------------------------------------------------------
+    def _local(self) -> str:
+        if self._file is None or not os.path.isfile(self._file):  # unpickled on another machine
+            try:
+                self._file = location.stage(self.path)
+            except OSError as exc:
+                raise SessionError(f"cannot fetch the video ({exc})", file=self.path,
+                                   camera=self.camera_name) from None
+        return self._file
+
     def _open(self) -> cv2.VideoCapture:
         if self._cap is None:
-            cap = cv2.VideoCapture(self.path)
+            cap = cv2.VideoCapture(self._local())
             if not cap.isOpened():
                 raise SessionError("cannot open the video (corrupt or unsupported codec)",
                                    file=self.path, camera=self.camera_name)

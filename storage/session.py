@@ -20,6 +20,7 @@ import logging
 import math
 import numbers
 import os
+import posixpath
 import re
 import typing
 from dataclasses import dataclass, field
@@ -31,6 +32,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from schlieren.pipeline.geometry import Camera, Grid, Medium, rodrigues
+from schlieren.storage import location
 from schlieren.storage.errors import SessionError
 from schlieren.storage.frames import (
     FrameSource,
@@ -92,9 +94,9 @@ def _construct_mapping(loader, node, deep=False):
 _ManifestLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
 
 
-def _read_yaml(path: Path) -> Any:
+def _read_yaml(path: Path | str) -> Any:
     try:
-        text = path.read_text(encoding="utf-8")
+        text = location.read_bytes(path).decode("utf-8")
     except UnicodeDecodeError:
         raise SessionError("the manifest is not UTF-8 text", file=str(path)) from None
     except OSError as exc:
@@ -451,8 +453,9 @@ class Session:
     Attributes
     ----------
     name : str
-    root : Path
-        The session folder (absolute); manifest paths are relative to it.
+    root : Path or str
+        The session folder (absolute; a URL string for a session on object storage);
+        manifest paths are relative to it.
     manifest : dict
         The manifest as loaded (plain JSON-compatible data).
     format : str
@@ -477,7 +480,7 @@ class Session:
     """
 
     name: str
-    root: Path
+    root: Path | str
     manifest: dict
     format: str
     frame_rate: float
@@ -488,7 +491,7 @@ class Session:
     cameras: list[Camera]
     sources: list[CameraSource]
     n_frames_available: int | None
-    manifest_path: Path = field(default=Path(MANIFEST_NAME))
+    manifest_path: Path | str = field(default=Path(MANIFEST_NAME))
     allow_external_paths: bool = False
 
     @property
@@ -545,7 +548,13 @@ def _check_range(rng: tuple[int, int], n: int | None, *, file: str, field: str, 
                            file=file, field=field)
 
 
-def _resolve(spec: str, root: Path, *, allow_external: bool, file: str, camera: str, field: str) -> str:
+def _resolve(spec: str, root: Path | str, *, allow_external: bool, file: str, camera: str, field: str) -> str:
+    if location.is_url(spec):
+        if not allow_external:
+            raise SessionError(f"URL {spec!r} is not allowed (paths are relative to the session folder "
+                               "unless allow_external_paths: true)", file=file, camera=camera, field=field)
+        return location.normalize(spec)
+    remote = location.is_url(str(root))  # a session on object storage: "/"-separated paths below it
     if not allow_external:
         if spec.startswith("~") or os.path.isabs(spec) or re.match(r"^[A-Za-z]:[\\/]", spec):
             raise SessionError(f"absolute path {spec!r} is not allowed (paths are relative to the "
@@ -555,9 +564,11 @@ def _resolve(spec: str, root: Path, *, allow_external: bool, file: str, camera: 
         if norm == ".." or norm.startswith(".." + os.sep) or norm.startswith("../"):
             raise SessionError(f"path {spec!r} escapes the session folder (set allow_external_paths: "
                                "true to allow it)", file=file, camera=camera, field=field)
-        return str(root / norm)
+        return location.join(str(root), norm.replace(os.sep, "/")) if remote else str(root / norm)
     spec = os.path.expanduser(spec)
-    return spec if os.path.isabs(spec) else os.path.normpath(str(root / spec))
+    if os.path.isabs(spec):
+        return spec
+    return location.join(str(root), spec) if remote else os.path.normpath(str(root / spec))
 
 
 def _human_bytes(n: float) -> str:
@@ -733,7 +744,7 @@ def _check_reference(i: int, cam: Camera, source: CameraSource) -> None:
     ref = source.reference
     fld = f"cameras[{i}].reference"
     if source.reference_kind == "image":
-        if not os.path.isfile(ref):
+        if not location.isfile(ref):
             raise SessionError("reference image not found", file=ref, camera=cam.name, field=fld)
         size = image_header(ref)
         if size is None:
@@ -812,15 +823,28 @@ def load_session(path: str | os.PathLike, *, frames: tuple[int, int] | None = No
     SessionError
         One line naming the file, the camera and the field.
     """
-    p = Path(path).expanduser()
-    manifest_path = p / MANIFEST_NAME if p.is_dir() else p
-    mfile = str(manifest_path)
-    if not manifest_path.is_file():
-        where = f"no {MANIFEST_NAME} in the session folder" if p.is_dir() else "session manifest not found"
-        raise SessionError(where, file=mfile)
-    manifest_path = manifest_path.resolve()
-    mfile = str(manifest_path)
-    root = manifest_path.parent
+    if location.is_url(location.normalize(os.fspath(path))):
+        manifest_path = root = None
+        url = location.normalize(os.fspath(path))
+        try:
+            manifest_path = url if location.isfile(url) else location.join(url, MANIFEST_NAME)
+            found = location.isfile(manifest_path)
+        except (OSError, ValueError) as exc:  # no such bucket, no credentials, a bad endpoint...
+            raise SessionError(f"cannot reach the session ({type(exc).__name__}: {exc})", file=url) from None
+        if not found:
+            raise SessionError("session manifest not found", file=manifest_path)
+        mfile = manifest_path
+        root = location.parent(manifest_path)
+    else:
+        p = Path(path).expanduser()
+        manifest_path = p / MANIFEST_NAME if p.is_dir() else p
+        mfile = str(manifest_path)
+        if not manifest_path.is_file():
+            where = f"no {MANIFEST_NAME} in the session folder" if p.is_dir() else "session manifest not found"
+            raise SessionError(where, file=mfile)
+        manifest_path = manifest_path.resolve()
+        mfile = str(manifest_path)
+        root = manifest_path.parent
 
     raw = _read_yaml(manifest_path)
     if raw is None:
@@ -932,7 +956,7 @@ def load_session(path: str | os.PathLike, *, frames: tuple[int, int] | None = No
                 fs.close()
 
     return Session(
-        name=m.name if m.name is not None else root.name,
+        name=m.name if m.name is not None else location.basename(root),
         root=root,
         manifest=raw,
         format=m.format,

@@ -25,6 +25,7 @@ from typing import Callable
 
 from schlieren.pipeline.geometry import FlowGrid
 from schlieren.pipeline.stages import STAGES, RunConfig, bind_medium, config_to_dict
+from schlieren.storage import location
 from schlieren.storage.layout import result_layout
 from schlieren.storage.session import Session, load_session
 from schlieren.storage.store import ResultStore
@@ -84,6 +85,12 @@ def _fingerprint(session: Session, cfg: RunConfig, frames: tuple[int, int]) -> s
     return hashlib.sha256(blob.encode()).hexdigest()
 
 
+def session_location(session: Session) -> str:
+    """The manifest's absolute path, or its URL for a session on object storage."""
+    m = str(session.manifest_path)
+    return m if location.is_url(m) else str(Path(m).resolve())
+
+
 def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig) -> tuple[ResultStore, Extents, str]:
     """Create (or reopen for resume) the result store for ``session`` and return the extents."""
     a, b = session.frames
@@ -100,7 +107,7 @@ def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig) -> tup
                            n_summary=cfg.masks.n_quantiles + 1)
     attrs = {
         "session": session.manifest,
-        "session_path": str(Path(session.manifest_path).resolve()),
+        "session_path": session_location(session),
         "session_name": session.name,
         "params": config_to_dict(cfg),
         "version": software_version(),

@@ -34,7 +34,7 @@ from schlieren.workers.monitoring import log_receipt
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run_task", "run_tasks", "TaskFailed", "RunContext", "context"]
+__all__ = ["run_task", "run_tasks", "flush_writes", "TaskFailed", "RunContext", "context"]
 
 
 class TaskFailed(Exception):
@@ -132,7 +132,7 @@ class RunContext:
 @functools.lru_cache(maxsize=4)
 def context(store_path: str, run_token: str = "") -> RunContext:
     """The run's context in this process (``run_token`` tells apart runs at one path)."""
-    store = ResultStore.open(store_path)
+    store = ResultStore.open(store_path, write_behind=True)  # run_task(s) flush before returning
     a = store.attrs
     run = a["run"]
     session = load_session(a["session_path"], frames=tuple(run["frames"]), check_files=False)
@@ -376,6 +376,26 @@ def run_task(store_path: str, stage_name: str, index: tuple[int, ...], *_deps, r
     executor passes them so the graph carries the dependencies); they are ignored.
     ``run_token`` (the plan's) keys this process's caches of the run.
     """
+    receipt = _run_one(store_path, stage_name, index, run_token)
+    flush_writes(store_path, run_token, stage_name)
+    return receipt
+
+
+def flush_writes(store_path: str, run_token: str = "", stage_name: str = "store") -> None:
+    """Wait until this process's writes to the run's store are stored.
+
+    In an object store chunks and markers go out in the background (storage/remote.py);
+    a task's dependents may run elsewhere, so every Dask task calls this before it
+    returns. A failed write raises :class:`TaskFailed` naming the array and index (its
+    marker was not sent, so a rerun computes it again).
+    """
+    try:
+        context(str(store_path), str(run_token)).store.flush()
+    except OSError as exc:
+        raise TaskFailed(f"{stage_name}: {exc}") from None
+
+
+def _run_one(store_path: str, stage_name: str, index: tuple[int, ...], run_token: str) -> dict:
     index = tuple(int(i) for i in index)
     t0 = time.perf_counter()
     c0 = time.thread_time()
@@ -413,18 +433,26 @@ def run_task(store_path: str, stage_name: str, index: tuple[int, ...], *_deps, r
     return receipt
 
 
-def run_tasks(store_path: str, stage_name: str, indices, *_deps, run_token: str = "") -> list[dict]:
+def run_tasks(store_path: str, stage_name: str, indices, *_deps, run_token: str = "",
+              flush: bool = True) -> list[dict]:
     """Run one stage at each of ``indices`` in order (a batched task) and return the receipts.
 
     Every index is attempted even after one fails, so everything computable is written
     and marked; then the first failure is raised (its message names the camera and
-    frame, with how many more failed in this task).
+    frame, with how many more failed in this task). ``flush=False`` returns without
+    waiting for background writes (the serial loop, which reads them back in this
+    process, calls :func:`flush_writes` at its end).
     """
     receipts: list[dict] = []
     failed: list[str] = []
     for index in indices:
         try:
-            receipts.append(run_task(store_path, stage_name, index, run_token=run_token))
+            receipts.append(_run_one(store_path, stage_name, index, run_token))
+        except TaskFailed as exc:
+            failed.append(str(exc))
+    if flush:
+        try:
+            flush_writes(store_path, run_token, stage_name)
         except TaskFailed as exc:
             failed.append(str(exc))
     if failed:
