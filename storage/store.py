@@ -232,8 +232,11 @@ class ResultStore:
                                 attributes={**root_attrs, "template_complete": False, "created": _now()})
         cls(group, loc, None, "r+")._create_missing(specs)
         blobs = {key: buf.to_bytes() for key, buf in objects.items()}
-        location.write_bytes(location.join(loc, "zarr.json"), blobs.pop("zarr.json"))
-        location.write_many({location.join(loc, key): blob for key, blob in blobs.items()})
+        try:
+            location.write_bytes(location.join(loc, "zarr.json"), blobs.pop("zarr.json"))
+            location.write_many({location.join(loc, key): blob for key, blob in blobs.items()})
+        except OSError as exc:  # no such bucket, no write permission...
+            raise StoreError(f"cannot write the store ({type(exc).__name__}: {exc})", file=loc) from None
         store = cls(_open_group(loc, mode="r+", zarr_format=3), loc, loc, "r+")
         store._group.attrs.update({"template_complete": True})
         store._prefetch(store._members())
