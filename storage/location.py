@@ -100,14 +100,28 @@ def storage_options(loc: str) -> dict:
     s3fs reads the access keys and the region through botocore; the endpoint of an
     S3-compatible server (MinIO, Ceph, a test server) is also taken from
     ``AWS_ENDPOINT_URL_S3`` or ``AWS_ENDPOINT_URL``, which every s3fs release honours this way.
+
+    Two s3fs settings suit whole-chunk traffic: ``max_concurrency=1`` (otherwise every
+    whole-object read first asks the object's size, a second request per chunk; large
+    files are staged with more streams explicitly, see :func:`stage`) and no listings
+    cache (a long-lived worker must see objects other processes wrote since).
     """
     scheme = loc.split("://", 1)[0].lower()
     opts: dict = {}
     if scheme in ("s3", "s3a"):
+        opts.update(max_concurrency=1, use_listings_cache=False)
         endpoint = os.environ.get("AWS_ENDPOINT_URL_S3") or os.environ.get("AWS_ENDPOINT_URL")
         if endpoint:
             opts["endpoint_url"] = endpoint
     return opts
+
+
+def _get_large(fs, path: str, local: str) -> None:
+    """Download ``path`` to ``local`` (several streams where the filesystem can)."""
+    if fs.protocol and "s3" in (fs.protocol if isinstance(fs.protocol, (tuple, list)) else (fs.protocol,)):
+        fs.get_file(path, local, max_concurrency=8)
+    else:
+        fs.get_file(path, local)
 
 
 def filesystem(loc: str | os.PathLike):
@@ -322,7 +336,7 @@ def stage(loc: str | os.PathLike) -> str:
     if not target.is_file():
         tmp = folder / f".{target.name}.{uuid.uuid4().hex}.partial"
         try:
-            fs.get_file(path, str(tmp))
+            _get_large(fs, path, str(tmp))
             os.replace(tmp, target)
         finally:
             if tmp.exists():
@@ -350,7 +364,7 @@ def stage_folder(loc: str | os.PathLike, *, complete_marker: str) -> str:
             for entry in fs.ls(path, detail=False):
                 name = posixpath.basename(entry.rstrip("/"))
                 if name != complete_marker:
-                    fs.get_file(entry, str(tmp / name))
+                    _get_large(fs, entry, str(tmp / name))
             fs.get_file(marker, str(tmp / complete_marker))
             try:
                 os.replace(tmp, target)

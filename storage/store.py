@@ -607,10 +607,11 @@ class ResultStore:
                                      field=f"{MARKER_GROUP}/{stage_}")
                 self._markers_listed[stage_] = set()
             for key in location.find(location.join(self._location, MARKER_GROUP)):
-                stage_, _, rest = key.partition("/c/")
-                if stage_ in self._markers_listed and rest:
+                # "<stage>/c/<i>/<j>", or "<stage>/c" for the single chunk of a 0-d marker
+                stage_, sep, rest = key.partition("/c/") if not key.endswith("/c") else (key[:-2], "0d", "")
+                if stage_ in self._markers_listed and sep:
                     try:
-                        self._markers_listed[stage_].add(tuple(int(p) for p in rest.split("/")))
+                        self._markers_listed[stage_].add(tuple(int(p) for p in rest.split("/")) if rest else ())
                     except ValueError:
                         continue
         return self._markers_listed[stage]
