@@ -36,7 +36,7 @@ from typing import Any
 
 __all__ = [
     "is_url", "normalize", "display", "join", "parent", "basename", "filesystem", "storage_options",
-    "exists", "isfile", "listdir", "find", "read_bytes", "write_bytes", "write_many", "remove", "zarr_open_group",
+    "exists", "isfile", "listdir", "find", "read_bytes", "write_bytes", "create_exclusive", "write_many", "remove", "zarr_open_group",
     "stage", "stage_folder", "local_cache_dir", "CACHE_ENV",
 ]
 
@@ -240,6 +240,35 @@ def write_bytes(loc: str | os.PathLike, data: bytes) -> None:
         except OSError:
             pass
         raise
+
+
+def create_exclusive(loc: str | os.PathLike, data: bytes) -> bool:
+    """Create file ``loc`` holding ``data`` only if it does not exist; False if it does.
+
+    Atomic against concurrent creators (a lock or lease file): locally a complete
+    temporary file is hard-linked to the name (``link`` fails if it exists); on object
+    storage a conditional PUT (``If-None-Match: *``, honoured by S3 and S3-compatible
+    servers that implement conditional writes).
+    """
+    loc = normalize(loc)
+    if is_url(loc):
+        fs, path = filesystem(loc)
+        try:
+            fs.pipe_file(path, bytes(data), mode="create")
+        except FileExistsError:
+            return False
+        return True
+    os.makedirs(os.path.dirname(os.path.abspath(loc)), exist_ok=True)
+    tmp = f"{loc}.{uuid.uuid4().hex}.partial"
+    with open(tmp, "wb") as f:
+        f.write(data)
+    try:
+        os.link(tmp, loc)
+        return True
+    except FileExistsError:
+        return False
+    finally:
+        os.remove(tmp)
 
 
 def write_many(files: dict[str, bytes]) -> None:

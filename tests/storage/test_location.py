@@ -67,6 +67,18 @@ def test_bytes_round_trip_listing_and_removal(root):
     assert location.find(location.join(root, "nothing")) == []
 
 
+def test_exclusive_creation_lets_one_writer_win(root):
+    """The primitive for a one-writer lease on a folder or an object store."""
+    lease = location.join(root, "run.zarr.lease")
+    assert location.create_exclusive(lease, b"holder A")
+    assert not location.create_exclusive(lease, b"holder B")
+    assert location.read_bytes(lease) == b"holder A"
+    location.remove(lease)
+    assert location.create_exclusive(lease, b"holder B")
+    assert location.read_bytes(lease) == b"holder B"
+    assert sorted(location.listdir(root)) == ["run.zarr.lease"]  # no temporary files left
+
+
 def test_a_local_path_is_its_own_staged_copy(tmp_path):
     p = tmp_path / "v.avi"
     p.write_bytes(b"data")
