@@ -75,6 +75,7 @@ def _upload_arrays(url: str, arrays: dict) -> str:
         files = {location.join(url, f.name): f.read_bytes() for f in local.iterdir() if f.name != "manifest.json"}
         location.write_many(files)
         location.write_bytes(location.join(url, "manifest.json"), (local / "manifest.json").read_bytes())
+        location.adopt_staged_folder(url, local, complete_marker="manifest.json")
     finally:
         shutil.rmtree(local, ignore_errors=True)
     return url

@@ -25,6 +25,7 @@ import logging
 import os
 import posixpath
 import re
+from collections import OrderedDict
 from pathlib import Path
 
 import cv2
@@ -100,7 +101,7 @@ def _grey_of_raw(img: np.ndarray, *, file: str, camera: str | None, field: str |
 
 
 def read_image(path: str | os.PathLike, *, camera_name: str | None = None,
-               field: str | None = None) -> tuple[np.ndarray, np.dtype]:
+               field: str | None = None, fetch=None) -> tuple[np.ndarray, np.dtype]:
     """Read one image file as float32 grey levels.
 
     Parameters
@@ -109,6 +110,8 @@ def read_image(path: str | os.PathLike, *, camera_name: str | None = None,
         PNG/TIFF (8 or 16 bit, grey or colour) or any format OpenCV reads.
     camera_name, field : str, optional
         Named in the error message if the file is missing or cannot be decoded.
+    fetch : callable, optional
+        ``fetch(url) -> bytes`` for a URL (default :func:`schlieren.storage.location.read_bytes`).
 
     Returns
     -------
@@ -120,7 +123,7 @@ def read_image(path: str | os.PathLike, *, camera_name: str | None = None,
     p = os.fspath(path)
     if location.is_url(p):
         try:
-            blob = location.read_bytes(p)
+            blob = (fetch or location.read_bytes)(p)
         except (FileNotFoundError, IsADirectoryError):
             raise SessionError("file not found", file=p, camera=camera_name, field=field) from None
         except OSError as exc:
@@ -228,6 +231,27 @@ class ImageSequence(FrameSource):
         self.first, self._count = self._scan()
         self._size = None
         self._raw_dtype = None
+        self._blobs: OrderedDict[str, bytes] = OrderedDict()  # frames fetched from a URL
+
+    #: Bytes of encoded frames a reader at a URL keeps: stages read the same frames
+    #: (statistics, strobe search, deflection), and each fetch is a request.
+    BLOB_CACHE_BYTES = 32 * 2 ** 20
+
+    def _fetch(self, url: str) -> bytes:
+        blob = self._blobs.get(url)
+        if blob is None:
+            blob = location.read_bytes(url)
+            self._blobs[url] = blob
+            while sum(len(b) for b in self._blobs.values()) > self.BLOB_CACHE_BYTES and len(self._blobs) > 1:
+                self._blobs.popitem(last=False)
+        else:
+            self._blobs.move_to_end(url)
+        return blob
+
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        state["_blobs"] = OrderedDict()
+        return state
 
     def _scan(self) -> tuple[int, int]:
         directory, base = (posixpath if location.is_url(self.path) else os.path).split(self.path)
@@ -289,7 +313,8 @@ class ImageSequence(FrameSource):
 
     def read(self, i: int) -> np.ndarray:
         i = self._check_index(i)
-        img, raw = read_image(self.file_of(i), camera_name=self.camera_name, field=f"frames[{i}]")
+        img, raw = read_image(self.file_of(i), camera_name=self.camera_name, field=f"frames[{i}]",
+                              fetch=self._fetch)
         self._remember(img, raw, i)
         return img
 

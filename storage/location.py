@@ -37,7 +37,7 @@ from typing import Any
 __all__ = [
     "is_url", "normalize", "display", "join", "parent", "basename", "filesystem", "storage_options",
     "exists", "isfile", "listdir", "find", "read_bytes", "write_bytes", "create_exclusive", "write_many", "remove", "zarr_open_group",
-    "stage", "stage_folder", "local_cache_dir", "CACHE_ENV",
+    "stage", "stage_folder", "adopt_staged_folder", "local_cache_dir", "CACHE_ENV",
 ]
 
 #: Environment variable naming the local folder for staged copies (default: a
@@ -373,6 +373,23 @@ def stage(loc: str | os.PathLike) -> str:
     return str(target)
 
 
+def _staged_folder(fs, loc: str, path: str, complete_marker: str) -> Path:
+    return local_cache_dir("staged") / _stage_key(loc, _version_key(fs, posixpath.join(path, complete_marker)))
+
+
+def adopt_staged_folder(loc: str | os.PathLike, local: str | os.PathLike, *, complete_marker: str) -> None:
+    """Keep ``local``, the folder just uploaded to ``loc``, as its staged copy (moved, not copied),
+    so the process that wrote it does not download it again."""
+    loc = normalize(loc)
+    if not is_url(loc):
+        return
+    fs, path = filesystem(loc)
+    try:
+        os.replace(local, _staged_folder(fs, loc, path, complete_marker))
+    except OSError:  # staged meanwhile by another process
+        pass
+
+
 def stage_folder(loc: str | os.PathLike, *, complete_marker: str) -> str:
     """A local folder with the files of folder ``loc`` (not recursive): itself if local.
 
@@ -385,7 +402,7 @@ def stage_folder(loc: str | os.PathLike, *, complete_marker: str) -> str:
     fs, path = filesystem(loc)
     marker = posixpath.join(path, complete_marker)
     root = local_cache_dir("staged")
-    target = root / _stage_key(loc, _version_key(fs, marker))
+    target = _staged_folder(fs, loc, path, complete_marker)
     if not (target / complete_marker).is_file():
         tmp = root / f".{target.name}.{uuid.uuid4().hex}.partial"
         tmp.mkdir()

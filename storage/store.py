@@ -192,11 +192,16 @@ class ResultStore:
         if existing is not None:
             members = existing._members()
             existing._check_resume(root_attrs, specs, members)
-            existing._create_missing(specs, existing=members)
+            if existing._remote is not None and any(sp.name not in members for sp in specs):
+                # an interrupted upload: complete it through zarr, past the root's array list
+                existing._group = _open_group(loc, mode="r+", zarr_format=3, use_consolidated=False)
+            created = existing._create_missing(specs, existing=members)
             if not existing._group.attrs.get("template_complete", False):
                 existing._group.attrs.update({"template_complete": True})
             if existing._remote is not None:
-                existing._prefetch(members)
+                if created:  # an interrupted upload: the final root lists every array
+                    existing._consolidate_and_reopen()
+                existing._prefetch(existing._members())
             log.info("resuming the existing store %s", loc)
             return existing
 
@@ -221,9 +226,10 @@ class ResultStore:
         Through zarr's API each array costs several sequential requests (existence checks
         of the node and its parents, then the metadata): some 370 for the result layout,
         4 s against a local S3 server. The same objects are built here in a MemoryStore
-        and uploaded concurrently, between the root metadata written first (with
-        ``template_complete`` false, so a run killed meanwhile resumes through
-        :meth:`_create_missing`) and its final version.
+        and uploaded concurrently, between a first root metadata (``template_complete``
+        false, so a run killed meanwhile resumes through :meth:`_create_missing`) and the
+        final one, which also holds every array's metadata (zarr's consolidated metadata:
+        a worker opening the store then reads one object instead of one per array).
         """
         from zarr.storage import MemoryStore
 
@@ -231,16 +237,25 @@ class ResultStore:
         group = zarr.open_group(MemoryStore(store_dict=objects), mode="w-", zarr_format=3,
                                 attributes={**root_attrs, "template_complete": False, "created": _now()})
         cls(group, loc, None, "r+")._create_missing(specs)
+        first_root = objects["zarr.json"].to_bytes()
+        group.attrs.update({"template_complete": True})
+        _consolidate(group)
         blobs = {key: buf.to_bytes() for key, buf in objects.items()}
+        final_root = blobs.pop("zarr.json")
         try:
-            location.write_bytes(location.join(loc, "zarr.json"), blobs.pop("zarr.json"))
+            location.write_bytes(location.join(loc, "zarr.json"), first_root)
             location.write_many({location.join(loc, key): blob for key, blob in blobs.items()})
+            location.write_bytes(location.join(loc, "zarr.json"), final_root)
         except OSError as exc:  # no such bucket, no write permission...
             raise StoreError(f"cannot write the store ({type(exc).__name__}: {exc})", file=loc) from None
         store = cls(_open_group(loc, mode="r+", zarr_format=3), loc, loc, "r+")
-        store._group.attrs.update({"template_complete": True})
         store._prefetch(store._members())
         return store
+
+    def _consolidate_and_reopen(self) -> None:
+        _consolidate(self._group)
+        self._group = _open_group(self._location, mode="r+", zarr_format=3)
+        self._arrays.clear()
 
     def _members(self) -> dict[str, Any]:
         """Every array and group below the root by path (zarr fetches their metadata concurrently)."""
@@ -314,8 +329,10 @@ class ResultStore:
                                  f"{arr.dtype} does not match the layout {spec.shape} chunks {spec.chunks} "
                                  f"{spec.dtype}; not overwriting it", file=loc, field=spec.name)
 
-    def _create_missing(self, specs: list[ArraySpec], existing: Iterable[str] = ()) -> None:
+    def _create_missing(self, specs: list[ArraySpec], existing: Iterable[str] = ()) -> int:
+        """Create the arrays of ``specs`` not in ``existing``; returns how many."""
         existing = set(existing)
+        created = 0
         for spec in specs:
             if spec.name in existing:
                 continue
@@ -335,9 +352,11 @@ class ResultStore:
             if spec.dtype != "str":
                 kwargs["compressors"] = _COMPRESSORS
             arr = parent.create_array(leaf, **kwargs)
+            created += 1
             if spec.data is not None:
                 arr[...] = np.asarray(spec.data) if spec.dtype != "str" else np.asarray(spec.data, dtype=str)
         self._arrays.clear()
+        return created
 
     @classmethod
     def open(cls, path, *, mode: str = "r+", write_behind: bool = False) -> "ResultStore":
@@ -641,6 +660,13 @@ class ResultStore:
 
     def __repr__(self) -> str:
         return f"ResultStore({self._location!r}, mode={self._mode!r})"
+
+
+def _consolidate(group: zarr.Group) -> None:
+    """Write every array's metadata into the root's (zarr's consolidated metadata)."""
+    with warnings.catch_warnings():  # "not part of the Zarr format 3 specification" (yet)
+        warnings.filterwarnings("ignore", message=".*[Cc]onsolidated metadata")
+        zarr.consolidate_metadata(group.store, zarr_format=3)
 
 
 def _open_group(path, **kwargs) -> zarr.Group:
