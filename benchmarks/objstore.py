@@ -1,10 +1,11 @@
 """Object storage against folders: the tiny session run from and into an S3 bucket.
 
-    python benchmarks/objstore.py [--repeats 3] [--modes serial,dask-2]
+    python benchmarks/objstore.py [--repeats 3] [--modes serial,dask-2] [--sessions tiny,demo]
 
-Renders the tests' tiny session (4 cameras x 3 frames at 192x144), starts moto's S3
-server on 127.0.0.1 (the test extra's ``moto[server]``), uploads the session to a bucket
-and, for each mode, reconstructs it alternately
+Renders the tests' tiny session (4 cameras x 3 frames at 192x144) and the demo's (8
+cameras x 4 frames at 480x360), starts moto's S3 server on 127.0.0.1 (the test extra's
+``moto[server]``), uploads each session to a bucket and, for each mode, reconstructs it
+alternately
 
 * ``folder``: session folder -> folder store (chunk files written by storage/chunkio.py);
 * ``s3``: session in the bucket -> store in the bucket (zarr's FsspecStore, s3fs),
@@ -37,9 +38,13 @@ import urllib.request
 from pathlib import Path
 
 RESULTS = Path(__file__).resolve().parent / "results"
-#: the tests' tiny session (tests/conftest.py TINY)
-TINY = dict(cameras=4, ring="half", phantom="blob", frames=3, size=(192, 144), seed=3,
-            recon_voxel=0.005, supersample=2)
+SESSIONS = {
+    #: the tests' tiny session (tests/conftest.py TINY): about 8 ms of compute per chunk
+    "tiny": dict(cameras=4, ring="half", phantom="blob", frames=3, size=(192, 144), seed=3,
+                 recon_voxel=0.005, supersample=2),
+    #: ``schlieren demo``'s session
+    "demo": dict(cameras=8, ring="half", phantom="plume", frames=4, size=(480, 360), seed=0),
+}
 
 
 def start_server(log_path: Path) -> tuple[subprocess.Popen, str]:
@@ -77,9 +82,11 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--modes", default="serial,dask-2")
+    ap.add_argument("--sessions", default="tiny,demo")
     ap.add_argument("--workdir", default=None)
     args = ap.parse_args(argv)
     work = Path(args.workdir or tempfile.mkdtemp(prefix="schlieren-objstore-"))
+    work.mkdir(parents=True, exist_ok=True)
     log_path = work / "s3-server.log"
     proc, endpoint = start_server(log_path)
     os.environ.update(AWS_ACCESS_KEY_ID="bench", AWS_SECRET_ACCESS_KEY="bench", AWS_DEFAULT_REGION="us-east-1",
@@ -95,17 +102,24 @@ def main(argv=None) -> int:
 def _run(args, work: Path, log_path: Path) -> int:
     import fsspec
 
-    from schlieren.workers.cluster import ClusterOptions, open_client
-    from schlieren.workers.run import run_session
     from schlieren.workers.synth import synthesize
 
-    session = work / "session"
-    if not (session / "session.yaml").exists():
-        synthesize(session, **TINY)
     fs = fsspec.filesystem("s3", endpoint_url=os.environ["AWS_ENDPOINT_URL"])
     fs.mkdir("bench")
-    fs.put(f"{session}/", "bench/session/", recursive=True)
-    s3_session = "s3://bench/session"
+    results: dict[str, dict] = {}
+    for name in [n.strip() for n in args.sessions.split(",") if n.strip()]:
+        session = work / f"session-{name}"
+        if not (session / "session.yaml").exists():
+            synthesize(session, **SESSIONS[name])
+        fs.put(f"{session}/", f"bench/session-{name}/", recursive=True)
+        for mode, r in _modes(args, work, log_path, session, f"s3://bench/session-{name}").items():
+            results[f"{name} {mode}"] = r
+    return _write(args, results)
+
+
+def _modes(args, work: Path, log_path: Path, session: Path, s3_session: str) -> dict[str, dict]:
+    from schlieren.workers.cluster import ClusterOptions, open_client
+    from schlieren.workers.run import run_session
 
     results: dict[str, dict] = {}
     counter = [0]
@@ -113,9 +127,9 @@ def _run(args, work: Path, log_path: Path) -> int:
     def one(kind: str, client) -> tuple[float, dict]:
         counter[0] += 1
         if kind == "folder":
-            src, out = session, work / f"run-{counter[0]}.zarr"
+            src, out = session, work / f"run-{session.name}-{counter[0]}.zarr"
         else:
-            src, out = s3_session, f"s3://bench/run-{counter[0]}.zarr"
+            src, out = s3_session, f"s3://bench/run-{session.name}-{counter[0]}.zarr"
         start, _ = requests_in(log_path, 0)
         t0 = time.perf_counter()
         s = run_session(src, out, client=client, serial=client is None)
@@ -142,7 +156,7 @@ def _run(args, work: Path, log_path: Path) -> int:
                     times[kind].append(round(dt, 3))
                     if kind == "s3":
                         reqs.append(counts)
-                    print(f"{mode} {kind} run {i}: {dt:.2f} s", file=sys.stderr)
+                    print(f"{session.name} {mode} {kind} run {i}: {dt:.2f} s", file=sys.stderr)
         finally:
             if ctx:
                 ctx.__exit__(None, None, None)
@@ -155,9 +169,13 @@ def _run(args, work: Path, log_path: Path) -> int:
             "ratio_median": round(statistics.median(times["s3"]) / statistics.median(times["folder"]), 3),
             "requests_per_s3_run": reqs[-1] if reqs else {},
         }
+    return results
 
+
+def _write(args, results: dict[str, dict]) -> int:
     out = {
-        "session": {k: list(v) if isinstance(v, tuple) else v for k, v in TINY.items()},
+        "sessions": {k: {kk: list(v) if isinstance(v, tuple) else v for kk, v in d.items()}
+                     for k, d in SESSIONS.items() if k in args.sessions},
         "server": "moto (Python S3 server) on 127.0.0.1, sharing the machine's cores",
         "repeats": args.repeats,
         "results": results,
@@ -167,11 +185,14 @@ def _run(args, work: Path, log_path: Path) -> int:
     }
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "objstore.json").write_text(json.dumps(out, indent=2) + "\n")
-    lines = ["# Object storage vs folders: the tiny session (4 cameras x 3 frames, 192x144)", "",
+    lines = ["# Object storage vs folders", "",
+             "Sessions: tiny = the tests' (4 cameras x 3 frames, 192x144); demo = `schlieren demo`'s "
+             "(8 cameras x 4 frames, 480x360). Folder: session folder -> folder store; S3: session in a "
+             "bucket -> store in a bucket.", "",
              f"moto's S3 server on 127.0.0.1; best of {args.repeats} runs each after a warm-up run "
              "(folder and S3 runs alternate); load average after the runs "
              f"{', '.join(f'{x:.1f}' for x in os.getloadavg())} on {os.cpu_count()} cores.", "",
-             "| mode | folder best (s) | S3 best (s) | S3 / folder best | S3 / folder median | requests per S3 run |",
+             "| session, mode | folder best (s) | S3 best (s) | S3 / folder best | S3 / folder median | requests per S3 run |",
              "| --- | --- | --- | --- | --- | --- |"]
     for mode, r in results.items():
         req = ", ".join(f"{k} {v}" for k, v in sorted(r["requests_per_s3_run"].items()))
@@ -184,7 +205,7 @@ def _run(args, work: Path, log_path: Path) -> int:
 
 
 def argv_or_default(args) -> list[str]:
-    return [f"--repeats {args.repeats}", f"--modes {args.modes}"]
+    return [f"--repeats {args.repeats}", f"--modes {args.modes}", f"--sessions {args.sessions}"]
 
 
 if __name__ == "__main__":
