@@ -44,6 +44,7 @@ __all__ = [
     "is_pattern",
     "is_video",
     "image_header",
+    "image_headers",
     "VIDEO_EXTENSIONS",
     "IMAGE_EXTENSIONS",
 ]
@@ -139,7 +140,7 @@ def read_image(path: str | os.PathLike, *, camera_name: str | None = None,
     return _grey_of_raw(img, file=p, camera=camera_name, field=field), img.dtype
 
 
-def image_header(path: str | os.PathLike) -> tuple[int, int] | None:
+def image_header(path: str | os.PathLike, head: bytes | None = None) -> tuple[int, int] | None:
     """``(width, height)`` from an image file's header without decoding it, or None.
 
     Uses Pillow's lazy opener (reads a few bytes). None means the file is not an image
@@ -153,11 +154,26 @@ def image_header(path: str | os.PathLike) -> tuple[int, int] | None:
     p = os.fspath(path)
     try:
         # an object store: the first 64 KiB in one ranged request hold any usual header
-        src = io.BytesIO(location.read_bytes(p, 0, 1 << 16)) if location.is_url(p) else p
+        # (``head``: those bytes, already fetched with others'; see :func:`image_headers`)
+        if head is None and location.is_url(p):
+            head = location.read_bytes(p, 0, HEADER_BYTES)
+        src = io.BytesIO(head) if head is not None else p
         with Image.open(src) as im:
             return int(im.size[0]), int(im.size[1])
     except (OSError, UnidentifiedImageError, ValueError, SyntaxError):
         return None
+
+
+#: Leading bytes of an image file fetched from an object store to read its header.
+HEADER_BYTES = 1 << 16
+
+
+def image_headers(paths: list[str]) -> list[tuple[int, int] | None]:
+    """:func:`image_header` of each file; from an object store in one concurrent batch."""
+    if not paths or not location.is_url(os.fspath(paths[0])):
+        return [image_header(p) for p in paths]
+    heads = location.read_many([os.fspath(p) for p in paths], 0, HEADER_BYTES)
+    return [image_header(p, h) if h is not None else None for p, h in zip(paths, heads)]
 
 
 class FrameSource:
@@ -183,6 +199,9 @@ class FrameSource:
     def file_of(self, i: int) -> str:
         """The file holding frame ``i`` (the video file for videos)."""
         return self.path
+
+    def prefetch(self, indices) -> None:
+        """Frames about to be read (a hint: image files at a URL are fetched together)."""
 
     @property
     def size(self) -> tuple[int, int]:
@@ -241,12 +260,26 @@ class ImageSequence(FrameSource):
         blob = self._blobs.get(url)
         if blob is None:
             blob = location.read_bytes(url)
-            self._blobs[url] = blob
-            while sum(len(b) for b in self._blobs.values()) > self.BLOB_CACHE_BYTES and len(self._blobs) > 1:
-                self._blobs.popitem(last=False)
+            self._keep(url, blob)
         else:
             self._blobs.move_to_end(url)
         return blob
+
+    def _keep(self, url: str, blob: bytes) -> None:
+        self._blobs[url] = blob
+        while sum(len(b) for b in self._blobs.values()) > self.BLOB_CACHE_BYTES and len(self._blobs) > 1:
+            self._blobs.popitem(last=False)
+
+    def prefetch(self, indices) -> None:
+        """Fetch the files of frames ``indices`` from a URL in one concurrent batch (kept
+        for the reads that follow, within :attr:`BLOB_CACHE_BYTES`); nothing for folders."""
+        if not location.is_url(self.path):
+            return
+        urls = [self.file_of(k) for k in sorted(set(int(k) for k in indices)) if 0 <= k < self._count]
+        urls = [u for u in urls if u not in self._blobs]
+        for url, blob in zip(urls, location.read_many(urls)):
+            if blob is not None:  # a missing file is reported by the read itself
+                self._keep(url, blob)
 
     def __getstate__(self):
         state = self.__dict__.copy()

@@ -36,7 +36,7 @@ from typing import Any
 
 __all__ = [
     "is_url", "normalize", "display", "join", "parent", "basename", "filesystem", "storage_options",
-    "exists", "isfile", "listdir", "find", "read_bytes", "write_bytes", "create_exclusive", "write_many", "remove", "zarr_open_group",
+    "exists", "isfile", "listdir", "find", "read_bytes", "read_many", "write_bytes", "create_exclusive", "write_many", "remove", "zarr_open_group",
     "stage", "stage_folder", "adopt_staged_folder", "local_cache_dir", "CACHE_ENV",
 ]
 
@@ -214,6 +214,28 @@ def read_bytes(loc: str | os.PathLike, start: int | None = None, end: int | None
             return f.read() if end is None else f.read(end - (start or 0))
     fs, path = filesystem(loc)
     return fs.cat_file(path, start=start, end=end)
+
+
+def read_many(locs: list[str], start: int | None = None, end: int | None = None) -> list[bytes | None]:
+    """:func:`read_bytes` of each of ``locs`` (all local, or all on one object store), the
+    remote ones in one concurrent batch; None for a file that does not exist."""
+    locs = [normalize(x) for x in locs]
+    if not locs or not is_url(locs[0]):
+        out: list[bytes | None] = []
+        for loc in locs:
+            try:
+                out.append(read_bytes(loc, start, end))
+            except OSError:
+                out.append(None)
+        return out
+    fs, _ = filesystem(locs[0])
+    paths = [filesystem(x)[1] for x in locs]
+    if start is None and end is None:
+        got = fs.cat(paths, on_error="return")
+    else:
+        got = dict(zip(paths, fs.cat_ranges(paths, [start or 0] * len(paths), [end] * len(paths),
+                                            on_error="return")))
+    return [v if isinstance(v, (bytes, bytearray)) else None for v in (got.get(p) for p in paths)]
 
 
 def write_bytes(loc: str | os.PathLike, data: bytes) -> None:

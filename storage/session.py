@@ -39,6 +39,7 @@ from schlieren.storage.frames import (
     ImageSequence,
     VideoFrames,
     image_header,
+    image_headers,
     is_pattern,
     is_video,
     open_frames,
@@ -722,8 +723,7 @@ def _check_frames_content(i: int, cam: Camera, fs: FrameSource, indices: list[in
                 break
         return
     if isinstance(fs, ImageSequence):
-        for k in indices:
-            size = image_header(fs.file_of(k))
+        for k, size in zip(indices, image_headers([fs.file_of(k) for k in indices])):
             if size is None:  # a format Pillow does not know, or a corrupt file: decode it
                 img, _ = read_image(fs.file_of(k), camera_name=cam.name, field=f"frames[{k}]")
                 size = (img.shape[1], img.shape[0])

@@ -171,6 +171,7 @@ def _sync(ctx: RunContext, c: int) -> dict:
         a, b = s.strobe_search
         src = ctx.frames(c)
         b = min(b, len(src))
+        src.prefetch(range(a, b))
         rows = np.stack([src.read(f).mean(axis=1) for f in range(a, b)])
         try:
             det = sync.detect_flash(rows, **kernel_kwargs(ctx.config.flash, sync.detect_flash))
@@ -433,6 +434,23 @@ def _run_one(store_path: str, stage_name: str, index: tuple[int, ...], run_token
     return receipt
 
 
+def _prefetch_frames(store_path: str, run_token: str, stage_name: str, indices) -> None:
+    """The input frames a batch of ``frames``/``deflection`` indices reads, fetched together
+    (one concurrent batch from an object store; nothing happens for folders)."""
+    first = {"frames": "first_frame", "deflection": "raw_first"}.get(stage_name)
+    if first is None or not indices:
+        return
+    try:
+        ctx = context(str(store_path), str(run_token))
+        by_camera: dict[int, list[int]] = {}
+        for c, k in indices:
+            by_camera.setdefault(int(c), []).append(getattr(ctx, first) + int(k))
+        for c, frames in by_camera.items():
+            ctx.frames(c).prefetch(frames)
+    except Exception:  # noqa: BLE001 - only a hint: each read reports its own problem, naming the frame
+        log.debug("prefetching the frames of %s %s failed", stage_name, indices, exc_info=True)
+
+
 def run_tasks(store_path: str, stage_name: str, indices, *_deps, run_token: str = "",
               flush: bool = True) -> list[dict]:
     """Run one stage at each of ``indices`` in order (a batched task) and return the receipts.
@@ -445,6 +463,7 @@ def run_tasks(store_path: str, stage_name: str, indices, *_deps, run_token: str 
     """
     receipts: list[dict] = []
     failed: list[str] = []
+    _prefetch_frames(store_path, run_token, stage_name, indices)
     for index in indices:
         try:
             receipts.append(_run_one(store_path, stage_name, index, run_token))

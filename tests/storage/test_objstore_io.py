@@ -57,6 +57,21 @@ def test_a_session_on_s3_loads_and_reads_like_its_folder(s3_server, session_buil
     assert not cache.exists() or not any(cache.rglob("*.png"))  # image frames are never staged to disk
 
 
+def test_frames_prefetched_together_are_read_without_further_requests(s3_server, session_builder, monkeypatch):
+    url = s3_server.upload(session_builder.root, s3_server.bucket() + "/capture")
+    frames = open_frames(load_session(url, check_files=False).sources[2])
+    frames.prefetch([1, 2, 3, 99])  # an index beyond the frames is ignored
+
+    def no_request(*a, **k):
+        raise AssertionError("a prefetched frame was fetched again")
+
+    monkeypatch.setattr(location, "read_bytes", no_request)
+    for k in (1, 2, 3):
+        np.testing.assert_array_equal(frames.read(k), session_builder.frames["cam02"][k].astype(np.float32))
+    with pytest.raises(AssertionError, match="fetched again"):
+        frames.read(4)
+
+
 def test_a_session_of_videos_on_s3_stages_each_video_once(s3_server, make_builder, cache):
     b = make_builder("vid", n_frames=5)
     rng = np.random.default_rng(11)
