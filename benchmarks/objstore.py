@@ -192,7 +192,8 @@ def _write(args, results: dict[str, dict]) -> int:
              f"moto's S3 server on 127.0.0.1; best of {args.repeats} runs each after a warm-up run "
              "(folder and S3 runs alternate); load average after the runs "
              f"{', '.join(f'{x:.1f}' for x in os.getloadavg())} on {os.cpu_count()} cores.", "",
-             "| session, mode | folder best (s) | S3 best (s) | S3 / folder best | S3 / folder median | requests per S3 run |",
+             "| session, mode | folder best (s) | S3 best (s) | S3 / folder best | S3 / folder median "
+             "| requests per S3 run |",
              "| --- | --- | --- | --- | --- | --- |"]
     for mode, r in results.items():
         req = ", ".join(f"{k} {v}" for k, v in sorted(r["requests_per_s3_run"].items()))

@@ -35,8 +35,9 @@ from pathlib import Path
 from typing import Any
 
 __all__ = [
-    "is_url", "normalize", "display", "join", "parent", "basename", "filesystem", "storage_options",
-    "exists", "isfile", "listdir", "find", "read_bytes", "read_many", "write_bytes", "create_exclusive", "write_many", "remove", "zarr_open_group",
+    "is_url", "normalize", "display", "join", "parent", "basename", "filesystem",
+    "storage_options", "exists", "isfile", "listdir", "find", "read_bytes", "read_many",
+    "write_bytes", "create_exclusive", "write_many", "remove", "zarr_store", "zarr_open_group",
     "stage", "stage_folder", "adopt_staged_folder", "local_cache_dir", "CACHE_ENV",
 ]
 
@@ -321,6 +322,18 @@ def remove(loc: str | os.PathLike) -> None:
         fs.rm_file(path)
     except FileNotFoundError:
         pass
+
+
+def zarr_store(loc: str | os.PathLike, *, read_only: bool):
+    """The zarr store object of ``loc``: a ``LocalStore`` for a folder, zarr's ``FsspecStore``
+    for a URL (options from :func:`storage_options`). For wrappers around the store (e.g. a
+    checking or counting store); :func:`zarr_open_group` is the usual way in."""
+    from zarr.storage import FsspecStore, LocalStore
+
+    loc = normalize(loc)
+    if is_url(loc):
+        return FsspecStore.from_url(loc, storage_options=storage_options(loc), read_only=read_only)
+    return LocalStore(loc, read_only=read_only)
 
 
 def zarr_open_group(loc: str | os.PathLike, **kwargs):

@@ -128,3 +128,16 @@ def test_arrays_cache_on_object_storage_is_uploaded_then_mapped_from_a_staged_co
     np.testing.assert_array_equal(got["S_data"], arrays["S_data"])
     np.testing.assert_array_equal(got["idx"], arrays["idx"])
     assert not list((tmp_path / "cache").glob("upload/*"))  # the local upload copy is gone
+
+
+def test_zarr_store_of_a_url_reads_what_zarr_open_group_wrote(s3_server):
+    import zarr
+    from zarr.storage import FsspecStore, LocalStore
+
+    url = s3_server.bucket() + "/g.zarr"
+    g = location.zarr_open_group(url, mode="w-", zarr_format=3)
+    g.create_array("a", shape=(3,), chunks=(1,), dtype="i4")[...] = [1, 2, 3]
+    store = location.zarr_store(url, read_only=True)
+    assert isinstance(store, FsspecStore) and store.read_only
+    np.testing.assert_array_equal(zarr.open_group(store, mode="r")["a"][...], [1, 2, 3])
+    assert isinstance(location.zarr_store("/tmp/x.zarr", read_only=False), LocalStore)
