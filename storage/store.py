@@ -626,13 +626,16 @@ class ResultStore:
                                      field=f"{MARKER_GROUP}/{stage_}")
                 self._markers_listed[stage_] = set()
             for key in location.find(location.join(self._location, MARKER_GROUP)):
-                # "<stage>/c/<i>/<j>", or "<stage>/c" for the single chunk of a 0-d marker
-                stage_, sep, rest = key.partition("/c/") if not key.endswith("/c") else (key[:-2], "0d", "")
-                if stage_ in self._markers_listed and sep:
+                if key.endswith("/c"):  # "<stage>/c": the single chunk of a 0-d marker
+                    stage_, pos = key[:-2], ()
+                else:  # "<stage>/c/<i>/<j>" (and "<stage>/zarr.json", skipped)
+                    stage_, sep, rest = key.partition("/c/")
                     try:
-                        self._markers_listed[stage_].add(tuple(int(p) for p in rest.split("/")) if rest else ())
+                        pos = tuple(int(p) for p in rest.split("/")) if sep else None
                     except ValueError:
-                        continue
+                        pos = None
+                if pos is not None and stage_ in self._markers_listed:
+                    self._markers_listed[stage_].add(pos)
         return self._markers_listed[stage]
 
     def done(self, stage: str) -> np.ndarray:
