@@ -696,13 +696,13 @@ def _check_lifetime(kind: str, walltime: Any, extra_args: list[str]) -> None:
         )
 
 
-def _shell_word(value: str) -> str:
+def _shell_word(value: str, where: str) -> str:
     """``value`` as one word of the job script's shell command line; ``$VARS`` still expand there."""
     if len(value) >= 2 and value[0] == value[-1] and value[0] in "'\"":
         return value
     if "$" in value:
         if any(c in value for c in '"`\\'):
-            raise ValueError(f"cannot quote {value!r} for the job script: remove quotes, backquotes and backslashes")
+            raise ValueError(f"{where}: cannot quote {value!r} for the job script; remove quotes, backquotes, backslashes")
         return f'"{value}"'
     return shlex.quote(value)
 
@@ -772,7 +772,7 @@ def jobqueue_kwargs(kind: str, config: Mapping[str, Any]) -> tuple[dict[str, Any
     kw["worker_extra_args"] = extra_args
     _check_lifetime(kind, kw.get("walltime"), extra_args)
     if "local_directory" in kw:
-        kw["local_directory"] = _shell_word(str(kw["local_directory"]))
+        kw["local_directory"] = _shell_word(str(kw["local_directory"]), f"jobqueue.{kind}.local-directory")
 
     prologue = [str(line) for line in (kw.pop("job_script_prologue", None) or [])]
     exports = [f"export {k}={v}" for k, v in THREAD_ENV.items()]

@@ -759,6 +759,8 @@ def test_job_script_runs_the_venv_python_with_a_valid_worker_command(kind, tmp_p
         assert p["interface"] == "ib0" and _resources(p) == {TOMO: 1.0} and p["death_timeout"] == "120"
         dirs.append(p["local_directory"])
     assert dirs == [runs["set"], "/tmp", "/tmp"]
+    with pytest.raises(ValueError, match=f"jobqueue.{kind}.local-directory: cannot quote"):
+        jobqueue_kwargs(kind, _jq(kind, local_directory='$HOME/"x"'))
 
 
 def test_sbatch_script_runs_valid_commands(tmp_path):
