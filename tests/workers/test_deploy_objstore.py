@@ -1,11 +1,13 @@
 """deploy/kubernetes/objstore.yaml: a cluster with no shared volume, reading and writing a bucket.
 
-Checked against the tools that run it: the Job's command line parses with schlieren's own
-CLI parser, the worker and scheduler command lines with distributed's ``dask worker`` /
-``dask scheduler`` commands; and against what the recipe promises: no pod mounts anything
-but a scratch emptyDir, every pod that touches the bucket gets the credentials Secret as
-environment variables, the thread caps are the ones the renderer gives other recipes, the
-scheduler is reachable only from its own pods and the run, and the image has s3fs.
+Validated like the other recipes (tests/workers/test_deploy_recipes.py, whose checks are
+reused): the DaskCluster against the operator's CRD, every pod and the Job against
+Kubernetes' API schemas and the "restricted" Pod Security Standard, the command lines with
+the tools they run (``dask worker`` / ``dask scheduler`` and schlieren's own parser), and
+networkpolicy.yaml must let exactly this cluster and its run reach the scheduler. And what
+the recipe promises: no pod mounts anything but a scratch emptyDir, every pod that touches
+the bucket gets the credentials Secret as environment variables (the recipe holds no key),
+the workers get the thread caps, and the image has s3fs.
 """
 
 from __future__ import annotations
@@ -15,8 +17,19 @@ from pathlib import Path
 import pytest
 import yaml
 
+from test_deploy_recipes import (  # noqa: F401 - daskcluster_validator is a fixture
+    _admits,
+    _crd_errors,
+    _docs,
+    _k8s_validate,
+    _operator_pods,
+    _restricted_violations,
+    daskcluster_validator,
+)
+
 REPO = Path(__file__).resolve().parents[2]
-RECIPE = REPO / "deploy" / "kubernetes" / "objstore.yaml"
+K8S = REPO / "deploy" / "kubernetes"
+RECIPE = K8S / "objstore.yaml"
 SECRET = "schlieren-bucket"
 
 
@@ -26,15 +39,19 @@ def docs() -> dict[str, dict]:
 
 
 def _pods(docs) -> dict[str, dict]:
-    spec = docs["DaskCluster"]["spec"]
-    return {"worker": spec["worker"]["spec"], "scheduler": spec["scheduler"]["spec"],
-            "run": docs["Job"]["spec"]["template"]["spec"]}
+    pods = {role: t["spec"] for role, t in _operator_pods(docs["DaskCluster"]).items()}
+    return {**pods, "run": docs["Job"]["spec"]["template"]["spec"]}
 
 
-def test_the_recipe_holds_a_cluster_its_run_and_a_network_policy(docs):
-    assert set(docs) == {"DaskCluster", "Job", "NetworkPolicy"}
-    assert docs["DaskCluster"]["apiVersion"] == "kubernetes.dask.org/v1"
+def test_the_recipe_is_a_valid_cluster_and_job(docs, daskcluster_validator):
+    assert set(docs) == {"DaskCluster", "Job"}
     assert {d["metadata"]["namespace"] for d in docs.values()} == {"schlieren"}
+    assert _crd_errors(daskcluster_validator, docs["DaskCluster"]) == []
+    _k8s_validate(docs["Job"])
+    for role, template in _operator_pods(docs["DaskCluster"]).items():
+        _k8s_validate({"apiVersion": "v1", "kind": "Pod", "metadata": template["metadata"], "spec": template["spec"]})
+    for role, pod in _pods(docs).items():
+        assert _restricted_violations(pod) == [], role
 
 
 def test_no_pod_mounts_shared_storage_and_the_bucket_readers_get_the_secret(docs):
@@ -42,20 +59,16 @@ def test_no_pod_mounts_shared_storage_and_the_bucket_readers_get_the_secret(docs
         for vol in pod.get("volumes", []):
             assert set(vol) == {"name", "emptyDir"}, f"{role} mounts {vol}"
         (c,) = pod["containers"]
-        mounted = {m["name"] for m in c.get("volumeMounts", [])}
-        assert mounted <= {v["name"] for v in pod.get("volumes", [])}
+        assert {m["name"] for m in c.get("volumeMounts", [])} <= {v["name"] for v in pod.get("volumes", [])}
         secrets = [e["secretRef"]["name"] for e in c.get("envFrom", [])]
         env = {e["name"]: e.get("value") for e in c.get("env", [])}
+        assert not any(k.startswith("AWS_") for k in env)  # no credentials in the recipe itself
         if role == "scheduler":
             assert not secrets  # it never touches the data
-        else:
-            assert secrets == [SECRET]
-            assert env["SCHLIEREN_CACHE_DIR"].startswith(
-                next(m["mountPath"] for m in c["volumeMounts"] if m["name"] == "scratch"))
-        # no credentials written into the recipe itself
-        assert not any(k.startswith("AWS_") for k in env)
-        sc = c["securityContext"]
-        assert sc["runAsNonRoot"] and not sc["allowPrivilegeEscalation"] and sc["capabilities"]["drop"] == ["ALL"]
+            continue
+        assert secrets == [SECRET]
+        scratch = next(m["mountPath"] for m in c["volumeMounts"] if m["name"] == "scratch")
+        assert env["SCHLIEREN_CACHE_DIR"].startswith(scratch + "/")
 
 
 def test_workers_get_the_thread_caps_of_the_other_recipes(docs):
@@ -76,8 +89,8 @@ def test_command_lines_parse_with_the_tools_they_run(docs):
     pods = _pods(docs)
     (w,) = pods["worker"]["containers"]
     assert w["args"][:2] == ["dask", "worker"]
-    ctx = dask_worker.make_context("dask worker", list(w["args"][2:]))
-    assert ctx.params["nthreads"] == 1 and ctx.params["resources"] == "TOMO=1"
+    params = dask_worker.make_context("dask worker", list(w["args"][2:])).params
+    assert params["nthreads"] == 1 and params["resources"] == "TOMO=1"
     (s,) = pods["scheduler"]["containers"]
     assert s["args"][:2] == ["dask", "scheduler"]
     dask_scheduler.make_context("dask scheduler", list(s["args"][2:]))
@@ -87,20 +100,23 @@ def test_command_lines_parse_with_the_tools_they_run(docs):
     args = build_parser().parse_args(run["args"][1:])
     assert args.func.__module__ == "schlieren.workers.commands.run"
     assert location.is_url(args.session) and location.is_url(args.out)
-    name = docs["DaskCluster"]["metadata"]["name"]
-    assert args.scheduler == f"tcp://{name}-scheduler:8786"
-    assert args.log.startswith("/scratch/")
+    assert args.scheduler == f"tcp://{docs['DaskCluster']['metadata']['name']}-scheduler:8786"
 
 
-def test_only_the_cluster_and_its_run_reach_the_scheduler(docs):
-    pol = docs["NetworkPolicy"]["spec"]
-    name = docs["DaskCluster"]["metadata"]["name"]
-    sched_labels = docs["DaskCluster"]["spec"]["scheduler"]["service"]["selector"]
-    assert pol["podSelector"]["matchLabels"] == sched_labels
-    sources = [f["podSelector"]["matchLabels"] for f in pol["ingress"][0]["from"]]
-    job_labels = docs["Job"]["spec"]["template"]["metadata"]["labels"]
-    assert sources == [{"dask.org/cluster-name": name}, job_labels]
-    assert [p["port"] for p in pol["ingress"][0]["ports"]] == [8786]
+def test_the_network_policies_admit_this_cluster_and_its_run_only(docs):
+    policies = _docs(K8S / "networkpolicy.yaml")
+
+    def pod(labels, ns="schlieren"):
+        return {"ns": ns, "ns_labels": {"kubernetes.io/metadata.name": ns}, "labels": labels}
+
+    cluster = {role: pod(t["metadata"]["labels"]) for role, t in _operator_pods(docs["DaskCluster"]).items()}
+    run = pod(docs["Job"]["spec"]["template"]["metadata"]["labels"])
+    stranger = pod({"app": "notebook"})
+    assert _admits(policies, cluster["scheduler"], run, 8786)
+    assert _admits(policies, cluster["scheduler"], cluster["worker"], 8786)
+    assert _admits(policies, cluster["worker"], cluster["scheduler"], 40123)
+    assert not _admits(policies, cluster["scheduler"], stranger, 8786)
+    assert not _admits(policies, cluster["worker"], run, 40123)
 
 
 def test_the_image_installs_the_s3_extra():
