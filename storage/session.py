@@ -20,7 +20,6 @@ import logging
 import math
 import numbers
 import os
-import posixpath
 import re
 import typing
 from dataclasses import dataclass, field

@@ -81,7 +81,6 @@ def s3_server():
     by the CLI subprocesses and Dask workers the tests start, as a deployment's would be.
     Skipped, saying why, when moto[server] or s3fs is not installed.
     """
-    import os
     import socket
     import subprocess
     import sys
@@ -109,16 +108,12 @@ def s3_server():
                 proc.kill()
                 pytest.fail(f"moto's S3 server did not start on {endpoint}")
             time.sleep(0.2)
-    saved = {k: os.environ.get(k) for k in [*S3_ENV, "AWS_ENDPOINT_URL"]}
-    os.environ.update(S3_ENV, AWS_ENDPOINT_URL=endpoint)
     try:
-        yield S3Server(endpoint, proc)
+        with pytest.MonkeyPatch.context() as mp:
+            for k, v in {**S3_ENV, "AWS_ENDPOINT_URL": endpoint}.items():
+                mp.setenv(k, v)
+            yield S3Server(endpoint, proc)
     finally:
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
         proc.terminate()
         try:
             proc.wait(10)

@@ -12,10 +12,8 @@
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
@@ -25,7 +23,7 @@ from schlieren.storage import location
 from schlieren.storage.store import ResultStore
 from schlieren.workers.run import run_session
 
-from store_compare import assert_same_store
+from store_compare import assert_same_store, sigkill_when
 
 
 @pytest.fixture(scope="module")
@@ -89,19 +87,7 @@ def test_sigkill_then_rerun_resumes_from_the_bucket_and_matches(s3_server, s3_se
     out = s3_server.bucket("store") + "/killed.zarr"
     cmd = [sys.executable, "-m", "schlieren.workers.cli", "run", s3_session, "--out", out, "--serial",
            "--no-progress"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    deadline = time.time() + 240
-    try:
-        while _markers_set(out) < 30 and proc.poll() is None and time.time() < deadline:
-            time.sleep(0.2)
-        assert proc.poll() is None, "the run finished before it could be killed: " + proc.stderr.read().decode()
-        os.kill(proc.pid, signal.SIGKILL)
-        proc.wait(30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    before = _markers_set(out)
-    assert before >= 30
+    before = sigkill_when(cmd, lambda: _markers_set(out), 30)
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert f"store: {out}" in proc.stderr and "already complete" in proc.stderr
