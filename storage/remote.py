@@ -46,6 +46,7 @@ class RemoteChunks:
         self._cache_bytes = 0
         self._pending: dict[Hashable, Future] = {}
         self._pool: ThreadPoolExecutor | None = None
+        self._readers: ThreadPoolExecutor | None = None
 
     # -- cache ----------------------------------------------------------------------
     def get(self, key: Hashable) -> np.ndarray | None:
@@ -127,6 +128,15 @@ class RemoteChunks:
                     del self._pending[key]
         if first is not None:
             raise first
+
+    def read_all(self, read: Callable[[Hashable], np.ndarray], keys: list) -> list[np.ndarray]:
+        """``[read(k) for k in keys]`` with the reads in flight together (their own threads,
+        so a read never waits behind the writes it may need)."""
+        with self._lock:
+            if self._readers is None:
+                self._readers = ThreadPoolExecutor(self.max_in_flight, thread_name_prefix="schlieren-get")
+            pool = self._readers
+        return list(pool.map(read, keys))
 
     def _executor(self) -> ThreadPoolExecutor:
         with self._lock:

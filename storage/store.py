@@ -530,6 +530,14 @@ class ResultStore:
             return np.asarray(arr[...])
         return np.asarray(arr[index])
 
+    def read_many(self, name: str, indices: list) -> list[np.ndarray]:
+        """``[self.read(name, i) for i in indices]``; from an object store the chunks not in
+        this process's memory are requested together instead of one after another."""
+        if self._remote is None or len(indices) < 2:
+            return [self.read(name, i) for i in indices]
+        self._remote.barrier()  # what this process sent is stored before it is read back
+        return self._remote.read_all(functools.partial(self.read, name), list(indices))
+
     # -- completion markers -----------------------------------------------------------
     def _marker(self, stage: str) -> zarr.Array:
         try:

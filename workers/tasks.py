@@ -108,6 +108,23 @@ class RunContext:
     def mask_threshold(self) -> float:
         return self._once("mask_threshold", lambda: float(self.store.read("mask_threshold", ())[0]))
 
+    def read_upstream_many(self, name: str, indices: list[tuple[int, ...]]) -> list[np.ndarray]:
+        """:meth:`read_upstream` of each of ``indices``, the uncached ones read together
+        (:meth:`ResultStore.read_many`: concurrent requests in an object store)."""
+        missing = [i for i in dict.fromkeys(indices) if (name, i) not in self._chunks]
+        if len(missing) > 1:
+            for i, a in zip(missing, self.store.read_many(name, missing)):
+                self._cache_chunk((name, i), a)
+        return [self.read_upstream(name, i) for i in indices]
+
+    def _cache_chunk(self, key, a: np.ndarray) -> None:
+        a.flags.writeable = False
+        self._chunks[key] = a
+        self._chunk_bytes += a.nbytes
+        while self._chunk_bytes > self.CHUNK_CACHE_BYTES and len(self._chunks) > 1:
+            _, old = self._chunks.popitem(last=False)
+            self._chunk_bytes -= old.nbytes
+
     def read_upstream(self, name: str, index: tuple[int, ...]) -> np.ndarray:
         """``store.read(name, index)`` of a chunk an upstream task has finished, cached (LRU).
 
@@ -120,12 +137,7 @@ class RunContext:
             self._chunks.move_to_end(key)
             return a
         a = self.store.read(name, index)
-        a.flags.writeable = False
-        self._chunks[key] = a
-        self._chunk_bytes += a.nbytes
-        while self._chunk_bytes > self.CHUNK_CACHE_BYTES and len(self._chunks) > 1:
-            _, old = self._chunks.popitem(last=False)
-            self._chunk_bytes -= old.nbytes
+        self._cache_chunk(key, a)
         return a
 
 
@@ -264,8 +276,8 @@ def _mask(ctx: RunContext, c: int, k: int) -> dict:
     params = ctx.config.masks
     h = params.temporal_radius
     ks = [min(max(i, 0), ctx.n_frames - 1) for i in range(k - h, k + h + 1)]
-    pots = np.stack([ctx.read_upstream("potential", (c, i)) for i in ks])
-    flows = np.stack([ctx.read_upstream("flow", (c, i)) for i in ks])
+    pots = np.stack(ctx.read_upstream_many("potential", [(c, i) for i in ks]))
+    flows = np.stack(ctx.read_upstream_many("flow", [(c, i) for i in ks]))
     thr = ctx.mask_threshold()
     m = masksmod.make_mask(pots, h, thr, flows=flows, **kernel_kwargs(params, masksmod.make_mask))
     ctx.store.write("mask", (c, k), np.asarray(m, dtype=bool))
@@ -283,7 +295,7 @@ def _geometry_stage(ctx: RunContext) -> dict:
 
 
 def _hull(ctx: RunContext, k: int) -> dict:
-    ms = np.stack([ctx.store.read("mask", (c, k)) for c in range(len(ctx.cameras))])
+    ms = np.stack(ctx.store.read_many("mask", [(c, k) for c in range(len(ctx.cameras))]))
     h = hullmod.visual_hull(ms, ctx.cameras, ctx.session.grid, ctx.flow_grid, params=ctx.config.hull)
     ctx.store.write("hull", (k,), np.asarray(h, dtype=bool))
     return {"voxels": int(h.sum())}
@@ -291,7 +303,7 @@ def _hull(ctx: RunContext, k: int) -> dict:
 
 def _tomography(ctx: RunContext, k: int) -> dict:
     geom = _geometry(ctx.store_path, _geometry_key(ctx))
-    flows = np.stack([ctx.read_upstream("flow", (c, k)) for c in range(len(ctx.cameras))])
+    flows = np.stack(ctx.read_upstream_many("flow", [(c, k) for c in range(len(ctx.cameras))]))
     hull = ctx.store.read("hull", (k,))
     x0 = None
     if k % max(ctx.config.warm_start_block, 1) != 0:

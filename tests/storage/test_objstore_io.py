@@ -162,6 +162,18 @@ def test_chunks_on_s3_are_the_bytes_of_a_folder_store(s3_server, tmp_path):
                                   ResultStore.open(folder, mode="r").read("refractivity", (2,)))
 
 
+def test_read_many_returns_what_single_reads_return(s3_server, tmp_path):
+    url = s3_server.bucket() + "/run.zarr"
+    for where in (url, tmp_path / "run.zarr"):
+        _fill(ResultStore.create(where, _layout(), attrs=ATTRS, markers=stage_markers()))
+        fresh = ResultStore.open(where, mode="r")  # nothing in memory: every chunk is requested
+        keys = [(1, 2), (0, 0), (1, 1)]
+        many = fresh.read_many("flow", keys)
+        for k, a in zip(keys, many):
+            np.testing.assert_array_equal(a, fresh.read("flow", k))
+        assert np.isnan(many[1]).all() and np.isfinite(many[0]).all()
+
+
 def test_a_failed_background_write_fails_the_flush_and_leaves_its_marker_unset(s3_server, monkeypatch):
     url = s3_server.bucket() + "/run.zarr"
     ResultStore.create(url, _layout(), attrs=ATTRS, markers=stage_markers())
