@@ -515,28 +515,42 @@ class ResultStore:
             if coords is not None:  # exactly one whole chunk: read its file directly
                 a = lay.read(coords, tuple(s.stop - s.start for s in region))
                 return a.reshape(a.shape[len(index):])
-        if self._remote is not None and all(isinstance(i, (int, np.integer)) and not isinstance(i, bool)
-                                            for i in index):
-            try:
-                coords = chunk_of(normalize_region(index, arr.shape), tuple(arr.chunks), tuple(arr.shape))
-            except IndexError:
-                coords = None
-            a = self._remote.get((name, coords)) if coords is not None else None
-            if a is not None:  # written by this process: no request
-                return a.reshape(a.shape[len(index):])
         if self._remote is not None:
+            a = self._written(name, index)
+            if a is not None:  # written by this process: no request
+                return a
             self._remote.barrier()  # what this process sent is stored before it is read back
         if index == ():
             return np.asarray(arr[...])
         return np.asarray(arr[index])
 
+    def _written(self, name: str, index: tuple) -> np.ndarray | None:
+        """Object stores: ``array[index]`` if it is one whole chunk this process wrote, else None."""
+        if not all(isinstance(i, (int, np.integer)) and not isinstance(i, bool) for i in index):
+            return None
+        arr = self.array(name)
+        try:
+            coords = chunk_of(normalize_region(index, arr.shape), tuple(arr.chunks), tuple(arr.shape))
+        except IndexError:
+            return None
+        a = self._remote.get((name, coords)) if coords is not None else None
+        return None if a is None else a.reshape(a.shape[len(index):])
+
     def read_many(self, name: str, indices: list) -> list[np.ndarray]:
         """``[self.read(name, i) for i in indices]``; from an object store the chunks not in
         this process's memory are requested together instead of one after another."""
-        if self._remote is None or len(indices) < 2:
+        if self._remote is None:
             return [self.read(name, i) for i in indices]
-        self._remote.barrier()  # what this process sent is stored before it is read back
-        return self._remote.read_all(functools.partial(self.read, name), list(indices))
+        out = [self._written(name, i if isinstance(i, tuple) else (i,)) for i in indices]
+        missing = [j for j, a in enumerate(out) if a is None]
+        if len(missing) > 1:
+            self._remote.barrier()  # what this process sent is stored before it is read back
+            got = self._remote.read_all(functools.partial(self.read, name), [indices[j] for j in missing])
+        else:
+            got = [self.read(name, indices[j]) for j in missing]
+        for j, a in zip(missing, got):
+            out[j] = a
+        return out
 
     # -- completion markers -----------------------------------------------------------
     def _marker(self, stage: str) -> zarr.Array:
