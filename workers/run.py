@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Callable
 
 from schlieren.pipeline.geometry import FlowGrid
-from schlieren.pipeline.stages import STAGES, RunConfig, bind_medium, config_to_dict
+from schlieren.pipeline.stages import STAGES, RunConfig, bind_medium, check_config, config_to_dict
 from schlieren.storage.layout import result_layout
 from schlieren.storage.session import Session, load_session
 from schlieren.storage.store import ResultStore
@@ -143,8 +143,9 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
         :func:`default_frames_per_task` of the image size; 1 = one task per camera and
         frame). Results, markers and resume do not depend on it.
     """
+    config = check_config(config or RunConfig())  # a bad value stops here, before the store exists
     session = session_path if isinstance(session_path, Session) else load_session(session_path, frames=frames)
-    cfg = bind_medium(config or RunConfig(), session.medium.n_ambient)
+    cfg = bind_medium(config, session.medium.n_ambient)
     store, ext, token = prepare_store(session, out_path, cfg)
     if frames_per_task is None:
         frames_per_task = default_frames_per_task(session.cameras[0].image_size)

@@ -71,11 +71,14 @@ def load_params(path: str | None):
 
     if path is None:
         return RunConfig()
+    from schlieren.pipeline.params import ParamsError
+
     data = read_params(path)
     try:
         return config_from_dict(data)
-    except (TypeError, ValueError) as exc:
-        raise CLIError(f"file {path}: {exc}") from None
+    except ParamsError as exc:
+        where = f", field {exc.field}" if exc.field else ""
+        raise CLIError(f"file {path}{where}: {exc.message}") from None
 
 
 @contextlib.contextmanager

@@ -1,0 +1,39 @@
+"""`schlieren run --params` and `schlieren.run(params=...)`: bad values refused before any store exists."""
+
+from __future__ import annotations
+
+import pytest
+
+
+@pytest.mark.parametrize("text,field", [
+    ("tomography:\n  reg_weight: abc\n", "tomography.reg_weight"),
+    ("flow:\n  texture_correction: 'no'\n", "flow.texture_correction"),
+    ("tomography:\n  max_iter: 1e9\n  tol: 0\n", "tomography.max_iter"),
+    ("flow:\n  levels: 2.7\n", "flow.levels"),
+    ("poisson:\n  tol: .nan\n", "poisson.tol"),
+])
+def test_run_refuses_bad_params_before_the_store_exists(tiny_session, tmp_path, capsys, text, field):
+    from schlieren.workers.cli import main
+
+    p = tmp_path / "params.yaml"
+    p.write_text(text)
+    out = tmp_path / "out.zarr"
+    assert main(["run", str(tiny_session.session), "--out", str(out), "--serial", "--params", str(p)]) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and str(p) in err[0] and f"field {field}:" in err[0], err
+    assert not out.exists()
+
+
+def test_python_configurations_are_checked_before_the_store_exists(tiny_session, tmp_path):
+    import dataclasses
+
+    from schlieren.pipeline.params import ParamsError
+    from schlieren.pipeline.stages import RunConfig
+    from schlieren.workers.run import run_session
+
+    cfg = RunConfig()
+    bad = dataclasses.replace(cfg, flow=dataclasses.replace(cfg.flow, presmooth=float("inf")))
+    out = tmp_path / "out.zarr"
+    with pytest.raises(ParamsError, match="flow.presmooth"):
+        run_session(tiny_session.session, out, serial=True, config=bad)
+    assert not out.exists()
