@@ -893,3 +893,32 @@ def make_batch_cluster(kind: str, config: Mapping[str, Any]) -> Any:
             raise RuntimeError("dask-kubernetes is not installed: pip install dask-kubernetes") from exc
         namespace = _underscore(config["kubernetes"]).get("namespace")
         return KubeCluster(custom_cluster_spec=manifest, namespace=namespace)
+
+
+class TomoResource(WorkerPlugin):
+    """Give a worker the ``TOMO`` resource if it was started without one.
+
+    Tomography tasks request ``resources={"TOMO": 1}``; on workers that do not advertise
+    it they would wait forever. Registered by :func:`adopt_client` on a user's cluster.
+    """
+
+    idempotent = True
+    name = "schlieren-tomo-resource"
+
+    def __init__(self, slots: float = 1) -> None:
+        self.slots = float(slots)
+
+    def setup(self, worker: Any):
+        if TOMO in worker.state.total_resources:
+            return None
+        return worker.set_resources(**{TOMO: self.slots})
+
+
+def adopt_client(client: Client, opts: ClusterOptions | None = None) -> ClusterInfo:
+    """Prepare a client the user made (``schlieren.run(client=...)``) like our own clusters.
+
+    Registers :class:`SchlierenWorkerSetup` (thread caps, zarr concurrency, logging) and
+    :class:`TomoResource` on every current and future worker, then checks versions.
+    """
+    client.register_plugin(TomoResource(1))
+    return _prepare(client, opts or ClusterOptions(), "client")

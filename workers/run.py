@@ -97,7 +97,7 @@ def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig) -> tup
     layout = result_layout(camera_names=[c.name for c in session.cameras], n_frames=n_frames,
                            flow_shape=fg.shape, grid=session.grid, first_frame=a,
                            n_raw=ext.raw_frame, raw_first=raw_first,
-                           n_summary=cfg.masks.n_quantiles + 1)
+                           n_summary=cfg.masks.n_quantiles + 1, flow_factor=fg.factor)
     attrs = {
         "session": session.manifest,
         "session_path": str(Path(session.manifest_path).resolve()),
@@ -113,6 +113,16 @@ def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig) -> tup
     markers = {st.name: st.over for st in STAGES}
     store = ResultStore.create(out_path, layout, attrs=attrs, markers=markers)
     return store, ext, fp[:10]
+
+
+def _done_predicate(store: ResultStore) -> Callable[[str, object], bool]:
+    """Marker lookup for the plan; the tomography geometry counts as done while no
+    tomography task is left (``schlieren clean`` removes it and clears its marker)."""
+    def done(stage: str, index) -> bool:
+        if store.is_done(stage, index):
+            return True
+        return stage == "geometry" and bool(store.done("tomography").all())
+    return done
 
 
 def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
@@ -149,7 +159,7 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
     store, ext, token = prepare_store(session, out_path, cfg)
     if frames_per_task is None:
         frames_per_task = default_frames_per_task(session.cameras[0].image_size)
-    plan = make_plan(ext, token, done=store.is_done, frames_per_task=int(frames_per_task))
+    plan = make_plan(ext, token, done=_done_predicate(store), frames_per_task=int(frames_per_task))
     if on_plan:
         on_plan(plan)
     summary = RunSummary(store=str(out_path), executor="serial" if (serial or client is None) else "dask",
