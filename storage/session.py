@@ -450,7 +450,7 @@ class CameraSource:
 
     def open_frames(self) -> FrameSource:
         """Random-access reader of this camera's frames (see :func:`storage.frames.open_frames`)."""
-        return open_frames(self.frames, camera_name=self.name)
+        return open_frames(self, camera_name=self.name)
 
 
 @dataclass(frozen=True, eq=False)
