@@ -34,7 +34,7 @@ from schlieren.storage.chunkio import ChunkLayout, chunk_layout
 from schlieren.storage.errors import StoreError
 from schlieren.storage.layout import STORE_FORMAT, ArraySpec, assert_aligned, normalize_region
 
-__all__ = ["ResultStore", "fingerprint", "to_json", "decode_attrs", "JSON_ATTRS"]
+__all__ = ["ResultStore", "fingerprint", "to_json", "decode_attrs", "JSON_ATTRS", "remove_store"]
 
 log = logging.getLogger(__name__)
 
@@ -278,10 +278,12 @@ class ResultStore:
                              "the same run; not overwriting it (choose another output path)", file=loc,
                              field="fingerprint")
         if new_fp != old_fp:
-            raise StoreError(f"a result store for a different session or configuration already exists here "
-                             f"(fingerprint {str(old_fp)[:12]}, this run {str(new_fp)[:12]}); not overwriting "
-                             "it (choose another output path or remove it yourself)", file=loc,
-                             field="fingerprint")
+            diff = _differences({k: old.get(k) for k in ("session", "params", "run")},
+                                {k: new_attrs.get(k) for k in ("session", "params", "run")})
+            shown = "; ".join(diff[:6]) + (f"; and {len(diff) - 6} more" if len(diff) > 6 else "")
+            raise StoreError(f"a result store of a different session or configuration exists here (differing: "
+                             f"{shown or 'the fingerprint'}); not overwriting it: choose another output "
+                             "path, or pass --overwrite to replace it", file=loc, field="fingerprint")
         for spec in specs:
             try:
                 arr = self._group[spec.name]
@@ -557,6 +559,41 @@ class ResultStore:
 
     def __repr__(self) -> str:
         return f"ResultStore({self._location!r}, mode={self._mode!r})"
+
+
+def _differences(old: Any, new: Any, where: str = "") -> list[str]:
+    """Dotted names of the values that differ between two nested mappings, ``name: old -> new``."""
+    if isinstance(old, Mapping) and isinstance(new, Mapping):
+        out = []
+        for k in list(old) + [k for k in new if k not in old]:
+            out += _differences(old.get(k), new.get(k), f"{where}.{k}" if where else str(k))
+        return out
+    if old == new or to_json(old) == to_json(new):
+        return []
+    def short(v):
+        r = json.dumps(to_json(v)) if v is not None else "(none)"
+        return r if len(r) <= 40 else r[:37] + "..."
+    return [f"{where}: {short(old)} -> {short(new)}"]
+
+
+def remove_store(path: str | os.PathLike) -> None:
+    """Delete a result store folder (``--overwrite``), and its cache; refuses anything else.
+
+    Raises
+    ------
+    StoreError
+        The path is not a folder holding a ``schlieren-store/1`` group.
+    """
+    import shutil
+
+    from schlieren.storage.arrays_cache import remove_cache
+
+    p = Path(os.fspath(path))
+    if not p.exists():
+        return
+    ResultStore.open(p, mode="r")  # a StoreError unless it is one of our stores: never delete anything else
+    remove_cache(p)
+    shutil.rmtree(p)
 
 
 def _reopen(path: str, mode: str) -> ResultStore:

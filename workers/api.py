@@ -114,7 +114,7 @@ def _client(workers, client, scheduler, tls):
 
 def run(session, out, *, workers: int | None = None, client=None, scheduler: str | None = None,
         params=None, frames: tuple[int, int] | None = None, progress=True, tls: str | None = None,
-        report: str | None = None, frames_per_task: int | None = None):
+        report: str | None = None, frames_per_task: int | None = None, overwrite: bool = False):
     """Process a capture session into a result store and open it.
 
     Parameters
@@ -146,6 +146,9 @@ def run(session, out, *, workers: int | None = None, client=None, scheduler: str
         Path of a Dask performance report (HTML).
     frames_per_task : int, optional
         Frames of one camera per task in the cheap per-image stages.
+    overwrite : bool
+        Replace a store of another configuration at ``out`` (a store of this same run
+        is resumed either way).
 
     Returns
     -------
@@ -172,7 +175,7 @@ def run(session, out, *, workers: int | None = None, client=None, scheduler: str
             StageProgress(enabled=bool(progress), console=console) as bars:
         summary = run_session(loaded, out, client=c, frames=frames, serial=c is None, config=cfg,
                               report=report, on_receipt=bars.receipt, on_failure=bars.failure,
-                              on_plan=bars.plan, frames_per_task=frames_per_task)
+                              on_plan=bars.plan, frames_per_task=frames_per_task, overwrite=overwrite)
     if not summary.ok:
         raise RunFailed(summary)
     return open(out)

@@ -27,7 +27,8 @@ from schlieren.pipeline.geometry import FlowGrid
 from schlieren.pipeline.stages import STAGES, RunConfig, bind_medium, check_config, config_to_dict
 from schlieren.storage.layout import result_layout
 from schlieren.storage.session import Session, load_session
-from schlieren.storage.store import ResultStore
+from schlieren.storage.errors import StoreError
+from schlieren.storage.store import ResultStore, remove_store
 from schlieren.workers.plan import Extents, Plan, make_plan
 
 log = logging.getLogger(__name__)
@@ -131,7 +132,8 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
                 on_receipt: Callable[[dict], None] | None = None,
                 on_failure: Callable[[str, str], None] | None = None,
                 on_plan: Callable[[Plan], None] | None = None,
-                progress: bool = False, frames_per_task: int | None = None) -> RunSummary:
+                progress: bool = False, frames_per_task: int | None = None,
+                overwrite: bool = False) -> RunSummary:
     """Validate ``session_path``, then compute every missing chunk of ``out_path``.
 
     Parameters
@@ -152,11 +154,21 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
         Consecutive frames of one camera per task in the cheap 2D stages (default
         :func:`default_frames_per_task` of the image size; 1 = one task per camera and
         frame). Results, markers and resume do not depend on it.
+    overwrite : bool
+        Replace a store of another configuration at ``out_path`` (only a result store:
+        anything else is still refused). A store of this same run is resumed either way.
     """
     config = check_config(config or RunConfig())  # a bad value stops here, before the store exists
     session = session_path if isinstance(session_path, Session) else load_session(session_path, frames=frames)
     cfg = bind_medium(config, session.medium.n_ambient)
-    store, ext, token = prepare_store(session, out_path, cfg)
+    try:
+        store, ext, token = prepare_store(session, out_path, cfg)
+    except StoreError as exc:
+        if not (overwrite and exc.field == "fingerprint"):
+            raise
+        log.warning("replacing the store %s of another configuration (--overwrite)", out_path)
+        remove_store(out_path)
+        store, ext, token = prepare_store(session, out_path, cfg)
     if frames_per_task is None:
         frames_per_task = default_frames_per_task(session.cameras[0].image_size)
     plan = make_plan(ext, token, done=_done_predicate(store), frames_per_task=int(frames_per_task))

@@ -37,3 +37,33 @@ def test_python_configurations_are_checked_before_the_store_exists(tiny_session,
     with pytest.raises(ParamsError, match="flow.presmooth"):
         run_session(tiny_session.session, out, serial=True, config=bad)
     assert not out.exists()
+
+
+def test_a_store_of_another_configuration_names_the_differences_and_overwrite_replaces_it(
+        tiny_session, serial_store, tmp_path, capsys):
+    import shutil
+
+    import numpy as np
+    import zarr
+
+    from schlieren.workers.cli import main
+
+    out = tmp_path / "run.zarr"
+    shutil.copytree(serial_store, out)
+    p = tmp_path / "params.yaml"
+    p.write_text("tomography:\n  max_iter: 30\nhull:\n  margin_px: 0.5\n")
+    args = ["run", str(tiny_session.session), "--out", str(out), "--serial", "--no-progress", "--params", str(p)]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "params.tomography.max_iter: 25 -> 30" in err and "params.hull.margin_px: 0.0 -> 0.5" in err
+    assert "--overwrite" in err and len(err.strip().splitlines()) == 1
+    assert main(args + ["--overwrite"]) == 0
+    g = zarr.open_group(str(out), mode="r")
+    assert '"max_iter":30' in g.attrs["params"]
+    assert np.isfinite(np.asarray(g["refractivity"][...])).all()
+    # --overwrite never deletes what is not a result store
+    other = tmp_path / "notes"
+    other.mkdir()
+    (other / "keep.txt").write_text("x")
+    assert main(["run", str(tiny_session.session), "--out", str(other), "--serial", "--overwrite"]) == 2
+    assert (other / "keep.txt").read_text() == "x"

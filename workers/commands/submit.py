@@ -143,6 +143,7 @@ def handler(args: argparse.Namespace) -> int:
                     on_failure=fan_out(prog.failure, run_log.failure),
                     on_plan=prog.plan,
                     frames_per_task=args.frames_per_task,
+                    overwrite=getattr(args, "overwrite", False),
                 )
             log_finished(run_log, summary)
             summary.dashboard = info.dashboard_link
