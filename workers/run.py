@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
@@ -29,6 +30,7 @@ from schlieren.storage.layout import result_layout
 from schlieren.storage.session import Session, load_session
 from schlieren.storage.errors import StoreError
 from schlieren.storage.store import ResultStore, remove_store
+from schlieren.workers.monitoring import log_receipt
 from schlieren.workers.plan import Extents, Plan, make_plan
 
 log = logging.getLogger(__name__)
@@ -63,6 +65,7 @@ class RunSummary:
     stage_cpu_seconds: dict[str, float] = field(default_factory=dict)
     receipts: list[dict] = field(default_factory=list)
     dashboard: str | None = None
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
@@ -183,6 +186,8 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
     stage_cpu: dict[str, float] = {}
 
     def _receipt(r: dict) -> None:
+        if summary.executor == "dask":  # the serial loop's tasks log their own, in this process
+            log_receipt(r, level=logging.DEBUG if r.get("skipped") else logging.INFO)
         now = time.time()
         s = r["stage"]
         stage_first.setdefault(s, now - r.get("seconds", 0.0))
@@ -202,7 +207,8 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
         if report:
             from distributed import performance_report
 
-            with performance_report(filename=str(report)):
+            # inline: BokehJS embedded, so the report opens offline (the default loads it from a CDN)
+            with performance_report(filename=str(report), mode="inline"):
                 receipts, failures = run_graph(client, str(out_path), plan,
                                                on_receipt=_receipt, on_failure=on_failure)
         else:
@@ -220,4 +226,9 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
             times[s] = {"started": stage_first[s], "completed": stage_last[s],
                         "task_seconds": stage_busy.get(s, 0.0), "executor": summary.executor}
     store.update_attrs({"stage_times": times})
+    from schlieren.workers.diagnostics import diagnose
+
+    summary.warnings = diagnose(receipts, n_voxels=math.prod(session.grid.shape))
+    for w in summary.warnings:
+        log.warning("%s", w)
     return summary

@@ -1,0 +1,60 @@
+"""Diagnostics: -v lines naming stage/camera/frame, warnings with a likely cause, Ctrl-C."""
+
+from __future__ import annotations
+
+import shutil
+
+import cv2
+import numpy as np
+
+from schlieren.workers.diagnostics import diagnose
+
+
+def test_warnings_name_camera_frames_and_a_likely_cause():
+    receipts = ([{"stage": "hull", "frame": f, "voxels": 95} for f in (10, 11)]
+                + [{"stage": "hull", "frame": 12, "voxels": 0}, {"stage": "hull", "frame": 13, "voxels": 40}]
+                + [{"stage": "mask", "camera": "cam02", "frame": f, "fraction": 0.8} for f in range(20, 31)]
+                + [{"stage": "mask", "camera": "cam01", "frame": 20, "fraction": 0.1}]
+                + [{"stage": "deflection", "camera": "cam03", "frame": 7, "max_px": 9.5},
+                   {"stage": "deflection", "camera": "cam03", "frame": 8, "max_px": 0.4},
+                   {"stage": "hull", "frame": 14, "voxels": 100, "skipped": True}])
+    w = diagnose(receipts, n_voxels=100)
+    assert len(w) == 4, w
+    assert w[0].startswith("frames 10, 11: the visual hull fills") and "camera moved" in w[0]
+    assert w[1].startswith("frame 12: the visual hull is empty")
+    assert w[2].startswith("camera cam02, frames 20, 21, 22, 23, 24, 25, 26, 27 (and 3 more): the flow mask")
+    assert w[3].startswith("camera cam03, frame 7: deflections up to 9.5 px") and "bumped" in w[3]
+    assert diagnose([{"stage": "hull", "frame": 1, "voxels": 40}], n_voxels=100) == []
+
+
+def test_a_moved_camera_is_named_in_a_warning(tiny_session, tmp_path):
+    """cam01's reference shifted by 8 pixels (the camera was bumped after recording it)."""
+    from schlieren.workers.run import run_session
+
+    sess = tmp_path / "session"
+    shutil.copytree(tiny_session.session.parent, sess, ignore=shutil.ignore_patterns("truth.zarr"))
+    ref = sess / "cam01" / "reference.png"
+    img = cv2.imread(str(ref), cv2.IMREAD_UNCHANGED)
+    cv2.imwrite(str(ref), np.roll(img, 8, axis=1))
+    summary = run_session(sess, tmp_path / "out.zarr", serial=True)
+    assert summary.ok
+    named = [w for w in summary.warnings if w.startswith("camera cam01")]
+    assert named and any("bumped" in w or "moved" in w for w in named), summary.warnings
+    assert not any(w.startswith("camera cam00") for w in summary.warnings)
+
+
+def test_verbose_lines_say_which_stage_camera_and_frame(tiny_session, serial_store, tmp_path, capsys):
+    from schlieren.storage.store import ResultStore
+    from schlieren.workers.cli import main
+
+    store = tmp_path / "s.zarr"
+    shutil.copytree(serial_store, store)
+    st = ResultStore.open(store)
+    frames = [int(v) for v in st.read("frame")]
+    for k in range(len(frames)):
+        st.unmark("integrate", k)
+    assert main(["-v", "run", str(tiny_session.session), "--out", str(store), "--serial", "--no-progress"]) == 0
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if "schlieren.receipts" in ln]
+    assert len(lines) == len(frames)
+    for f, ln in zip(frames, lines):
+        assert ln.startswith("INFO schlieren.receipts: task receipt: stage integrate, frame ") and f"frame {f}," in ln
