@@ -58,3 +58,63 @@ def test_verbose_lines_say_which_stage_camera_and_frame(tiny_session, serial_sto
     assert len(lines) == len(frames)
     for f, ln in zip(frames, lines):
         assert ln.startswith("INFO schlieren.receipts: task receipt: stage integrate, frame ") and f"frame {f}," in ln
+
+
+def test_ctrl_c_on_a_local_cluster_prints_one_line_and_keeps_the_chunks(tiny_session, serial_store, tmp_path):
+    """SIGINT to the whole process group (what a terminal's Ctrl-C does): no worker
+    tracebacks, the one-line message, exit 130, and the rerun completes the same store."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from store_compare import assert_same_store
+
+    out = tmp_path / "run.zarr"
+    p = subprocess.Popen([sys.executable, "-m", "schlieren.workers.cli", "run", str(tiny_session.session),
+                          "--out", str(out), "--workers", "2", "--no-progress"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        deadline = time.time() + 120
+        while time.time() < deadline and not list((out / "status" / "frames").glob("c/*/*")):
+            time.sleep(0.05)
+        os.killpg(p.pid, signal.SIGINT)
+        _, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+    assert p.returncode == 130, err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+    assert [ln for ln in err.splitlines() if ln.strip() and not ln.startswith("dashboard:")] == \
+        ["schlieren run: interrupted; completed chunks are kept"]
+    from schlieren.workers.run import run_session
+
+    assert run_session(tiny_session.session, out, serial=True).ok
+    assert_same_store(serial_store, out)
+
+
+def test_submit_dry_run_needs_no_certificates(tmp_path, capsys):
+    from pathlib import Path
+
+    import yaml
+
+    from schlieren.workers.cli import main
+
+    repo = Path(__file__).resolve().parents[2]
+    cfg = yaml.safe_load((repo / "deploy" / "slurm" / "jobqueue.yaml").read_text())
+    cfg["schlieren"]["tls"] = {"dir": str(tmp_path / "no-certs-yet")}
+    (tmp_path / "c.yaml").write_text(yaml.safe_dump(cfg))
+    assert main(["submit", str(tmp_path / "s"), "--out", str(tmp_path / "o.zarr"), "--cluster", "slurm",
+                 "--config", str(tmp_path / "c.yaml"), "--dry-run"]) == 0
+    captured = capsys.readouterr()
+    assert f"--tls-ca-file {tmp_path / 'no-certs-yet' / 'ca.pem'}" in captured.out
+    assert "not found yet" in captured.err and "schlieren tls init" in captured.err
+
+
+def test_cryptography_is_a_main_dependency():
+    from importlib.metadata import requires
+
+    reqs = [r for r in requires("schlieren") if r.startswith("cryptography")]
+    assert reqs and not any("extra ==" in r for r in reqs)

@@ -85,14 +85,32 @@ def load_submit_config(path: str | Path, *, scale: int | None = None) -> dict[st
 
 
 def render(kind: str, config: dict[str, Any]) -> str:
-    """What ``--dry-run`` prints: the worker job script or the DaskCluster manifest (YAML)."""
+    """What ``--dry-run`` prints: the worker job script or the DaskCluster manifest (YAML).
+
+    Certificates need not exist yet: the script names their paths (a note on stderr says
+    which are missing)."""
     from schlieren.workers.cluster import daskcluster_manifest, job_script
 
     if kind == "kubernetes":
         import yaml
 
         return yaml.safe_dump(daskcluster_manifest(config), sort_keys=False)
-    return job_script(kind, config)
+    _note_missing_certificates(config)
+    return job_script(kind, config, check_files=False)
+
+
+def _note_missing_certificates(config: dict[str, Any]) -> None:
+    from schlieren.workers.cluster import schlieren_section
+    from schlieren.workers.security import ROLES, tls_files_from_config
+
+    tls = schlieren_section(config).get("tls")
+    if not tls:
+        return
+    missing = sorted({str(p) for role in ROLES for p in vars(tls_files_from_config(tls, role)).values()
+                      if not Path(p).is_file()})
+    if missing:
+        print(f"note: TLS certificates not found yet ({', '.join(missing)}); make them with "
+              "`schlieren tls init DIR` before submitting", file=sys.stderr)
 
 
 def handler(args: argparse.Namespace) -> int:
