@@ -597,11 +597,7 @@ class VideoFrames(FrameSource):
 
     def read(self, i: int) -> np.ndarray:
         i = self._check_index(i)
-        self._seek(i)
-        ok, img = self._cap.read()
-        if not ok or img is None or img.size == 0:
-            raise self._decode_error(i)
-        self._next = i + 1
+        img = self.read_raw(i)
         grey = _grey_of_raw(img, file=self.path, camera=self.camera_name, field=f"frames[{i}]")
         size = (grey.shape[1], grey.shape[0])
         if self._size is None:

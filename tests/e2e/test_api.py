@@ -48,7 +48,8 @@ def test_a_users_client_gets_the_worker_setup_and_the_tomo_resource(tiny_session
 
     import schlieren
 
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster, \
+    # worker processes: the setup plugin caps threads through the environment of the process it runs in
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
             Client(cluster) as client:
         assert not any(w["resources"] for w in client.scheduler_info()["workers"].values())
         ds = schlieren.run(tiny_session.session, tmp_path / "c.zarr", client=client, progress=False)
@@ -90,3 +91,15 @@ def test_bad_params_and_sessions_are_refused_before_anything_exists(tiny_session
     assert not (tmp_path / "a.zarr").exists() and not (tmp_path / "b.zarr").exists()
     with pytest.raises(SchlierenInputError, match="no result store"):
         schlieren.open(tmp_path / "a.zarr")
+
+
+def test_progress_goes_to_the_notebook_under_jupyter(monkeypatch):
+    import types
+
+    from schlieren.workers import api
+
+    assert not api._progress_console(True).is_jupyter  # a terminal or a script: stderr
+    shell = type("ZMQInteractiveShell", (), {})()
+    monkeypatch.setitem(sys.modules, "IPython", types.SimpleNamespace(get_ipython=lambda: shell))
+    console = api._progress_console(True)
+    assert console.is_jupyter and not console.stderr
