@@ -674,7 +674,7 @@ def open_frames(source, *, camera_name: str | None = None) -> FrameSource:
     return InterlacedFields(src, order) if order else src
 
 
-def read_reference(source, *, camera_name: str | None = None) -> np.ndarray:
+def read_reference(source, *, camera_name: str | None = None, parity: int | None = None) -> np.ndarray:
     """The reference (no-flow background) image of a camera, as float32 grey levels.
 
     Parameters
@@ -682,6 +682,10 @@ def read_reference(source, *, camera_name: str | None = None) -> np.ndarray:
     source : str, path-like or CameraSource
         One image file, or any frames specification of :func:`open_frames` (every frame is
         averaged); a CameraSource gives its ``reference`` (fields of interlaced cameras).
+    parity : {0, 1}, optional
+        For an interlaced camera: the reference of the fields of this row parity (every
+        reference frame read as that field, :func:`bob_field`), so that a field is compared
+        with a reference deinterlaced exactly as it is. None: both fields averaged.
     camera_name : str, optional
 
     Returns
@@ -697,6 +701,12 @@ def read_reference(source, *, camera_name: str | None = None) -> np.ndarray:
     else:
         path, name = os.fspath(source), camera_name
     kind = frames_kind(path)
+    if order and parity is not None:
+        if kind in ("sequence", "glob", "folder", "tiff", "video"):
+            src = open_frames(path, camera_name=name)
+            return _average((bob_field(src.read(i), parity) for i in range(len(src))), path, name)
+        img, _ = read_image(path, camera_name=name, field="reference")
+        return bob_field(img, parity)
     if kind == "video" and not order:
         vid = VideoFrames(path, camera_name=name)
         return _average(vid.iter_sequential(), path, name)
