@@ -1,7 +1,8 @@
 """Per-session derived arrays (the tomography geometry) saved as ``.npy`` files.
 
-The projection geometry is computed once per session by one task and written next to
-the result store; every tomography task maps the files read-only (``mmap_mode="r"``)
+The projection geometry is computed once per session by one task and written beside
+the result store, in ``<store>.cache/`` (outside the Zarr hierarchy, so that zarr and
+xarray see only Zarr nodes in the store; ``schlieren clean STORE`` removes it); every tomography task maps the files read-only (``mmap_mode="r"``)
 instead of receiving the matrix through the task graph (DASK-ZARR.md item 6).
 The directory is written under a temporary name and renamed when complete, so a crash
 never leaves a half-written cache that looks valid.
@@ -24,14 +25,36 @@ import numpy as np
 
 from schlieren.storage import location
 
-__all__ = ["cache_dir", "save_arrays", "load_arrays", "has_arrays"]
+__all__ = ["cache_root", "cache_dir", "save_arrays", "load_arrays", "has_arrays", "remove_cache"]
+
+
+def cache_root(store_path: str | os.PathLike) -> Path | str:
+    """The cache folder of a store: ``<store>.cache`` beside it (``run.zarr.cache``; a URL
+    beside a store on object storage)."""
+    loc = location.normalize(store_path)
+    if location.is_url(loc):
+        return loc + ".cache"
+    p = Path(loc.rstrip("/\\"))
+    return p.with_name(p.name + ".cache")
 
 
 def cache_dir(store_path: str | os.PathLike, name: str, key: str) -> Path | str:
-    """Folder for a cached set of arrays: ``<store>/_cache/<name>-<key>`` (a URL for object stores)."""
-    if location.is_url(location.normalize(store_path)):
-        return location.join(store_path, "_cache", f"{name}-{key}")
-    return Path(store_path) / "_cache" / f"{name}-{key}"
+    """Folder for a cached set of arrays: ``<store>.cache/<name>-<key>``."""
+    root = cache_root(store_path)
+    return location.join(root, f"{name}-{key}") if isinstance(root, str) else root / f"{name}-{key}"
+
+
+def remove_cache(store_path: str | os.PathLike) -> int:
+    """Delete the store's cache folder (and a pre-0.2 ``<store>/_cache``); returns the bytes freed."""
+    loc = location.normalize(store_path)
+    if location.is_url(loc):
+        return location.remove_tree(cache_root(loc)) + location.remove_tree(location.join(loc, "_cache"))
+    freed = 0
+    for root in (cache_root(store_path), Path(store_path) / "_cache"):
+        if root.is_dir():
+            freed += sum(f.stat().st_size for f in root.rglob("*") if f.is_file())
+            shutil.rmtree(root)
+    return freed
 
 
 def has_arrays(path: str | os.PathLike) -> bool:

@@ -37,8 +37,8 @@ from typing import Any
 __all__ = [
     "is_url", "normalize", "display", "join", "parent", "basename", "filesystem",
     "storage_options", "exists", "isfile", "listdir", "find", "read_bytes", "read_many",
-    "write_bytes", "create_exclusive", "write_many", "remove", "zarr_store", "zarr_open_group",
-    "stage", "stage_folder", "adopt_staged_folder", "local_cache_dir", "CACHE_ENV",
+    "write_bytes", "create_exclusive", "write_many", "remove", "remove_tree", "zarr_store",
+    "zarr_open_group", "stage", "stage_folder", "adopt_staged_folder", "local_cache_dir", "CACHE_ENV",
 ]
 
 #: Environment variable naming the local folder for staged copies (default: a
@@ -322,6 +322,24 @@ def remove(loc: str | os.PathLike) -> None:
         fs.rm_file(path)
     except FileNotFoundError:
         pass
+
+
+def remove_tree(loc: str | os.PathLike) -> int:
+    """Delete folder ``loc`` (on object storage: every object below the prefix); returns
+    the bytes freed (0 if there was nothing)."""
+    loc = normalize(loc)
+    if not is_url(loc):
+        if not os.path.isdir(loc):
+            return 0
+        freed = sum(f.stat().st_size for f in Path(loc).rglob("*") if f.is_file())
+        shutil.rmtree(loc)
+        return freed
+    fs, path = filesystem(loc)
+    found = fs.find(path, detail=True)
+    if not found:
+        return 0
+    fs.rm(list(found), recursive=False)
+    return sum(int(v.get("size") or 0) for v in found.values())
 
 
 def zarr_store(loc: str | os.PathLike, *, read_only: bool):
