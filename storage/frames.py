@@ -97,7 +97,7 @@ def frames_kind(spec: str | os.PathLike) -> str | None:
         return "sequence"
     if is_glob(text):
         return "glob"
-    if text.endswith(("/", os.sep)) or os.path.isdir(text):
+    if text.endswith(("/", os.sep)) or os.path.isdir(text) or _is_remote_folder(text):
         return "folder"
     suffix = Path(text).suffix.lower()
     if suffix in VIDEO_EXTENSIONS:
@@ -107,6 +107,12 @@ def frames_kind(spec: str | os.PathLike) -> str | None:
     if suffix in IMAGE_EXTENSIONS:
         return "image"
     return None
+
+
+def _is_remote_folder(text: str) -> bool:
+    """A URL without a file suffix under which objects exist (a folder on object storage)."""
+    return location.is_url(text) and not Path(text).suffix and location.exists(text) \
+        and not location.isfile(text)
 
 
 def _natural_key(path: str):
@@ -427,7 +433,18 @@ class ImageFiles(ImageSequence):
 
         self.path = os.fspath(spec)
         self.camera_name = camera_name
-        if is_glob(self.path):
+        self._blobs = OrderedDict()
+        if location.is_url(self.path):  # a glob or a folder on object storage: one listing
+            fs, path = location.filesystem(self.path)
+            scheme = self.path.split("://", 1)[0] + "://"
+            try:
+                names = [scheme + f for f in fs.glob(path)] if is_glob(self.path) else \
+                    [location.join(self.path, f) for f in location.listdir(self.path)]
+            except OSError:
+                names = []
+            files = [f for f in names if Path(f).suffix.lower() in IMAGE_EXTENSIONS]
+            what = "the pattern or folder matches no image files"
+        elif is_glob(self.path):
             files = [f for f in glob.glob(self.path) if os.path.isfile(f)
                      and Path(f).suffix.lower() in IMAGE_EXTENSIONS]
             what = "the pattern matches no image files"
@@ -457,14 +474,15 @@ class MultiPageTiff(FrameSource):
     def __init__(self, path: str | os.PathLike, *, camera_name: str | None = None):
         self.path = os.fspath(path)
         self.camera_name = camera_name
-        if not os.path.isfile(self.path):
+        if not location.isfile(self.path):
             raise SessionError("TIFF file not found", file=self.path, camera=camera_name)
+        self._file = location.stage(self.path)  # a local copy of a TIFF at a URL, once per machine
         self._size = None
         self._raw_dtype = None
         try:
             from PIL import Image
 
-            with Image.open(self.path) as im:
+            with Image.open(self._file) as im:
                 self._count = int(getattr(im, "n_frames", 1))
         except (OSError, ValueError, SyntaxError) as exc:
             raise SessionError(f"cannot read the TIFF file ({exc})", file=self.path,
@@ -478,8 +496,10 @@ class MultiPageTiff(FrameSource):
         from PIL import Image
 
         i = self._check_index(i)
+        if not os.path.isfile(self._file):  # unpickled on another machine
+            self._file = location.stage(self.path)
         try:
-            with Image.open(self.path) as im:
+            with Image.open(self._file) as im:
                 im.seek(i)
                 page = np.array(im)
         except (OSError, ValueError, EOFError, SyntaxError) as exc:

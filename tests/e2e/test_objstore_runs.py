@@ -65,7 +65,7 @@ def test_session_and_store_on_s3_equal_the_folder_run_bit_for_bit(s3_run, s3_ses
     assert_same_store(serial_store, out)
     assert_same_chunk_bytes(serial_store, out)
     # the geometry cache lives beside the store in the bucket and was mapped from a staged copy
-    assert any(k.startswith("_cache/geometry-") and k.endswith("manifest.json") for k in location.find(out))
+    assert any(k.startswith("geometry-") and k.endswith("manifest.json") for k in location.find(out + ".cache"))
     assert list(cache.glob("staged/*/manifest.json"))
     # a rerun finds every marker in the bucket and computes nothing
     again = run_session(s3_session, out, serial=True)

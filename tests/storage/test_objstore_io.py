@@ -204,3 +204,22 @@ def test_an_unreachable_bucket_is_one_line_naming_the_url(s3_server):
     assert info.value.file == url and "\n" not in str(info.value)
     with pytest.raises(StoreError, match="no result store at this path"):
         ResultStore.open(url)
+
+
+def test_folder_glob_and_multipage_tiff_frames_on_s3(s3_server, tmp_path, cache):
+    from PIL import Image
+
+    rng = np.random.default_rng(3)
+    stack = rng.integers(0, 65535, size=(4, 12, 16)).astype(np.uint16)
+    d = tmp_path / "cap" / "frames"
+    d.mkdir(parents=True)
+    for k, img in enumerate(stack):
+        assert __import__("cv2").imwrite(str(d / f"img{k + 1}.png"), img)  # natural order img1..img4
+    Image.fromarray(stack[0]).save(tmp_path / "cap" / "pages.tif", save_all=True,
+                                   append_images=[Image.fromarray(p) for p in stack[1:]])
+    url = s3_server.upload(tmp_path / "cap", s3_server.bucket() + "/cap")
+    for spec in (url + "/frames", url + "/frames/", url + "/frames/img*.png", url + "/pages.tif"):
+        src = open_frames(spec, camera_name="c")
+        assert len(src) == 4, spec
+        for k in (0, 3):
+            np.testing.assert_array_equal(src.read(k), stack[k].astype(np.float32))
