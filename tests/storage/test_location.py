@@ -115,7 +115,7 @@ def test_arrays_cache_on_object_storage_is_uploaded_then_mapped_from_a_staged_co
     monkeypatch.setenv(location.CACHE_ENV, str(tmp_path / "cache"))
     store = s3_server.bucket() + "/run.zarr"
     d = arrays_cache.cache_dir(store, "geometry", "abc123")
-    assert d == store + "/_cache/geometry-abc123"
+    assert d == store + ".cache/geometry-abc123"  # beside the store, as for folders
     arrays = {"S_data": np.arange(12, dtype=np.float32).reshape(3, 4), "idx": np.arange(5, dtype=np.int64),
               "n": 7}
     assert not arrays_cache.has_arrays(d)
