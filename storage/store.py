@@ -741,6 +741,11 @@ class ResultStore:
         Only the coordinator calls this, after the template and after attribute updates;
         tasks write chunks only, which leaves the metadata unchanged.
         """
+        if self._remote is not None and self._group.metadata.consolidated_metadata is not None:
+            # an object store: the arrays' metadata never changes after the template, and an
+            # attribute update keeps the root's consolidated copy; re-consolidating would
+            # read every array's metadata again (some 45 requests)
+            return
         import warnings
 
         with warnings.catch_warnings():

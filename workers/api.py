@@ -192,8 +192,13 @@ def open(store):
 
     from schlieren.storage.store import ResultStore
 
+    from schlieren.storage import location
+
     ResultStore.open(store, mode="r")  # not a result store: a one-line StoreError naming the path
-    return xr.open_zarr(os.fspath(store))
+    loc = location.normalize(store)
+    # a store at a URL (s3://...): credentials and endpoint from the environment, as for runs
+    options = {"storage_options": location.storage_options(loc)} if location.is_url(loc) else {}
+    return xr.open_zarr(loc, **options)
 
 
 def synth(out_dir, **kwargs):

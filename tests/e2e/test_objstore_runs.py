@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -62,6 +63,10 @@ def test_session_and_store_on_s3_equal_the_folder_run_bit_for_bit(s3_run, s3_ses
     out, summary, cache = s3_run
     assert summary.ok, summary.failures
     assert ResultStore.open(out, mode="r").attrs["session_path"] == s3_session + "/session.yaml"
+    # the root keeps every array's metadata (one read opens the store) and the run's attributes
+    root = json.loads(location.read_bytes(out + "/zarr.json"))
+    assert {"refractivity", "status/tomography"} <= set(root["consolidated_metadata"]["metadata"])
+    assert "stage_times" in ResultStore.open(out, mode="r").attrs
     assert_same_store(serial_store, out)
     assert_same_chunk_bytes(serial_store, out)
     # the geometry cache lives beside the store in the bucket and was mapped from a staged copy
@@ -110,6 +115,10 @@ def test_evaluate_report_export_and_xarray_read_the_store_in_the_bucket(s3_run, 
     ref = xr.open_zarr(serial_store, consolidated=False)
     np.testing.assert_array_equal(ds["refractivity"].values, ref["refractivity"].values)
     assert ds["refractivity"].dims == ("frame", "z", "y", "x")
+    import schlieren
+
+    api = schlieren.open(out)  # the Python API, through the consolidated metadata in the bucket
+    np.testing.assert_array_equal(api["temperature"].values, ref["temperature"].values)
 
     index = make_report(out, tmp_path / "report")
     page = index.read_text()
