@@ -21,8 +21,9 @@
 3. Fits :mod:`schlieren.workers.throughput` to the receipts (dask-N's when run, else
    serial's) and predicts a 16-camera x 1000-frame capture on 2, 8, 32, 128 workers,
    naming the limiting term; the same model is checked against the measured runs.
-4. Profiles one warm-started tomography frame and its integration (cProfile, in a child
-   process on the serial store) and lists the top costs.
+4. Profiles one warm-started tomography frame and its integration, and one camera-frame's
+   deflection and resample tasks (cProfile, in a child process on the serial store) and
+   lists the top costs.
 
 Writes ``benchmarks/results/session.json`` and ``session.md``.
 """
@@ -126,12 +127,17 @@ def read_receipts(log: Path) -> tuple[list[dict], dict]:
 def store_size(path: Path) -> dict:
     """Bytes of the store, and of its ``_cache`` (the memory-mapped tomography geometry)."""
     total = cache = 0
+    arrays: dict[str, int] = {}
     for root, _dirs, files in os.walk(path):
         n = sum((Path(root) / f).stat().st_size for f in files)
         total += n
-        if "_cache" in Path(root).relative_to(path).parts:
+        parts = Path(root).relative_to(path).parts
+        if "_cache" in parts:
             cache += n
-    return {"bytes": total, "cache_bytes": cache, "results_bytes": total - cache}
+        elif parts:
+            arrays[parts[0]] = arrays.get(parts[0], 0) + n
+    return {"bytes": total, "cache_bytes": cache, "results_bytes": total - cache,
+            "arrays_bytes": dict(sorted(arrays.items(), key=lambda kv: -kv[1]))}
 
 
 def run_cli_serial(session: Path, out: Path, log: Path) -> dict:
@@ -243,17 +249,18 @@ def per_stage(receipts: list[dict], field: str = "seconds") -> dict[str, float]:
 # ---------------------------------------------------------------------------------------
 
 def profile_tomography(store: str, frame: int, out_json: str) -> None:
-    """cProfile of one warm-started tomography solve and its integration, as the tasks run them."""
+    """cProfile of one warm-started tomography solve and its integration (the kernels, inputs
+    read beforehand), and of one camera-frame's deflection and resample tasks (their glue,
+    chunk reads and writes included: it rewrites the same bytes into the serial store)."""
     import numpy as np
 
     from schlieren.pipeline import poisson, tomography
     from schlieren.storage import arrays_cache
     from schlieren.storage.store import ResultStore
+    from schlieren.workers import tasks
     from schlieren.workers.serial import single_threaded_kernels
-    from schlieren.workers.tasks import context
 
-    token = ""
-    ctx = context(store, token)
+    ctx = tasks.context(store, "profile")
     cfg = ctx.config
     key = tomography.content_hash(ctx.cameras, ctx.session.grid, ctx.flow_grid, cfg.tomography)
     t0 = time.perf_counter()
@@ -263,28 +270,34 @@ def profile_tomography(store: str, frame: int, out_json: str) -> None:
     flows = np.stack([st.read("flow", (c, frame)) for c in range(len(ctx.cameras))])
     hull = st.read("hull", (frame,))
     x0 = st.read("gradient", (frame - 1,)) if frame % cfg.warm_start_block else None
+    grad = np.asarray(st.read("gradient", (frame,)), dtype=np.float64)
     out = {"frame": frame, "warm_started": x0 is not None, "geometry_load_seconds": t_load}
+    raw_j = ctx.first_frame + frame - ctx.raw_first
+    calls = (
+        ("deflection (camera 0, one frame)", lambda: tasks._GLUE["deflection"](ctx, 0, raw_j)),
+        ("resample (camera 0, one frame)", lambda: tasks._GLUE["resample"](ctx, 0, frame)),
+        ("tomography", lambda: tomography.solve_gradient(geom, flows, hull, params=cfg.tomography, x0=x0)[1]),
+        ("integrate", lambda: poisson.integrate(grad, hull, ctx.session.grid,
+                                                r_ambient=ctx.session.medium.refractivity_ambient,
+                                                params=cfg.poisson)[1]),
+    )
     with single_threaded_kernels():
-        tomography.solve_gradient(geom, flows, hull, params=cfg.tomography, x0=x0)  # page the geometry in
-        for name, call in (("tomography", lambda: tomography.solve_gradient(geom, flows, hull,
-                                                                          params=cfg.tomography, x0=x0)),
-                           ("integrate", lambda: poisson.integrate(
-                               np.asarray(st.read("gradient", (frame,)), dtype=np.float64), hull,
-                               ctx.session.grid, r_ambient=ctx.session.medium.refractivity_ambient,
-                               params=cfg.poisson))):
+        for _name, call in calls:  # warm: page the geometry in, fill the per-process caches
+            call()
+        for name, call in calls:
             prof = cProfile.Profile()
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.thread_time()
             prof.enable()
-            _res, info = call()
+            info = call()
             prof.disable()
-            wall = time.perf_counter() - t0
+            wall, cpu = time.perf_counter() - t0, time.thread_time() - c0
             stats = pstats.Stats(prof, stream=io.StringIO())
             rows = []
             for (fname, line, func), (_cc, ncalls, tt, ct, _callers) in stats.stats.items():
                 rows.append({"function": f"{Path(fname).name}:{line}({func})", "calls": ncalls,
                              "tottime": tt, "cumtime": ct})
             rows.sort(key=lambda r: -r["tottime"])
-            out[name] = {"seconds": wall, "iterations": getattr(info, "iterations", None),
+            out[name] = {"seconds": wall, "cpu_seconds": cpu, "iterations": getattr(info, "iterations", None),
                          "top_tottime": rows[:15],
                          "top_cumtime": sorted(rows, key=lambda r: -r["cumtime"])[:15]}
     Path(out_json).write_text(json.dumps(out, indent=2, default=str))
@@ -321,6 +334,11 @@ def write_report(res: dict) -> None:
         st = r["store"]
         md.append(f"| {name} | {r['seconds']:.1f} | {r['seconds'] / F:.2f} | {r['tasks']} | {peaks} | "
                   f"{st['bytes'] / 1e9:.2f} ({st['results_bytes'] / 1e9:.2f} + {st['cache_bytes'] / 1e9:.2f}) |")
+    st = next(iter(runs.values()))["store"]
+    md += ["", f"Store per time step: {st['results_bytes'] / F / 1e6:.1f} MB of results ("
+           + ", ".join(f"{k} {v / F / 1e6:.1f}" for k, v in st["arrays_bytes"].items() if v / F >= 1e5)
+           + f" MB; flow_raw holds F + 4 raw frames), plus the once-per-session geometry cache {st['cache_bytes'] / 1e9:.2f} GB "
+           "(memory-mapped by the tomography tasks)."]
     md += ["", "Seconds per time step of each stage (summed over its tasks / processed frames; CPU of "
            "the task threads in brackets; the once-per-session geometry and sync are spread over "
            f"only {F} frames here):", "",
@@ -395,17 +413,29 @@ def write_report(res: dict) -> None:
         for term in ps[0]["terms"]:
             md.append(f"| {term} | " + " | ".join(f"{p['terms'][term]:.1f}" for p in ps) + " |")
         md.append("")
+    p2 = next((p for p in m["predictions"]["cpu_seconds"] if p["workers"] == 2), None)
+    if p2:
+        work = p2["work_by_stage"]
+        total = sum(work.values())
+        md += [f"Where the work goes at {m['predict_frames']} frames (task CPU seconds per time step, all "
+               "workers together; share of the total): "
+               + ", ".join(f"{k} {v / p2['frames']:.2f} ({100 * v / total:.0f} %)"
+                           for k, v in sorted(work.items(), key=lambda kv: -kv[1]) if v / total >= 0.005)
+               + f"; total {total / p2['frames']:.2f} s per time step, so 2 workers need at least "
+               f"{total / p2['frames'] / 2:.2f} s per time step whatever the scheduling.", ""]
     md += ["Check against the measured runs (the model on this session, with each run's own task seconds):", "",
            "| run | measured s | predicted s | lower bound s | limited by |", "| --- | ---: | ---: | ---: | --- |"]
     for c in m["checks"]:
         md.append(f"| {c['run']} | {c['measured']:.1f} | {c['seconds']:.1f} | {c['lower_bound']:.1f} | {c['limiting']} |")
     if res.get("profile"):
         pr = res["profile"]
-        md += ["", f"## Profile of one tomography frame (frame index {pr['frame']}, warm-started: "
-               f"{pr['warm_started']}; cProfile, single-threaded kernels as in the workers)", ""]
-        for name in ("tomography", "integrate"):
-            p = pr[name]
-            md += [f"{name}: {p['seconds']:.2f} s under the profiler ({p['iterations']} iterations). "
+        md += ["", f"## Profile of one frame (frame index {pr['frame']}, tomography warm-started: "
+               f"{pr['warm_started']}; cProfile, single-threaded kernels as in the workers, second call)", ""]
+        for name, p in pr.items():
+            if not isinstance(p, dict):
+                continue
+            its = f", {p['iterations']} iterations" if p.get("iterations") is not None else ""
+            md += [f"{name}: {p['seconds']:.2f} s under the profiler (CPU {p['cpu_seconds']:.2f} s{its}). "
                    "Top functions by own time:", "", "| function | calls | own s | cumulative s |",
                    "| --- | ---: | ---: | ---: |"]
             md += [f"| `{r['function']}` | {r['calls']} | {r['tottime']:.3f} | {r['cumtime']:.3f} |"
@@ -533,7 +563,7 @@ def main(argv=None) -> int:
 
     grid = loaded.grid
     res = {
-        "command": "python benchmarks/session.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "command": " ".join(["python benchmarks/session.py"] + list(argv if argv is not None else sys.argv[1:])),
         "session": {"cameras": args.cameras, "frames": F, "raw_frames": loaded.n_frames_available,
                     "size": [w, h], "grid": list(grid.shape), "voxels": int(grid.shape[0] * grid.shape[1] * grid.shape[2]),
                     "path": os.path.relpath(session, HERE.parent), "render": render, "workers": args.workers,
