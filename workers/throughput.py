@@ -36,7 +36,9 @@ The prediction is the sum of the phases' upper bounds, plus:
   the wall time is at least ``S`` whatever N is.
 
 ``T(N) = max(A + T_B + C + G + O, S)``; the lower bound replaces each phase's upper
-bound by ``max(W/N, L)``. The limiting term is the largest of the prediction's terms:
+bound by ``max(W/N, L)`` (without the frame statistics and geometry in phase A, which
+may also run after the barrier) and is at least the total work / N, the geometry task
+followed by one warm-start block's solves and integration, and ``S``. The limiting term is the largest of the prediction's terms:
 each stage's work / N, the chains, the barrier, the geometry wait, the overhead, or the
 scheduler floor.
 
@@ -222,7 +224,11 @@ def predict(costs: StageCosts, *, cameras: int, frames: int, workers: int, warm_
     terms["per-task overhead"] = overhead
     total = sum(terms.values())
     floor = costs.scheduler_per_task * n_tasks
-    lower = max(max(W_A / n, L_A) + T_B + max(W_C / n, L_C), floor)
+    # frame statistics and geometry need not finish before the barrier (nothing in A waits
+    # for them), so the rigorous lower bound counts them only in the total work
+    W_A_needed = W_A - work["frames"] - work["geometry"]
+    geometry_path = t["geometry"] + costs.tomography_cold + (B - 1) * costs.tomography_warm + t["integrate"]
+    lower = max(max(W_A_needed / n, L_A) + T_B + max(W_C / n, L_C), sum(work.values()) / n, geometry_path, floor)
     if floor > total:
         limiting = "scheduler throughput (tasks x scheduler seconds per task)"
         seconds = floor
