@@ -380,9 +380,10 @@ def write_report(res: dict) -> None:
            "tomography, integrate). A greedy scheduler takes between max(W/N, L) and W/N + (1 - 1/N) L for a "
            "phase of work W whose longest chain is L (Graham's bound for list scheduling), so", "",
            "    T(N) = W_A/N + (1-1/N) L_A  +  T_threshold  +  W_C/N + (1-1/N) L_C  +  G  +  o (tasks/N + chain tasks)",
-           "    T(N) >= max(tasks x s,  max(W_A/N, L_A) + T_threshold + max(W_C/N, L_C))", "",
+           "    T(N) >= max(max(W_A'/N, L_A) + T_threshold + max(W_C/N, L_C),  W/N,  geometry + block chain,  tasks x s)", "",
            "where W = tasks x seconds per task summed over the phase's stages (seconds per task fitted to "
-           "the receipts: the mean per stage), L_A = max(sync + clock, deflection) + resample + potential, "
+           "the receipts: the mean per stage; W_A' leaves out the frame statistics and the geometry, which "
+           "may run after the barrier), L_A = max(sync + clock, deflection) + resample + potential, "
            "T_threshold = cameras x frames x its seconds per summary (it pools every camera-frame's summary), "
            "L_C = mask + hull + cold solve + (B-1) warm solves + integrate (B = 4, the warm-start block), "
            "G = how long the single geometry task outlasts phases A and B, o = measured per-task overhead "
