@@ -37,7 +37,8 @@ from schlieren.pipeline.tomography.params import TomoParams
 from schlieren.pipeline.tomography.rays import rhs_from_d_out, rhs_from_flows
 
 __all__ = ["SolveInfo", "solve_gradient", "solve_gradient_d_out", "basis_set",
-           "difference_operator", "difference_normal", "cgls", "prepare_frame", "FrameSystem", "finite_rhs"]
+           "difference_operator", "difference_normal", "cgls", "prepare_frame", "FrameSystem", "finite_rhs",
+           "valid_rays"]
 
 log = logging.getLogger(__name__)
 
@@ -299,8 +300,21 @@ class FrameSystem:
         return self._colsumsq
 
 
-def prepare_frame(geom: TomoGeometry, hull: np.ndarray, *, dilation: int) -> FrameSystem:
-    """Restrict the session's projection to a frame's hull (basis functions and rays)."""
+def valid_rays(data: np.ndarray) -> np.ndarray | None:
+    """Flat indices of the rays whose measurement (last axis) is finite, or None if all are.
+
+    The flow stage returns NaN where the images cannot carry a deflection (dead,
+    clipped or textureless regions): those rays are left out of the system rather than
+    read as "no deflection".
+    """
+    ok = np.isfinite(np.asarray(data)).all(axis=-1).ravel()
+    return None if ok.all() else np.flatnonzero(ok)
+
+
+def prepare_frame(geom: TomoGeometry, hull: np.ndarray, *, dilation: int,
+                  rows: np.ndarray | None = None) -> FrameSystem:
+    """Restrict the session's projection to a frame's hull (basis functions and rays;
+    ``rows``: only these rays, e.g. :func:`valid_rays`)."""
     hull = np.asarray(hull, dtype=bool)
     if hull.shape != geom.grid.shape:
         raise ValueError(f"hull shape {hull.shape} does not match the grid {geom.grid.shape}")
@@ -309,12 +323,13 @@ def prepare_frame(geom: TomoGeometry, hull: np.ndarray, *, dilation: int) -> Fra
     colmap = np.full(flat.size, -1, np.int32)
     n = int(flat.sum())
     colmap[flat] = np.arange(n, dtype=np.int32)
-    op = RestrictedOperator.from_full(geom.S, np.arange(geom.S.shape[0]), colmap, n)
+    op = RestrictedOperator.from_full(geom.S, np.arange(geom.S.shape[0]) if rows is None else rows, colmap, n)
     return FrameSystem(op=op, inset=inset, LtL=difference_normal(inset))
 
 
 def finite_rhs(b: np.ndarray) -> np.ndarray:
-    """Zero (and report) non-finite right-hand sides (e.g. NaN deflections from the flow stage)."""
+    """Zero (and report) non-finite right-hand sides that are left (invalid deflections are
+    dropped before, :func:`valid_rays`; this only guards the arithmetic)."""
     bad = ~np.isfinite(b)
     if bad.any():
         log.warning("%d non-finite right-hand-side value(s) replaced by 0", int(bad.sum()))
@@ -384,7 +399,8 @@ def solve_gradient(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarra
         colmap = np.full(flat.size, -1, np.int32)
         colmap[flat] = np.arange(n, dtype=np.int32)
         x_warm = _warm(x0, inset)
-        op, b_k, products = restrict_with_setup(geom.S, colmap, n, rhs, x_warm, reuse_buffers=True)
+        op, b_k, products = restrict_with_setup(geom.S, colmap, n, rhs, x_warm, reuse_buffers=True,
+                                                rows=valid_rays(data))
         sys_ = FrameSystem(op=op, inset=inset, LtL=difference_normal(inset), _colsumsq=products[0])
     op = sys_.op
     if op.n == 0 or op.m == 0:

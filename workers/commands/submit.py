@@ -54,7 +54,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def load_submit_config(path: str | Path, *, scale: int | None = None) -> dict[str, Any]:
     """Read a submit config with ``yaml.safe_load`` (no tags, nothing executed).
 
-    ``scale`` overrides ``schlieren.scale``. Raises ``CLIError`` with one line on any
+    ``scale`` overrides ``schlieren.scale`` (and drops ``schlieren.adapt``). Raises ``CLIError`` with one line on any
     problem (missing file, YAML error, not a mapping).
     """
     import yaml
@@ -80,7 +80,8 @@ def load_submit_config(path: str | Path, *, scale: int | None = None) -> dict[st
         sec = data.get("schlieren") or {}
         if not isinstance(sec, dict):
             raise CLIError(f"config {p}: the 'schlieren' section must be a mapping")
-        data["schlieren"] = {**sec, "scale": scale}
+        # a fixed number of jobs / pods: drop any adaptive range of the config
+        data["schlieren"] = {**{k: v for k, v in sec.items() if k != "adapt"}, "scale": scale}
     return data
 
 
