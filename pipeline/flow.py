@@ -33,6 +33,7 @@ import numba as nb
 import numpy as np
 
 from schlieren.pipeline.geometry import FlowGrid
+from schlieren.pipeline.params import param
 
 __all__ = [
     "FlowParams",
@@ -138,30 +139,30 @@ class FlowParams:
         below this fraction of its median over the image.
     """
 
-    method: str = "lk"
-    window: int = 17
-    window_type: str = "gaussian"
-    levels: int = 3
-    iterations: int = 2
-    fine_iterations: int = 1
-    presmooth: float = 0.6
-    regularisation: float = 1e-3
-    gradient: str = "frame"
-    alpha: float = 0.3
-    inner_iterations: int = 30
-    dis_preset: str = "medium"
-    corr_window: int = 32
-    corr_step: int = 16
-    corr_taper: bool = False
-    outlier_threshold: float = 3.0
-    outlier_epsilon: float = 0.01
-    smoothing_sigma: float = 1.5
-    adaptive_sigma: float = 9.0
-    adaptive_threshold: float = 3.0
-    texture_correction: bool = True
-    factor: int = 3
-    invalid_check: bool = True
-    texture_threshold: float = 0.1
+    method: str = param("lk", unit="", choices=METHODS)
+    window: int = param(17, unit="px", ge=3, le=255, odd=True)
+    window_type: str = param("gaussian", choices=("box", "gaussian"))
+    levels: int = param(3, unit="1", ge=1, le=8)
+    iterations: int = param(2, unit="1", ge=1, le=50)
+    fine_iterations: int = param(1, unit="1", ge=1, le=50)
+    presmooth: float = param(0.6, unit="px", ge=0, le=20)
+    regularisation: float = param(1e-3, unit="1", ge=0, le=1e3)
+    gradient: str = param("frame", choices=("frame", "symmetric", "reference"))
+    alpha: float = param(0.3, unit="1", gt=0, le=1e3)
+    inner_iterations: int = param(30, unit="1", ge=1, le=1000)
+    dis_preset: str = param("medium", choices=("ultrafast", "fast", "medium"))
+    corr_window: int = param(32, unit="px", ge=8, le=512, even=True)
+    corr_step: int = param(16, unit="px", ge=1, le=512)
+    corr_taper: bool = param(False)
+    outlier_threshold: float = param(3.0, unit="1", ge=0, le=100)
+    outlier_epsilon: float = param(0.01, unit="px", ge=0, le=10)
+    smoothing_sigma: float = param(1.5, unit="px", ge=0, le=100)
+    adaptive_sigma: float = param(9.0, unit="px", ge=0, le=200)
+    adaptive_threshold: float = param(3.0, unit="1", gt=0, le=100)
+    texture_correction: bool = param(True)
+    factor: int = param(3, unit="px per flow cell", ge=1, le=32)
+    invalid_check: bool = param(True)
+    texture_threshold: float = param(0.1, unit="1", ge=0, le=1)
 
     def __post_init__(self):
         if self.method not in METHODS:

@@ -31,6 +31,8 @@ import cv2
 import numpy as np
 from scipy import fft
 
+from schlieren.pipeline.params import param
+
 __all__ = [
     "MaskParams",
     "flow_potential",
@@ -69,13 +71,13 @@ class MaskParams:
         Gaussian smoothing of the flow before ``deflection_threshold``, flow-grid cells.
     """
 
-    percentile: float = 95.0
-    smooth_sigma: float = 1.0
-    dilation_radius: int = 4
-    temporal_radius: int = 1
-    n_quantiles: int = 2000
-    deflection_threshold: float = 0.015
-    flow_sigma: float = 1.5
+    percentile: float = param(95.0, unit="%", gt=0, lt=100)
+    smooth_sigma: float = param(1.0, unit="flow cells", ge=0, le=100)
+    dilation_radius: int = param(4, unit="flow cells", ge=0, le=100)
+    temporal_radius: int = param(1, unit="frames", ge=0, le=10)
+    n_quantiles: int = param(2000, unit="1", ge=10, le=100000)
+    deflection_threshold: float = param(0.015, unit="px", ge=0, le=100)
+    flow_sigma: float = param(1.5, unit="flow cells", ge=0, le=100)
 
     def __post_init__(self):
         if not 0.0 < self.percentile < 100.0:

@@ -46,6 +46,7 @@ from schlieren.pipeline.geometry import Camera, Grid, Medium
 from schlieren.storage.errors import StoreError
 
 __all__ = [
+    "read_store_frames",
     "frame_pattern",
     "write_manifest",
     "write_frame",
@@ -360,6 +361,14 @@ def read_store_refractivity(path: str | os.PathLike) -> tuple[Any, np.ndarray, n
         raise StoreError("refractivity lacks the origin/voxel_size attributes", file=str(path),
                          field=f"refractivity.attrs.{exc.args[0]}") from None
     return r, np.asarray(g["time"][:], dtype=np.float64), origin, vs
+
+
+def read_store_frames(path: str | os.PathLike) -> np.ndarray:
+    """Capture frame index of every store frame (the ``frame`` coordinate; 0.. without one)."""
+    g = _open_group(path, "store")
+    if "frame" in g:
+        return np.asarray(g["frame"][:], dtype=np.int64)
+    return np.arange(int(g["time"].shape[0]), dtype=np.int64)
 
 
 def write_json(path: str | os.PathLike, obj: Any) -> None:

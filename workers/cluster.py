@@ -538,6 +538,7 @@ def _local_client(opts: ClusterOptions) -> Iterator[tuple[Client, ClusterInfo]]:
         client = Client(cluster, set_as_default=True)
         try:
             client.wait_for_workers(n_workers, timeout=opts.connect_timeout)
+            client.register_plugin(LocalInterrupts())
             info = _prepare(client, opts, "local")
             log.info("local cluster with %d worker(s), dashboard %s", info.n_workers, info.dashboard_link)
             yield client, info
@@ -707,14 +708,14 @@ def _shell_word(value: str, where: str) -> str:
     return shlex.quote(value)
 
 
-def _tls_security(sec: Mapping[str, Any]) -> Security | None:
+def _tls_security(sec: Mapping[str, Any], check: bool = True) -> Security | None:
     """``Security`` with all three roles for a cluster whose scheduler runs with the client."""
     tls = sec.get("tls")
     if not tls:
         return None
     tls_u = _underscore(tls)
     if tls_u.get("dir") and set(tls_u) == {"dir"}:
-        return cluster_security(Path(tls_u["dir"]).expanduser())
+        return cluster_security(Path(tls_u["dir"]).expanduser(), check=check)
     files = {role: tls_files_from_config(tls, role) for role in ("scheduler", "worker", "client")}
     kwargs: dict[str, str] = {"tls_ca_file": str(files["client"].ca_file)}
     for role, f in files.items():
@@ -723,7 +724,8 @@ def _tls_security(sec: Mapping[str, Any]) -> Security | None:
     return Security(require_encryption=True, **kwargs)
 
 
-def jobqueue_kwargs(kind: str, config: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+def jobqueue_kwargs(kind: str, config: Mapping[str, Any], *,
+                    check_files: bool = True) -> tuple[dict[str, Any], dict[str, Any]]:
     """Keyword arguments for a dask-jobqueue cluster built from a submit config.
 
     ``config["jobqueue"][kind]`` holds dask-jobqueue's own settings (the same keys as its
@@ -789,7 +791,7 @@ def jobqueue_kwargs(kind: str, config: Mapping[str, Any]) -> tuple[dict[str, Any
         # nodes), which the login node may not have; host None: all interfaces
         sched["host"] = None
     cluster_kw["scheduler_options"] = sched
-    security = _tls_security(sec)
+    security = _tls_security(sec, check=check_files)
     if security is not None:
         kw["protocol"] = "tls://"
         kw["security"] = security
@@ -807,13 +809,15 @@ def _jobqueue_class(kind: str) -> type:
     return {"slurm": dask_jobqueue.SLURMCluster, "pbs": dask_jobqueue.PBSCluster}[kind]
 
 
-def job_script(kind: str, config: Mapping[str, Any], *, scheduler_address: str | None = None) -> str:
+def job_script(kind: str, config: Mapping[str, Any], *, scheduler_address: str | None = None,
+               check_files: bool = True) -> str:
     """The batch script dask-jobqueue would submit for one worker job, without starting anything.
 
     Built by the jobqueue ``Job`` class from :func:`jobqueue_kwargs`, exactly as the
     cluster object does for its preview (``JobQueueCluster.job_script``).
+    ``check_files=False`` renders the TLS paths without requiring the certificates yet.
     """
-    job_kw, cluster_kw = jobqueue_kwargs(kind, config)
+    job_kw, cluster_kw = jobqueue_kwargs(kind, config, check_files=check_files)
     cls = _jobqueue_class(kind)
     scheme = "tls" if cluster_kw.get("protocol") == "tls://" else "tcp"
     address = scheduler_address or f"{scheme}://<insert-scheduler-address-here>:8786"
@@ -1121,3 +1125,62 @@ def make_batch_cluster(kind: str, config: Mapping[str, Any]) -> Any:
         if sec["adapt"] is not None:
             cluster.adapt(minimum=sec["adapt"][0], maximum=sec["adapt"][1])
         return cluster
+
+
+class TomoResource(WorkerPlugin):
+    """Give a worker the ``TOMO`` resource if it was started without one.
+
+    Tomography tasks request ``resources={"TOMO": 1}``; on workers that do not advertise
+    it they would wait forever. Registered by :func:`adopt_client` on a user's cluster.
+    """
+
+    idempotent = True
+    name = "schlieren-tomo-resource"
+
+    def __init__(self, slots: float = 1) -> None:
+        self.slots = float(slots)
+
+    def setup(self, worker: Any):
+        if TOMO in worker.state.total_resources:
+            return None
+        return worker.set_resources(**{TOMO: self.slots})
+
+
+def adopt_client(client: Client, opts: ClusterOptions | None = None) -> ClusterInfo:
+    """Prepare a client the user made (``schlieren.run(client=...)``) like our own clusters.
+
+    Registers :class:`SchlierenWorkerSetup` (thread caps, zarr concurrency, logging) and
+    :class:`TomoResource` on every current and future worker, then checks versions.
+    """
+    client.register_plugin(TomoResource(1))
+    return _prepare(client, opts or ClusterOptions(), "client")
+
+
+class _CancelledOnClose(logging.Filter):
+    """Drops distributed's "Async instruction for <Task cancelled ...>" warnings: tasks the
+    worker was running when the client closed the cluster (Ctrl-C); nothing is lost."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "Task cancelled" not in record.getMessage()
+
+
+class LocalInterrupts(WorkerPlugin):
+    """Workers of a local cluster leave Ctrl-C to the client process.
+
+    A terminal's Ctrl-C reaches every process of its foreground group, the worker
+    processes of a local cluster included: each printed a KeyboardInterrupt traceback
+    before the client's one-line "interrupted" message. The client closes the cluster
+    (which stops the workers) and keeps every completed chunk; the workers ignore SIGINT.
+    Registered only on local clusters (a worker started by hand keeps its Ctrl-C).
+    """
+
+    idempotent = True
+    name = "schlieren-local-interrupts"
+
+    def setup(self, worker: Any) -> None:
+        import signal
+        import threading
+
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+        logging.getLogger("distributed.worker.state_machine").addFilter(_CancelledOnClose())

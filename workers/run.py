@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
@@ -24,10 +25,12 @@ from pathlib import Path
 from typing import Callable
 
 from schlieren.pipeline.geometry import FlowGrid
-from schlieren.pipeline.stages import STAGES, RunConfig, bind_medium, config_to_dict
+from schlieren.pipeline.stages import STAGES, RunConfig, bind_medium, check_config, config_to_dict
 from schlieren.storage.layout import result_layout
 from schlieren.storage.session import Session, load_session
-from schlieren.storage.store import ResultStore
+from schlieren.storage.errors import StoreError
+from schlieren.storage.store import ResultStore, remove_store
+from schlieren.workers.monitoring import log_receipt
 from schlieren.workers.plan import Extents, Plan, make_plan
 
 log = logging.getLogger(__name__)
@@ -62,6 +65,7 @@ class RunSummary:
     stage_cpu_seconds: dict[str, float] = field(default_factory=dict)
     receipts: list[dict] = field(default_factory=list)
     dashboard: str | None = None
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
@@ -97,7 +101,7 @@ def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig) -> tup
     layout = result_layout(camera_names=[c.name for c in session.cameras], n_frames=n_frames,
                            flow_shape=fg.shape, grid=session.grid, first_frame=a,
                            n_raw=ext.raw_frame, raw_first=raw_first,
-                           n_summary=cfg.masks.n_quantiles + 1)
+                           n_summary=cfg.masks.n_quantiles + 1, flow_factor=fg.factor)
     attrs = {
         "session": session.manifest,
         "session_path": str(Path(session.manifest_path).resolve()),
@@ -115,13 +119,24 @@ def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig) -> tup
     return store, ext, fp[:10]
 
 
+def _done_predicate(store: ResultStore) -> Callable[[str, object], bool]:
+    """Marker lookup for the plan; the tomography geometry counts as done while no
+    tomography task is left (``schlieren clean`` removes it and clears its marker)."""
+    def done(stage: str, index) -> bool:
+        if store.is_done(stage, index):
+            return True
+        return stage == "geometry" and bool(store.done("tomography").all())
+    return done
+
+
 def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
                 frames: tuple[int, int] | None = None, serial: bool = False,
                 config: RunConfig | None = None, report: str | None = None,
                 on_receipt: Callable[[dict], None] | None = None,
                 on_failure: Callable[[str, str], None] | None = None,
                 on_plan: Callable[[Plan], None] | None = None,
-                progress: bool = False, frames_per_task: int | None = None) -> RunSummary:
+                progress: bool = False, frames_per_task: int | None = None,
+                overwrite: bool = False) -> RunSummary:
     """Validate ``session_path``, then compute every missing chunk of ``out_path``.
 
     Parameters
@@ -142,13 +157,24 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
         Consecutive frames of one camera per task in the cheap 2D stages (default
         :func:`default_frames_per_task` of the image size; 1 = one task per camera and
         frame). Results, markers and resume do not depend on it.
+    overwrite : bool
+        Replace a store of another configuration at ``out_path`` (only a result store:
+        anything else is still refused). A store of this same run is resumed either way.
     """
+    config = check_config(config or RunConfig())  # a bad value stops here, before the store exists
     session = session_path if isinstance(session_path, Session) else load_session(session_path, frames=frames)
-    cfg = bind_medium(config or RunConfig(), session.medium.n_ambient)
-    store, ext, token = prepare_store(session, out_path, cfg)
+    cfg = bind_medium(config, session.medium.n_ambient)
+    try:
+        store, ext, token = prepare_store(session, out_path, cfg)
+    except StoreError as exc:
+        if not (overwrite and exc.field == "fingerprint"):
+            raise
+        log.warning("replacing the store %s of another configuration (--overwrite)", out_path)
+        remove_store(out_path)
+        store, ext, token = prepare_store(session, out_path, cfg)
     if frames_per_task is None:
         frames_per_task = default_frames_per_task(session.cameras[0].image_size)
-    plan = make_plan(ext, token, done=store.is_done, frames_per_task=int(frames_per_task))
+    plan = make_plan(ext, token, done=_done_predicate(store), frames_per_task=int(frames_per_task))
     if on_plan:
         on_plan(plan)
     summary = RunSummary(store=str(out_path), executor="serial" if (serial or client is None) else "dask",
@@ -160,6 +186,8 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
     stage_cpu: dict[str, float] = {}
 
     def _receipt(r: dict) -> None:
+        if summary.executor == "dask":  # the serial loop's tasks log their own, in this process
+            log_receipt(r, level=logging.DEBUG if r.get("skipped") else logging.INFO)
         now = time.time()
         s = r["stage"]
         stage_first.setdefault(s, now - r.get("seconds", 0.0))
@@ -179,7 +207,8 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
         if report:
             from distributed import performance_report
 
-            with performance_report(filename=str(report)):
+            # inline: BokehJS embedded, so the report opens offline (the default loads it from a CDN)
+            with performance_report(filename=str(report), mode="inline"):
                 receipts, failures = run_graph(client, str(out_path), plan,
                                                on_receipt=_receipt, on_failure=on_failure)
         else:
@@ -197,4 +226,9 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
             times[s] = {"started": stage_first[s], "completed": stage_last[s],
                         "task_seconds": stage_busy.get(s, 0.0), "executor": summary.executor}
     store.update_attrs({"stage_times": times})
+    from schlieren.workers.diagnostics import diagnose
+
+    summary.warnings = diagnose(receipts, n_voxels=math.prod(session.grid.shape))
+    for w in summary.warnings:
+        log.warning("%s", w)
     return summary

@@ -79,15 +79,17 @@ class RunContext:
             self._small[key] = make()
         return self._small[key]
 
-    def reference(self, c: int) -> np.ndarray:
+    def reference(self, c: int, parity: int | None = None) -> np.ndarray:
+        """Camera ``c``'s reference (for interlaced cameras: that of the fields of ``parity``)."""
         s = self.session.sources[c]
-        return self._once(("reference", c), lambda: read_reference(s, camera_name=s.name))
+        return self._once(("reference", c, parity), lambda: read_reference(s, camera_name=s.name, parity=parity))
 
-    def prepared_reference(self, c: int):
-        """The reference's pyramid and spline coefficients, prepared once per camera per process."""
+    def prepared_reference(self, c: int, parity: int | None = None):
+        """The reference's pyramid and spline coefficients, prepared once per camera (and field
+        parity) per process."""
         params = self.config.flow
-        return self._once(("prepared_reference", c),
-                          lambda: flowmod.prepare_reference(self.reference(c), **params.reference_kwargs()))
+        return self._once(("prepared_reference", c, parity),
+                          lambda: flowmod.prepare_reference(self.reference(c, parity), **params.reference_kwargs()))
 
     def time_offset(self, c: int) -> float:
         return self._once(("time_offset", c), lambda: float(self.store.read("time_offset", (c,))))
@@ -201,8 +203,10 @@ def _clock(ctx: RunContext) -> dict:
 
 
 def _deflection(ctx: RunContext, c: int, j: int) -> dict:
-    img = ctx.frames(c).read(ctx.raw_first + j)
-    d = flowmod.deflection_stage(ctx.prepared_reference(c), img, ctx.config.flow)
+    src = ctx.frames(c)
+    img = src.read(ctx.raw_first + j)
+    parity = src.parity(ctx.raw_first + j) if hasattr(src, "parity") else None  # interlaced fields
+    d = flowmod.deflection_stage(ctx.prepared_reference(c, parity), img, ctx.config.flow)
     ctx.store.write("flow_raw", (c, j), d.astype(np.float32))
     return {"max_px": float(np.nanmax(np.abs(d))) if d.size else 0.0}
 

@@ -405,3 +405,30 @@ def test_invalid_rays_are_dropped_not_read_as_zero(setup):
     # the other seven cameras still determine the blob; zeros would pull it towards nothing
     assert err(g_drop) < 1.5 * err(g_all) + 0.01
     assert err(g_zero) > 2 * err(g_drop), (err(g_zero), err(g_drop))
+
+
+@pytest.mark.parametrize("rel_noise", [0.03, 0.1])
+def test_noise_estimate_and_discrepancy_weight_near_the_oracle(setup, rel_noise):
+    """Known noise: the quiet-ray estimate recovers it within 20 %, and the discrepancy
+    principle picks a regularisation weight within 2x of the error-minimising one."""
+    from schlieren.pipeline.tomography.solve import choose_reg_weight, rhs_noise
+
+    grid, cams, fg, geom = setup
+    centre, sigma, amp = np.array([0.001, -0.002, 0.04]), 0.007, -8e-5
+    _, grad_true = blob_field(grid, centre, sigma, amp)
+    clean = np.stack([geom.S @ grad_true[..., k].ravel() for k in range(3)], axis=1).reshape(*geom.flow_shape, 3)
+    sig = rel_noise * np.sqrt(np.mean(clean[np.abs(clean).sum(-1) > 1e-3 * np.abs(clean).max()] ** 2))
+    rng = np.random.default_rng(7)
+    rhs = clean + rng.normal(scale=sig, size=clean.shape)
+    quiet = np.abs(clean).sum(-1) == 0
+    est = rhs_noise(rhs, quiet)
+    np.testing.assert_allclose(est, sig, rtol=0.2)
+    hull = np.linalg.norm(grid.centres() - centre, axis=-1) < 3 * sigma
+    choice = choose_reg_weight(geom, rhs, hull, est, params=TomoParams())
+    weights = 2.0 ** np.arange(-12, 3)
+    errs = []
+    for w in weights:
+        g, _ = solve_gradient(geom, rhs, hull, params=TomoParams(reg_weight=w, max_iter=300, tol=1e-4))
+        errs.append(np.sqrt(np.mean((g - grad_true) ** 2)))
+    oracle = weights[int(np.argmin(errs))]
+    assert oracle / 2 <= choice.reg_weight <= oracle * 2, (choice.reg_weight, oracle, choice.path)
