@@ -50,6 +50,7 @@ RESULTS = HERE / "results"
 CACHE = HERE / "cache"
 IDLE_PROBE_SECONDS = 5.0
 BATCHED = 4  # --frames-per-task of the model's alternative prediction
+PLAN_FRAMES = (50, 100, 200)  # frame counts whose plan compilation is timed (then extrapolated)
 TARGETS = {"dask2_wall_per_step_s": 2.5, "tomo_integrate_per_frame_s": 1.0, "peak_worker_gb": 4.0}
 
 
@@ -126,26 +127,41 @@ def read_receipts(log: Path) -> tuple[list[dict], dict]:
 
 
 def store_size(path: Path) -> dict:
-    """Bytes of the store, and of its ``_cache`` (the memory-mapped tomography geometry)."""
+    """Bytes of the store's arrays, and of its cache beside it (the memory-mapped tomography
+    geometry in ``<store>.cache/``; a pre-0.2 ``<store>/_cache`` counts there too)."""
+    from schlieren.storage.arrays_cache import cache_root
+
     total = cache = 0
     arrays: dict[str, int] = {}
     for root, _dirs, files in os.walk(path):
         n = sum((Path(root) / f).stat().st_size for f in files)
-        total += n
         parts = Path(root).relative_to(path).parts
         if "_cache" in parts:
             cache += n
-        elif parts:
-            arrays[parts[0]] = arrays.get(parts[0], 0) + n
-    return {"bytes": total, "cache_bytes": cache, "results_bytes": total - cache,
+        else:
+            total += n
+            if parts:
+                arrays[parts[0]] = arrays.get(parts[0], 0) + n
+    side = cache_root(path)
+    if side.is_dir():
+        cache += sum(f.stat().st_size for f in side.rglob("*") if f.is_file())
+    return {"bytes": total + cache, "cache_bytes": cache, "results_bytes": total,
             "arrays_bytes": dict(sorted(arrays.items(), key=lambda kv: -kv[1]))}
+
+
+def fresh_store(out: Path) -> None:
+    """Remove a previous run's store and its cache (so the geometry stage is timed too)."""
+    from schlieren.storage.arrays_cache import remove_cache
+
+    remove_cache(out)
+    shutil.rmtree(out, ignore_errors=True)
 
 
 def run_cli_serial(session: Path, out: Path, log: Path) -> dict:
     """``schlieren run --serial --log`` in a child process; peak memory sampled from outside."""
     import psutil
 
-    shutil.rmtree(out, ignore_errors=True)
+    fresh_store(out)
     log.unlink(missing_ok=True)
     cmd = [sys.executable, "-m", "schlieren.workers.cli", "run", str(session), "--out", str(out), "--serial",
            "--log", str(log), "--no-progress"]
@@ -180,7 +196,7 @@ def run_dask(session: Path, out: Path, log: Path, workers: int) -> dict:
     from schlieren.workers.run import run_session
     from schlieren.workers.throughput import ready_gaps
 
-    shutil.rmtree(out, ignore_errors=True)
+    fresh_store(out)
     log.unlink(missing_ok=True)
     loaded = load_session(session)
     plans = []
@@ -236,6 +252,30 @@ def run_dask(session: Path, out: Path, log: Path, workers: int) -> dict:
 def _thread_cpu(proc) -> dict[int, float]:
     """CPU seconds (user + system) of each thread of ``proc`` by native thread id."""
     return {t.id: t.user_time + t.system_time for t in proc.threads()}
+
+
+def planning_seconds(cameras: int, frames_list, *, fpt: int, raw_margin: int, block: int) -> dict[int, float]:
+    """Seconds the client takes to compile the plan and its priorities for each frame count."""
+    from schlieren.workers.plan import Extents, critical_path_priorities, make_plan
+
+    out = {}
+    for f in frames_list:
+        t0 = time.perf_counter()
+        plan = make_plan(Extents(camera=cameras, frame=f, raw_frame=f + 2 * raw_margin, raw_offset=raw_margin,
+                                 warm_start_block=block), "bench", frames_per_task=fpt)
+        critical_path_priorities(plan)
+        out[f] = time.perf_counter() - t0
+    return out
+
+
+def extrapolate_quadratic(points: dict[int, float], x: float) -> float:
+    """Least-squares a + b x + c x^2 through ``points``, evaluated at ``x`` (planning grows
+    with the square of the frames: window and same-frame edges are found by scanning)."""
+    import numpy as np
+
+    xs = np.array(list(points), dtype=float)
+    coef = np.polyfit(xs, np.array(list(points.values())), 2)
+    return float(max(0.0, np.polyval(coef, x)))
 
 
 def per_stage(receipts: list[dict], field: str = "seconds") -> dict[str, float]:
@@ -379,8 +419,8 @@ def write_report(res: dict) -> None:
            "resample, potential, and the geometry task), then the barrier, then phase C (mask, hull, "
            "tomography, integrate). A greedy scheduler takes between max(W/N, L) and W/N + (1 - 1/N) L for a "
            "phase of work W whose longest chain is L (Graham's bound for list scheduling), so", "",
-           "    T(N) = W_A/N + (1-1/N) L_A  +  T_threshold  +  W_C/N + (1-1/N) L_C  +  G  +  o (tasks/N + chain tasks)",
-           "    T(N) >= max(max(W_A'/N, L_A) + T_threshold + max(W_C/N, L_C),  W/N,  geometry + block chain,  tasks x s)", "",
+           "    T(N) = P + W_A/N + (1-1/N) L_A  +  T_threshold  +  W_C/N + (1-1/N) L_C  +  G  +  o (tasks/N + chain tasks)",
+           "    T(N) >= P + max(max(W_A'/N, L_A) + T_threshold + max(W_C/N, L_C),  W/N,  geometry + block chain,  tasks x s)", "",
            "where W = tasks x seconds per task summed over the phase's stages (seconds per task fitted to "
            "the receipts: the mean per stage; W_A' leaves out the frame statistics and the geometry, which "
            "may run after the barrier), L_A = max(sync + clock, deflection) + resample + potential, "
@@ -402,7 +442,14 @@ def write_report(res: dict) -> None:
                        for k, v in cs["per_index"].items())
            + f"; tomography cold {cs['tomography_cold']:.2f} / {m['costs']['cpu_seconds']['tomography_cold']:.2f}, "
            f"warm {cs['tomography_warm']:.2f} / {m['costs']['cpu_seconds']['tomography_warm']:.2f}; "
-           f"threshold {1e3 * cs['threshold_per_summary']:.3f} ms per summary.", ""]
+           f"threshold {1e3 * cs['threshold_per_summary']:.3f} ms per summary.", "",
+           "P, planning: the client compiles the plan (make_plan + critical-path priorities) before the first "
+           "task; timed here at " + "; ".join(
+               f"--frames-per-task {k}: " + ", ".join(f"{f} frames {t:.2f} s" for f, t in v.items())
+               for k, v in m["planning_measured"].items())
+           + f" and extrapolated (a + b F + c F^2) to {m['predict_frames']} frames: "
+           + ", ".join(f"{v:.0f} s (--frames-per-task {k})" for k, v in m["planning_extrapolated"].items())
+           + ". It does not shrink with N.", ""]
     for f, label in (("seconds", "task wall seconds as measured on this machine"),
                      ("cpu_seconds", "task CPU seconds: what a quiet dedicated core would take")):
         ps = m["predictions"][f]
@@ -491,9 +538,10 @@ def main(argv=None) -> int:
     render = ensure_session(session, cameras=args.cameras, frames=args.frames, size=(w, h))
     warm = cache / "session-warmup"
     ensure_session(warm, cameras=2, frames=2, size=(96, 72))
+    fresh_store(cache / "warmup.zarr")
     subprocess.run([sys.executable, "-m", "schlieren.workers.cli", "run", str(warm), "--out",
                     str(cache / "warmup.zarr"), "--serial", "--no-progress"], check=True)
-    shutil.rmtree(cache / "warmup.zarr", ignore_errors=True)
+    fresh_store(cache / "warmup.zarr")
 
     loaded = load_session(session)
     F = args.frames
@@ -529,17 +577,23 @@ def main(argv=None) -> int:
 
     # task wall seconds as measured here, and task CPU seconds: what a quiet dedicated core takes
     costs = {f: fitted(fit_name, f) for f in ("seconds", "cpu_seconds")}
+    print("timing the plan's compilation ...", file=sys.stderr)
+    plan_points = {fpt_: planning_seconds(args.cameras, PLAN_FRAMES, fpt=fpt_, raw_margin=RAW_MARGIN, block=B)
+                   for fpt_ in (fpt, BATCHED)}
+    planning = {fpt_: extrapolate_quadratic(pts, args.predict_frames) for fpt_, pts in plan_points.items()}
+    kw = kw | {"planning": planning[fpt]}
     predictions = {f: [predict(c, cameras=args.cameras, frames=args.predict_frames, workers=int(n), **kw).as_dict()
                        for n in args.predict_workers.split(",")] for f, c in costs.items()}
     # the same with BATCHED frames of one camera per task in the 2D stages: fewer tasks
     batched = {f: [predict(c, cameras=args.cameras, frames=args.predict_frames, workers=int(n),
-                           **(kw | {"frames_per_task": BATCHED})).as_dict()
+                           **(kw | {"frames_per_task": BATCHED, "planning": planning[BATCHED]})).as_dict()
                    for n in args.predict_workers.split(",")] for f, c in costs.items()}
     # the model's structure checked on each measured run, with that run's own task costs
     checks = []
     for name, r in runs.items():
         n = 1 if name == "serial" else args.workers
-        p = predict(fitted(name, "seconds"), cameras=args.cameras, frames=F, workers=n, **kw).as_dict()
+        p = predict(fitted(name, "seconds"), cameras=args.cameras, frames=F, workers=n,
+                    **(kw | {"planning": 0.0})).as_dict()
         checks.append({"run": name, "measured": r["seconds"], **p})
 
     profile = None
@@ -589,7 +643,9 @@ def main(argv=None) -> int:
         "model": {"fitted_to": fit_name, "predict_frames": args.predict_frames,
                   "costs": {f: dataclasses.asdict(c) for f, c in costs.items()},
                   "predictions": predictions, "checks": checks,
-                  "batched_frames_per_task": BATCHED, "predictions_batched": batched},
+                  "batched_frames_per_task": BATCHED, "predictions_batched": batched,
+                  "planning_measured": {str(k): {str(f): t for f, t in v.items()} for k, v in plan_points.items()},
+                  "planning_extrapolated": {str(k): v for k, v in planning.items()}},
         "profile": profile,
         "notes": [],
     }

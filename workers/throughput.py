@@ -33,9 +33,11 @@ The prediction is the sum of the phases' upper bounds, plus:
   :func:`ready_gaps`), spread over N workers, plus ``o`` for each task along the chain;
 * the scheduler floor ``S`` = tasks x ``s``: one scheduler process handles every task
   (``s`` = CPU seconds of the scheduler + client process per task in the measured run);
-  the wall time is at least ``S`` whatever N is.
+  the wall time is at least ``S`` whatever N is;
+* ``P``, planning: the client compiles the plan before the first task (given, measured
+  apart; it does not shrink with N).
 
-``T(N) = max(A + T_B + C + G + O, S)``; the lower bound replaces each phase's upper
+``T(N) = P + max(A + T_B + C + G + O, S)``; the lower bound replaces each phase's upper
 bound by ``max(W/N, L)`` (without the frame statistics and geometry in phase A, which
 may also run after the barrier) and is at least the total work / N, the geometry task
 followed by one warm-start block's solves and integration, and ``S``. The limiting term is the largest of the prediction's terms:
@@ -183,8 +185,12 @@ class Prediction:
 
 
 def predict(costs: StageCosts, *, cameras: int, frames: int, workers: int, warm_start_block: int = 4,
-            raw_margin: int = 2, frames_per_task: int = 1) -> Prediction:
-    """Wall time of ``cameras`` x ``frames`` on ``workers`` single-threaded workers (module docstring)."""
+            raw_margin: int = 2, frames_per_task: int = 1, planning: float = 0.0) -> Prediction:
+    """Wall time of ``cameras`` x ``frames`` on ``workers`` single-threaded workers (module docstring).
+
+    ``planning`` is the client's seconds to compile the plan before any task runs
+    (measured apart: it does not depend on N).
+    """
     if workers < 1 or frames < 1 or cameras < 1:
         raise ValueError("cameras, frames and workers must be at least 1")
     n = float(workers)
@@ -222,16 +228,18 @@ def predict(costs: StageCosts, *, cameras: int, frames: int, workers: int, warm_
     terms["warm-start chain: mask, hull, block of solves, integrate (x (1 - 1/N))"] = shrink * L_C
     terms["geometry wait"] = geometry_wait
     terms["per-task overhead"] = overhead
+    terms["planning (client, before any task)"] = float(planning)
     total = sum(terms.values())
     floor = costs.scheduler_per_task * n_tasks
     # frame statistics and geometry need not finish before the barrier (nothing in A waits
     # for them), so the rigorous lower bound counts them only in the total work
     W_A_needed = W_A - work["frames"] - work["geometry"]
     geometry_path = t["geometry"] + costs.tomography_cold + (B - 1) * costs.tomography_warm + t["integrate"]
-    lower = max(max(W_A_needed / n, L_A) + T_B + max(W_C / n, L_C), sum(work.values()) / n, geometry_path, floor)
-    if floor > total:
+    lower = planning + max(max(W_A_needed / n, L_A) + T_B + max(W_C / n, L_C), sum(work.values()) / n,
+                           geometry_path, floor)
+    if planning + floor > total:
         limiting = "scheduler throughput (tasks x scheduler seconds per task)"
-        seconds = floor
+        seconds = planning + floor
     else:
         limiting = max(terms, key=terms.get)
         seconds = total

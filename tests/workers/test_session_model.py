@@ -99,6 +99,9 @@ def test_prediction_by_hand():
     assert p.limiting == "deflection: work / N"
     assert p.terms["geometry wait"] == 0.0
     assert sum(v for k, v in p.terms.items() if "not added" not in k) == pytest.approx(p.seconds)
+    # planning happens once, before any task: added as it is, to the bound too
+    q = tp.predict(costs, cameras=16, frames=1000, workers=8, planning=100.0)
+    assert q.seconds == pytest.approx(p.seconds + 100.0) and q.lower == pytest.approx(p.lower + 100.0)
 
 
 def test_limiting_terms():
