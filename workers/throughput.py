@@ -237,8 +237,9 @@ def predict(costs: StageCosts, *, cameras: int, frames: int, workers: int, warm_
     geometry_path = t["geometry"] + costs.tomography_cold + (B - 1) * costs.tomography_warm + t["integrate"]
     lower = planning + max(max(W_A_needed / n, L_A) + T_B + max(W_C / n, L_C), sum(work.values()) / n,
                            geometry_path, floor)
-    if planning + floor > total:
-        limiting = "scheduler throughput (tasks x scheduler seconds per task)"
+    if planning + floor > total:  # the scheduler binds: the run is planning, then the scheduler's pace
+        limiting = ("scheduler throughput (tasks x scheduler seconds per task)" if floor >= planning
+                    else "planning (client, before any task)")
         seconds = planning + floor
     else:
         limiting = max(terms, key=terms.get)

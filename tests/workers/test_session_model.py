@@ -109,6 +109,8 @@ def test_limiting_terms():
     # one scheduler for ~83k tasks at 5 ms each outlasts 128 workers' share of the work
     p = tp.predict(base.with_overheads(0.0, 0.005), cameras=16, frames=1000, workers=128)
     assert p.limiting.startswith("scheduler throughput") and p.seconds == pytest.approx(0.005 * 83083)
+    q = tp.predict(base.with_overheads(0.0, 0.005), cameras=16, frames=1000, workers=128, planning=1000.0)
+    assert q.limiting.startswith("planning") and q.seconds == pytest.approx(1000.0 + 0.005 * 83083)
     # a slow barrier dominates once the work is spread thin
     slow = tp.StageCosts(per_index=base.per_index, tomography_cold=COLD, tomography_warm=WARM,
                          threshold_per_summary=0.01)
