@@ -375,8 +375,8 @@ def test_ici_beats_every_fixed_window_across_structure_and_background():
 
 
 def test_window_for_voxel():
-    """Odd, 4.4 voxel footprints wide, within 5..31 px."""
-    assert F.window_for_voxel(2.04, 4.4) == 9      # 8.98 -> 9
-    assert F.window_for_voxel(2.62, 4.4) == 13     # 11.5 -> 12 -> odd 13
-    assert F.window_for_voxel(8.6, 4.4) == 31      # capped
-    assert F.window_for_voxel(0.5, 4.4) == 5
+    """Odd, 3.8 voxel footprints wide, within 5..25 px."""
+    assert F.window_for_voxel(2.04, 3.8) == 9      # 7.75 -> 8 -> odd 9
+    assert F.window_for_voxel(2.62, 3.8) == 11     # 9.96 -> 10 -> odd 11
+    assert F.window_for_voxel(8.6, 3.8) == 25      # capped
+    assert F.window_for_voxel(0.5, 3.8) == 5
