@@ -80,6 +80,9 @@ def test_quick_table1(tmp_path):
     assert set(rows) == {"exact", "approximate", "optical_flow", "approximate_aniso"}
     for r in rows.values():
         assert np.isfinite(r["psnr"]) and r["psnr"] == pytest.approx(20 * np.log10(1 / r["rms"]))
+        # the in-plume figure: the same normalisation over fewer, harder voxels
+        assert r["psnr_plume"] == pytest.approx(20 * np.log10(1 / r["rms_plume"])) and r["psnr_plume"] < r["psnr"]
+    assert "In-plume PSNR" in md
     # Ray-traced exit directions carry no optical-flow error: at least as good, up to a margin.
     assert rows["exact"]["psnr"] >= rows["optical_flow"]["psnr"] - 0.5
     # The approximate d_out differs from the exact one by a tiny single-refraction error only.
