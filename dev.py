@@ -6,7 +6,7 @@
     python3 dev.py schlieren ARGS   # any other schlieren command inside the venv
 
 The virtual environment lives in .venv beside this file and is (re)installed whenever
-pyproject.toml changes.
+pyproject.toml changes; `demo` installs the runtime only, `test` adds the test extras.
 """
 
 from __future__ import annotations
@@ -28,27 +28,40 @@ def _digest() -> str:
     return hashlib.sha256((ROOT / "pyproject.toml").read_bytes()).hexdigest()
 
 
-def ensure_env() -> None:
+#: Extras per command: the demo needs only the runtime; the tests also need the test,
+#: cluster (dask-jobqueue) and bench (PhiFlow, imageio-ffmpeg) extras.
+EXTRAS = {"demo": (), "schlieren": ("test", "cluster", "bench"), "test": ("test", "cluster", "bench")}
+
+
+def ensure_env(extras=("test", "cluster", "bench")) -> None:
     if sys.version_info < (3, 11):
         sys.exit(f"schlieren needs Python 3.11 or newer (this is {sys.version.split()[0]})")
     if not (BIN / "python").exists():
         print("dev.py: creating .venv", file=sys.stderr)
         venv.EnvBuilder(with_pip=True).create(VENV)
-    if STAMP.exists() and STAMP.read_text() == _digest():
-        return
-    print("dev.py: installing schlieren and its dependencies into .venv", file=sys.stderr)
+    have: set[str] = set()
+    if STAMP.exists():
+        digest, _, names = STAMP.read_text().partition("\n")
+        if digest == _digest():
+            have = set(names.split(",")) - {""}
+            if set(extras) <= have:
+                return
+    want = sorted(have | set(extras))
+    print("dev.py: installing schlieren" + (f" with {', '.join(want)}" if want else "") + " into .venv",
+          file=sys.stderr)
     pip = [str(BIN / "python"), "-m", "pip", "--disable-pip-version-check", "-q"]
     subprocess.check_call(pip + ["install", "--upgrade", "pip"])
-    subprocess.check_call(pip + ["install", "-e", f"{ROOT}[test,cluster,bench]"])
-    STAMP.write_text(_digest())
+    spec = f"{ROOT}[{','.join(want)}]" if want else str(ROOT)
+    subprocess.check_call(pip + ["install", "-e", spec])
+    STAMP.write_text(_digest() + "\n" + ",".join(want))
 
 
 def main(argv: list[str]) -> int:
     if not argv or argv[0] in {"-h", "--help"}:
         print(__doc__)
         return 0
-    ensure_env()
     cmd, rest = argv[0], argv[1:]
+    ensure_env(EXTRAS.get(cmd, EXTRAS["test"]))
     env = dict(os.environ)
     if cmd == "test":
         args = [str(BIN / "python"), "-m", "pytest"] + (rest or ["-q", "-m", "not slow"])

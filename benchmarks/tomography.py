@@ -247,6 +247,17 @@ def speed(args):
     image = (810, 1440)  # portrait: the 2:1 tall box fills the frame
     fg = FlowGrid(image, 3)  # 270 x 480 flow grid, the paper's size
     cams = make_rig(16, ring="half", grid=grid, image_size=image)
+    voxel_note = "manifest voxel 2.5 mm"
+    if args.voxel == "auto":  # what a manifest without voxel_size gets (pipeline.geometry.auto_voxel_size)
+        from schlieren.pipeline.geometry import auto_voxel_size
+
+        v, info = auto_voxel_size(cams, grid.vmin, grid.vmax)
+        grid = Grid(grid.vmin, grid.vmax, v)
+        voxel_note = (f"auto voxel {1e3 * v:.2f} mm ({info['px_per_voxel']:.1f} px per voxel, limited by "
+                      f"{info['limited_by']})")
+    elif args.voxel:
+        grid = Grid(grid.vmin, grid.vmax, float(args.voxel))
+        voxel_note = f"voxel {1e3 * grid.voxel_size:.2f} mm"
     tp = TomoParams(n_ambient=MEDIUM.n_ambient)
     geom = build_geometry(cams, grid, fg, params=tp)
     t_geom = time.perf_counter() - t0
@@ -290,7 +301,7 @@ def speed(args):
         results.append(row)
         print(json.dumps(row), flush=True)
     warm = results[1:] if len(results) > 1 else results
-    out = {"grid": list(grid.shape), "flow_grid": list(fg.shape), "cameras": 16,
+    out = {"grid": list(grid.shape), "voxel": voxel_note, "flow_grid": list(fg.shape), "cameras": 16,
            "hull_voxels": int(hull.sum()), "geometry_seconds": round(t_geom, 1),
            "geometry_bytes": geom.nbytes, "data_seconds": round(t_data, 1), "frames": results,
            "mean_total_s_warm": round(float(np.mean([r["total_s"] for r in warm])), 3),
@@ -304,7 +315,8 @@ def speed(args):
     md = ["# Tomography + integration speed at paper scale", "",
           f"Load averages (1/5/15 min): {out['load_avg_start']} at the start, {out['load_avg_end']} at the end "
           "(2 cores; anything above ~1 means another process competed for them).", "",
-          f"Grid {out['grid']}, 16 cameras, flow grid {out['flow_grid']}, hull {out['hull_voxels']} voxels; "
+          f"Grid {out['grid']} ({voxel_note}), 16 cameras, flow grid {out['flow_grid']}, hull {out['hull_voxels']} "
+          "voxels; "
           f"per-session geometry {out['geometry_seconds']} s ({geom.nbytes / 1e9:.2f} GB); peak RSS "
           f"{out['peak_rss_mb']} MB; Poisson solver {args.solver}. {out['note']}.", "",
           "| frame | unknowns | rays | nnz | restrict s | CG s (it) | integrate s (it) | total wall s | CPU s | load |",
@@ -316,7 +328,7 @@ def speed(args):
     md.append("")
     md.append(f"Mean per warm-started frame: {out['mean_total_s_warm']} s wall, {out['mean_cpu_s_warm']} s CPU "
               f"(process time over both threads; on an idle 2-core machine the wall time is at most this).")
-    write("tomography_speed", out, "\n".join(md) + "\n")
+    write("tomography_speed" + args.suffix, out, "\n".join(md) + "\n")
 
 
 def main(argv=None):
@@ -331,6 +343,8 @@ def main(argv=None):
     ap.add_argument("--suffix", default="", help="appended to the results file name")
     ap.add_argument("--hull-radius", type=float, default=0.06)
     ap.add_argument("--solver", default="mg")
+    ap.add_argument("--voxel", default="", help="speed run: voxel in metres, or 'auto' (the default a manifest "
+                                                "without voxel_size gets); default 2.5 mm")
     args = ap.parse_args(argv)
     if args.speed:
         speed(args)

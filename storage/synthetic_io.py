@@ -53,6 +53,7 @@ __all__ = [
     "write_frame",
     "write_reference",
     "write_reference_frames",
+    "manifest_with_voxel",
     "VideoSink",
     "TruthWriter",
     "Truth",
@@ -148,6 +149,16 @@ def _write_png(path: Path, image: np.ndarray) -> None:
         raise ValueError("frames must be uint8 or uint16")
     if not cv2.imwrite(str(path), image):
         raise OSError(f"could not write {path}")
+
+
+def manifest_with_voxel(session_path: str | os.PathLike, voxel: float) -> Path:
+    """A copy of ``session.yaml`` beside it (``session-voxel<V>.yaml``) that sets ``volume.voxel_size``."""
+    src = Path(session_path)
+    doc = yaml.safe_load(src.read_text())
+    doc.setdefault("volume", {})["voxel_size"] = float(voxel)
+    out = src.with_name(f"{src.stem}-voxel{1e3 * float(voxel):g}mm.yaml")
+    out.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return out
 
 
 def write_frame(out_dir: str | os.PathLike, camera_name: str, index: int, image: np.ndarray) -> Path:

@@ -363,8 +363,13 @@ def _chosen(store_path) -> dict:
 
 
 def run_case(case: RealisticCase, work: Path, *, config: RunConfig | None = None, client=None, label: str = "",
-             truth_rows: bool = True, progress: Callable[[str], None] | None = None) -> dict:
-    """Render (or reuse) ``case``, run the full pipeline and score it; returns a JSON-able dict."""
+             truth_rows: bool = True, progress: Callable[[str], None] | None = None,
+             voxel: float | None = None) -> dict:
+    """Render (or reuse) ``case``, run the full pipeline and score it; returns a JSON-able dict.
+
+    ``voxel`` runs on a copy of the manifest that gives this ``volume.voxel_size`` (as a
+    user's manifest may), instead of letting the pipeline choose it.
+    """
     from schlieren.storage.store import ResultStore
     from schlieren.workers import bench
     from schlieren.workers.evaluate import evaluate
@@ -373,6 +378,8 @@ def run_case(case: RealisticCase, work: Path, *, config: RunConfig | None = None
     say = progress or (lambda m: log.info("%s", m))
     info = ensure_session(case, work, progress=say)
     d = Path(work) / case.name
+    if voxel is not None:
+        info = dict(info, session=str(sio.manifest_with_voxel(info["session"], voxel)))
     store = d / f"store{('-' + label) if label else ''}.zarr"
     bench_io.remove_tree(store)
     cfg = config or RunConfig()
@@ -404,12 +411,13 @@ def run_case(case: RealisticCase, work: Path, *, config: RunConfig | None = None
 
 
 def run_family(work, cases=CASES, *, config: RunConfig | None = None, client=None, label: str = "",
-               truth_rows: bool = True, progress: Callable[[str], None] | None = None) -> dict:
+               truth_rows: bool = True, progress: Callable[[str], None] | None = None,
+               voxel: float | None = None) -> dict:
     """Every case of ``cases``; returns ``{"cases": [...], "config": ..., "seconds"}``."""
     t0 = time.perf_counter()
     out = [run_case(c, Path(work), config=config, client=client, label=label, truth_rows=truth_rows,
-                    progress=progress) for c in cases]
-    return {"label": label, "cases": out, "config": config_to_dict(config or RunConfig()),
+                    progress=progress, voxel=voxel) for c in cases]
+    return {"label": label, "cases": out, "config": config_to_dict(config or RunConfig()), "voxel": voxel,
             "seconds": time.perf_counter() - t0}
 
 

@@ -46,6 +46,8 @@ def add_parser(subparsers) -> None:
     r.add_argument("--role", choices=["tune", "report"], default=None, help="only the tune or the report cases")
     r.add_argument("--params", metavar="FILE", default=None, help="run parameters (YAML) instead of the defaults")
     r.add_argument("--label", default="", help="results go to realistic_LABEL.md/.json (default: realistic.md)")
+    r.add_argument("--manifest-voxel", type=float, default=None, metavar="METRES",
+                   help="run on manifests that give this voxel_size (default: the pipeline chooses it)")
     r.add_argument("--no-truth-rows", action="store_true",
                    help="skip the reconstruction from the truth's deflections (faster)")
     p.set_defaults(func=handler)
@@ -123,6 +125,8 @@ def _realistic(args) -> int:
     if not args.quick and not _has_bench_extra():
         raise CLIError("the realistic family needs PhiFlow and imageio-ffmpeg: pip install 'schlieren[bench]' "
                        "(python3 dev.py installs them)")
+    if args.manifest_voxel is not None and not 0 < args.manifest_voxel < 0.1:
+        raise CLIError("--manifest-voxel must be in (0, 0.1) metres")
     workers = args.workers if args.workers is not None else (0 if args.quick else 2)
     if workers < 0:
         raise CLIError("--workers must be >= 0")
@@ -135,7 +139,8 @@ def _realistic(args) -> int:
 
             client, _info = stack.enter_context(open_client(ClusterOptions(workers=workers, dashboard_address=":0")))
         result = rb.run_family(work, cases, config=config, client=client, label=args.label,
-                               truth_rows=not args.no_truth_rows, progress=lambda m: console.print(m))
+                               truth_rows=not args.no_truth_rows, progress=lambda m: console.print(m),
+                               voxel=args.manifest_voxel)
     result["wall_seconds"] = time.perf_counter() - t0
     machine = _machine()
     result["machine"] = machine
