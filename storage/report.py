@@ -57,7 +57,7 @@ VOLUME_ARRAYS = ("hull", "gradient", "refractivity", "density", "temperature")
 # ---------------------------------------------------------------------------------------
 
 def open_result(store_path: str | os.PathLike):
-    """Open a result store read-only.
+    """Open a result store read-only, every chunk read checked (storage/integrity.py).
 
     Raises
     ------
@@ -69,8 +69,10 @@ def open_result(store_path: str | os.PathLike):
     path = Path(store_path)
     if not path.exists():
         raise StoreError("result store not found", file=str(path))
-    try:
-        group = zarr.open_group(str(path), mode="r")
+    from schlieren.storage.integrity import checked
+
+    try:  # reads are checked: a corrupt chunk, or one lost under a set marker, raises ChunkError
+        group = zarr.open_group(checked(str(path), read_only=True), mode="r")
     except Exception as exc:  # zarr raises several types for "not a group"
         raise StoreError(f"not a Zarr group ({type(exc).__name__}: {exc})", file=str(path)) from None
     fmt = group.attrs.get("format")

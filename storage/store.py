@@ -4,9 +4,15 @@ The coordinator creates the group and every array up front
 (:meth:`ResultStore.create`, the *template*); tasks then open the store by path, write
 whole chunks (:meth:`ResultStore.write` refuses partial-chunk regions, which lose data
 under concurrent writers) and set their completion marker last
-(:meth:`ResultStore.mark_done`). Markers, not chunk presence, mean "done": zarr deletes
-chunks equal to the fill value (``write_empty_chunks=False``), and a killed task can leave
-some of its chunks written.
+(:meth:`ResultStore.mark_done`). Markers, not chunk presence, mean "done": a killed task
+can leave some of its chunks written.
+
+Integrity (``storage/integrity.py``): every array ends its codecs with ``crc32c``, the data
+arrays store even fill-valued chunks (``write_empty_chunks=True``), and the root attribute
+``integrity`` records which stage's marker covers each array. A read never returns a
+chunk that fails its checksum or that is missing under a set marker: it raises
+:class:`~schlieren.storage.errors.ChunkError` naming the array and the chunk. Stores of
+older versions (no ``integrity``) are read without these checks and are not resumed.
 
 An existing path is never overwritten or deleted: :meth:`create` on an existing store
 resumes it only if its ``fingerprint`` attribute (a hash of session + configuration,
@@ -23,15 +29,17 @@ import json
 import logging
 import math
 import os
+import warnings
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
 import numpy as np
 import zarr
-from zarr.codecs import ZstdCodec
+from zarr.codecs import Crc32cCodec, ZstdCodec
 
-from schlieren.storage.chunkio import ChunkLayout, chunk_layout
-from schlieren.storage.errors import StoreError
+from schlieren.storage.chunkio import ChunkLayout, CorruptChunk, chunk_layout
+from schlieren.storage.errors import ChunkError, StoreError
+from schlieren.storage.integrity import INTEGRITY_VERSION, check_coverage, checked, chunk_error, marker_index
 from schlieren.storage.layout import STORE_FORMAT, ArraySpec, assert_aligned, normalize_region
 
 __all__ = ["ResultStore", "fingerprint", "to_json"]
@@ -39,7 +47,8 @@ __all__ = ["ResultStore", "fingerprint", "to_json"]
 log = logging.getLogger(__name__)
 
 MARKER_GROUP = "status"
-_COMPRESSORS = (ZstdCodec(level=3),)
+#: zstd, then zarr's CRC-32C of the compressed bytes (checked on every read)
+_COMPRESSORS = (ZstdCodec(level=3), Crc32cCodec())
 
 
 # --------------------------------------------------------------------------------------
@@ -129,11 +138,13 @@ class ResultStore:
         self._mode = mode
         self._arrays: dict[str, zarr.Array] = {}
         self._layouts: dict[str, ChunkLayout | None] = {}
+        info = group.attrs.get("integrity")
+        self._integrity: dict | None = info if isinstance(info, dict) else None
 
     # -- construction ---------------------------------------------------------------
     @classmethod
     def create(cls, path, layout: Iterable[ArraySpec], *, attrs: Mapping[str, Any],
-               markers: Mapping[str, tuple]) -> "ResultStore":
+               markers: Mapping[str, tuple], producers: Mapping[str, str] | None = None) -> "ResultStore":
         """Create the group and every array (or resume the same run's store).
 
         Parameters
@@ -149,6 +160,10 @@ class ResultStore:
             Stage -> marker dimension names (sizes from the layout, e.g.
             ``("camera", "frame")``) or a shape of ints. Each marker is a uint8 array
             ``status/<stage>`` with one chunk per index.
+        producers : mapping of str to str, optional
+            Array -> the stage whose marker says its chunks are written (``flow`` ->
+            ``resample``). Readers then refuse a chunk missing under a set marker.
+            The marker's dims must be dims of the array, chunked one index per chunk.
 
         Returns
         -------
@@ -178,19 +193,33 @@ class ResultStore:
         names = [s.name for s in specs]
         if len(set(names)) != len(names):
             raise ValueError(f"duplicate array names in the layout: {sorted(n for n in names if names.count(n) > 1)}")
+        by_name = {s.name: s for s in specs}
+        for array, stage in dict(producers or {}).items():
+            if array not in by_name or stage not in markers:
+                raise ValueError(f"producer {stage!r} of {array!r}: unknown array or stage")
+            mspec = by_name[f"{MARKER_GROUP}/{stage}"]
+            check_coverage(array, by_name[array].dims, by_name[array].chunks,
+                           mspec.dims if mspec.shape else ())
+        root_attrs["integrity"] = {
+            "version": INTEGRITY_VERSION, "checksum": "crc32c", "empty_chunks": "stored",
+            "producers": dict(producers or {}),
+            "static": sorted(s.name for s in layout if s.data is not None),
+        }
 
         existing = cls._try_open_existing(path, loc)
         if existing is not None:
             existing._check_resume(root_attrs, specs)
             existing._create_missing(specs)
+            existing._repair_static(specs)
             if not existing._group.attrs.get("template_complete", False):
                 existing._group.attrs.update({"template_complete": True})
             log.info("resuming the existing store %s", loc)
             return existing
 
         try:
-            group = zarr.open_group(path, mode="w-", attributes={**root_attrs, "template_complete": False,
-                                                                 "created": _now()}, zarr_format=3)
+            group = zarr.open_group(checked(path, read_only=False, location=loc), mode="w-",
+                                    attributes={**root_attrs, "template_complete": False, "created": _now()},
+                                    zarr_format=3)
         except (FileExistsError, zarr.errors.ContainsGroupError, zarr.errors.ContainsArrayError):
             # created concurrently by someone else
             raise StoreError("the store already exists (created concurrently); not overwriting it",
@@ -215,7 +244,7 @@ class ResultStore:
                                      "overwriting it", file=loc)
                 return None
         try:
-            group = zarr.open_group(path, mode="r+", zarr_format=3)
+            group = zarr.open_group(checked(path, read_only=False, location=loc), mode="r+", zarr_format=3)
         except (FileNotFoundError, zarr.errors.GroupNotFoundError, zarr.errors.NodeTypeValidationError):
             if isinstance(path, (str, os.PathLike)):
                 raise StoreError("the folder holds Zarr data that is not a result store group; not "
@@ -232,6 +261,11 @@ class ResultStore:
         if old.get("format") != STORE_FORMAT:
             raise StoreError(f"the path holds a Zarr group that is not a {STORE_FORMAT} store; not "
                              "overwriting it", file=loc)
+        if not isinstance(old.get("integrity"), dict) or \
+                old["integrity"].get("version") != new_attrs.get("integrity", {}).get("version"):
+            raise StoreError("this store was written by an older schlieren without chunk checksums; it stays "
+                             "readable (evaluate, report, export, verify) but is not resumed: write the run "
+                             "to a new --out", file=loc, field="integrity")
         new_fp, old_fp = new_attrs.get("fingerprint"), old.get("fingerprint")
         if new_fp is None or old_fp is None:
             raise StoreError("a result store already exists here and no fingerprint tells whether it is "
@@ -272,12 +306,29 @@ class ResultStore:
                 shape=spec.shape, chunks=spec.chunks, dtype=spec.dtype, fill_value=spec.fill_value,
                 dimension_names=spec.dims, attributes=to_json(spec.attrs), overwrite=False,
             )
-            if spec.dtype != "str":
-                kwargs["compressors"] = _COMPRESSORS
+            kwargs["compressors"] = _COMPRESSORS
             arr = parent.create_array(leaf, **kwargs)
             if spec.data is not None:
                 arr[...] = np.asarray(spec.data) if spec.dtype != "str" else np.asarray(spec.data, dtype=str)
         self._arrays.clear()
+
+    def _repair_static(self, specs: list[ArraySpec]) -> None:
+        """Rewrite template arrays (coordinates) whose chunks are lost, corrupt or changed."""
+        for spec in specs:
+            if spec.data is None:
+                continue
+            want = np.asarray(spec.data) if spec.dtype != "str" else np.asarray(spec.data, dtype=str)
+            arr = self.array(spec.name)
+            try:
+                have = np.asarray(arr[...])
+                same = have.shape == want.shape and (
+                    [str(v) for v in have.ravel()] == [str(v) for v in want.ravel()] if spec.dtype == "str"
+                    else np.array_equal(have, want, equal_nan=True))
+            except (ChunkError, ValueError, RuntimeError) as exc:
+                log.warning("%s: %s; rewriting it from the template", spec.name, exc)
+                same = False
+            if not same:
+                arr[...] = want
 
     @classmethod
     def open(cls, path, *, mode: str = "r+") -> "ResultStore":
@@ -285,8 +336,10 @@ class ResultStore:
         loc = _location(path)
         if mode not in ("r", "r+"):
             raise ValueError(f"mode must be 'r' or 'r+', got {mode!r}")
+        if isinstance(path, (str, os.PathLike)) and not os.path.isdir(path):
+            raise StoreError("no result store at this path", file=loc)
         try:
-            group = zarr.open_group(path, mode=mode, zarr_format=3)
+            group = zarr.open_group(checked(path, read_only=mode == "r", location=loc), mode=mode, zarr_format=3)
         except (FileNotFoundError, zarr.errors.GroupNotFoundError, zarr.errors.NodeTypeValidationError):
             raise StoreError("no result store at this path", file=loc) from None
         except (ValueError, OSError, json.JSONDecodeError) as exc:
@@ -326,8 +379,16 @@ class ResultStore:
                 raise StoreError("no such array in the store", file=self._location, field=name) from None
             if not isinstance(arr, zarr.Array):
                 raise StoreError("is a group, not an array", file=self._location, field=name)
+            if self._integrity is not None and not name.startswith(f"{MARKER_GROUP}/"):
+                # store fill-valued chunks too: a set marker then means every chunk has a file
+                arr = arr.with_config({"write_empty_chunks": True})
             self._arrays[name] = arr
         return arr
+
+    @property
+    def integrity(self) -> dict | None:
+        """The ``integrity`` root attribute (None for a store of an older version)."""
+        return self._integrity
 
     def _chunk_files(self, name: str) -> ChunkLayout | None:
         """Direct chunk-file access to ``name`` (storage/chunkio.py), or None to use zarr."""
@@ -411,11 +472,147 @@ class ResultStore:
                 region = None
             coords = lay.chunk_of(region) if region is not None else None
             if coords is not None:  # exactly one whole chunk: read its file directly
-                a = lay.read(coords, tuple(s.stop - s.start for s in region))
+                a = self._load_chunk(name, lay, coords)
+                shape = tuple(s.stop - s.start for s in region)
+                if a is None:
+                    a = np.full(shape, lay.fill_value, dtype=lay.dtype.newbyteorder("="))
+                else:
+                    a = a[tuple(slice(0, n) for n in shape)].astype(lay.dtype.newbyteorder("="), copy=True)
                 return a.reshape(a.shape[len(index):])
         if index == ():
             return np.asarray(arr[...])
         return np.asarray(arr[index])
+
+    def _load_chunk(self, name: str, lay: ChunkLayout, coords) -> np.ndarray | None:
+        """The stored chunk (None if it has no file and need not have one); ChunkError if
+        it is corrupt or lost under a set marker."""
+        try:
+            a = lay.load(coords)
+        except CorruptChunk as exc:
+            raise chunk_error(self._location, name, coords, exc.reason) from None
+        if a is None:
+            why = self._required(name, coords)
+            if why is not None:
+                raise chunk_error(self._location, name, coords, why)
+        return a
+
+    def _required(self, name: str, coords) -> str | None:
+        """Why the chunk ``name[coords]`` must have a file, or None if it need not."""
+        info = self._integrity
+        if not info:
+            return None
+        if name in (info.get("static") or ()):
+            return "is missing from a template array"
+        stage = (info.get("producers") or {}).get(name)
+        if stage is None:
+            return None
+        idx = self.marker_position(name, stage, coords)
+        try:
+            done = self._marker_set(stage, idx)
+        except ChunkError:
+            raise
+        return f"is missing although stage {stage} is marked complete" if done else None
+
+    def marker_position(self, name: str, stage: str, coords) -> tuple[int, ...]:
+        """Position in ``status/<stage>`` of the chunk at grid ``coords`` of array ``name``."""
+        arr = self.array(name)
+        return marker_index(self.dims(name), arr.chunks, self.marker_dims(stage), coords)
+
+    def marker_dims(self, stage: str) -> tuple[str, ...]:
+        m = self._marker(stage)
+        return tuple(m.metadata.dimension_names or ()) if m.shape else ()
+
+    # -- integrity: listing and checking chunks ---------------------------------------
+    def all_array_names(self) -> list[str]:
+        """Every array of the store, markers (``status/<stage>``) included."""
+        out = []
+
+        def walk(grp, prefix=""):
+            for name, _ in grp.arrays():
+                out.append(prefix + name)
+            for name, sub in grp.groups():
+                walk(sub, prefix + name + "/")
+
+        with warnings.catch_warnings():  # a non-zarr folder (the geometry cache) is not a member
+            warnings.filterwarnings("ignore", message=".*not recognized as a component of a Zarr hierarchy")
+            walk(self._group)
+        return sorted(out)
+
+    def chunk_grid(self, name: str) -> tuple[tuple[str, ...], tuple[int, ...], tuple[int, ...]]:
+        """``(dims, chunk shape, number of chunks per dim)`` of array ``name``."""
+        arr = self.array(name)
+        counts = tuple(-(-int(s) // int(c)) for s, c in zip(arr.shape, arr.chunks))
+        return self.dims(name), tuple(int(c) for c in arr.chunks), counts
+
+    def list_chunks(self, name: str) -> tuple[set[tuple[int, ...]], list[str]]:
+        """Grid coordinates of the stored chunks of ``name`` (a listing, nothing read), and
+        the orphaned ``*.partial`` files of killed writers among them."""
+        keys: set[tuple[int, ...]] = set()
+        partial: list[str] = []
+        if isinstance(self._store_arg, (str, os.PathLike)):
+            base = os.path.join(os.fspath(self._store_arg), *name.split("/"), "c")
+            if os.path.isfile(base):
+                return {()}, partial
+            for folder, _, files in os.walk(base):
+                rel = os.path.relpath(folder, base)
+                head = () if rel == "." else tuple(rel.split(os.sep))
+                if not all(p.isdigit() for p in head):
+                    continue
+                for f in files:
+                    if f.isdigit():
+                        keys.add(tuple(int(p) for p in head + (f,)))
+                    elif f.endswith(".partial"):
+                        partial.append(os.path.join(folder, f))
+            return keys, partial
+        from zarr.core.sync import sync
+
+        inner = self._group.store
+
+        async def collect():
+            return [k async for k in inner.list_prefix(f"{name}/c")]
+
+        for key in sync(collect()):
+            rest = key[len(name) + 2:]
+            if rest == "":
+                keys.add(())
+            elif rest.startswith("/") and all(p.isdigit() for p in rest[1:].split("/")):
+                keys.add(tuple(int(p) for p in rest[1:].split("/")))
+        return keys, partial
+
+    def check_chunk(self, name: str, coords) -> str | None:
+        """Read the stored chunk ``name[coords]``: None if it decodes and passes its
+        checksum, else the reason."""
+        lay = self._chunk_files(name)
+        if lay is not None:
+            try:
+                lay.load(tuple(coords))
+            except CorruptChunk as exc:
+                return exc.reason
+            return None
+        arr = self.array(name)
+        region = tuple(slice(i * c, min((i + 1) * c, n)) for i, c, n in zip(coords, arr.chunks, arr.shape))
+        try:
+            arr[region]
+        except ChunkError as exc:
+            return exc.reason
+        except Exception as exc:  # noqa: BLE001 - any decoding failure is damage
+            return f"does not decode ({type(exc).__name__}: {exc})"
+        return None
+
+    def remove_chunk(self, name: str, coords) -> None:
+        """Delete a stored chunk (a damaged one, before its task is recomputed)."""
+        if self._mode == "r":
+            raise StoreError("the store is open read-only", file=self._location, field=name)
+        if isinstance(self._store_arg, (str, os.PathLike)):
+            path = os.path.join(os.fspath(self._store_arg), *name.split("/"), "c", *(str(int(i)) for i in coords))
+            try:
+                os.remove(path)
+            except FileNotFoundError:
+                pass
+            return
+        from zarr.core.sync import sync
+
+        sync(self._group.store.delete(f"{name}/c" + "".join(f"/{int(i)}" for i in coords)))
 
     # -- completion markers -----------------------------------------------------------
     def _marker(self, stage: str) -> zarr.Array:
@@ -454,21 +651,65 @@ class ResultStore:
         Every task asks this before it runs, so in a folder store a single position is
         read straight from its marker chunk file (storage/chunkio.py): a chunk never
         written holds the fill value 0 (not done). Through zarr's I/O thread a read costs
-        about 1 ms, several in a busy worker.
+        about 1 ms, several in a busy worker. A marker chunk that is corrupt counts as not
+        done (its task is recomputed and rewrites it), with a warning.
         """
         arr = self._marker(stage)
         region = normalize_region(index, arr.shape)
-        lay = self._chunk_files(f"{MARKER_GROUP}/{stage}")
+        try:
+            return self._marker_region_set(stage, arr, region)
+        except ChunkError as exc:
+            log.warning("%s; counted as not done", exc)
+            return False
+
+    def _marker_set(self, stage: str, index) -> bool:
+        """Like :meth:`is_done` but a corrupt marker raises :class:`ChunkError`."""
+        arr = self._marker(stage)
+        return self._marker_region_set(stage, arr, normalize_region(index, arr.shape))
+
+    def _marker_region_set(self, stage: str, arr, region) -> bool:
+        name = f"{MARKER_GROUP}/{stage}"
+        lay = self._chunk_files(name)
         coords = lay.chunk_of(region) if lay is not None else None
         if coords is not None:
-            if not os.path.exists(lay.path(coords)):
-                return False
-            return bool(np.all(lay.read(coords, tuple(s.stop - s.start for s in region)) == 1))
+            try:
+                a = lay.load(coords)
+            except CorruptChunk as exc:
+                raise chunk_error(self._location, name, coords, exc.reason) from None
+            return a is not None and bool(np.all(a == 1))
         return bool(np.all(np.asarray(arr[region]) == 1))
 
+    def marker_chunk_set(self, stage: str, coords) -> bool:
+        """Is the marker chunk at grid ``coords`` set? :class:`ChunkError` if it is corrupt."""
+        return self._marker_set(stage, tuple(int(c) for c in coords))
+
+    def unmark(self, stage: str, index) -> None:
+        """Clear the marker of ``stage`` at ``index`` (its task will be recomputed)."""
+        if self._mode == "r":
+            raise StoreError("the store is open read-only", file=self._location, field=stage)
+        arr = self._marker(stage)
+        region = normalize_region(index, arr.shape)
+        name = f"{MARKER_GROUP}/{stage}"
+        lay = self._chunk_files(name)
+        coords = lay.chunk_of(region) if lay is not None else None
+        if coords is not None:
+            try:
+                os.remove(lay.path(coords))
+            except FileNotFoundError:
+                pass
+        else:
+            arr[region] = np.zeros(tuple(s.stop - s.start for s in region), dtype=np.uint8)
+
     def done(self, stage: str) -> np.ndarray:
-        """The whole marker of ``stage`` as a bool array."""
-        return np.asarray(self._marker(stage)[...]) == 1
+        """The whole marker of ``stage`` as a bool array (corrupt marker chunks: not done)."""
+        arr = self._marker(stage)
+        try:
+            return np.asarray(arr[...]) == 1
+        except ChunkError:
+            out = np.zeros(arr.shape, dtype=bool)
+            for idx in np.ndindex(*arr.shape):
+                out[idx] = self.is_done(stage, idx)
+            return out
 
     # -- coordinator-only attribute updates -----------------------------------------------
     def set_stage_completed(self, stage: str, timestamp: str | _dt.datetime | None = None) -> None:

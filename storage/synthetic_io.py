@@ -305,7 +305,9 @@ def read_store_refractivity(path: str | os.PathLike) -> tuple[Any, np.ndarray, n
     time : ndarray (frame,)
     origin, voxel_size : ndarray (3,)
     """
-    g = _open_group(path, "store")
+    from schlieren.storage.report import open_result
+
+    g = open_result(path)  # checked reads: a corrupt or lost chunk raises ChunkError
     for name in ("refractivity", "time"):
         if name not in g:
             raise StoreError(f"the store has no '{name}' array", file=str(path), field=name)

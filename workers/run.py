@@ -4,12 +4,16 @@ Order of events (SPEC sections 1-2):
 
 1. the session is loaded and validated completely (bad input stops here, nothing is
    scheduled and no store is touched);
-2. the store is created with every array up front, or reopened when it was made for the
-   same session and parameters (a rerun resumes; a different run is refused, never
+2. the store's lease is taken (one writer per store, ``storage/lease.py``), then the store
+   is created with every array up front, or reopened when it was made for the same
+   session and parameters (a rerun resumes; a different run is refused, never
    overwritten);
-3. the stage table is compiled into tasks, minus those whose completion marker is set;
-4. the tasks run in a plain loop or as Dask futures; failures are collected per task and
-   summarised, every completed chunk stays.
+3. the markers are verified (``workers/verify.py``): every chunk a set marker covers must
+   have a file (``verify=True`` also reads every chunk's checksum); damaged tasks and
+   everything downstream of them are unmarked;
+4. the stage table is compiled into tasks, minus those whose completion marker is set;
+5. the tasks run in a plain loop or as Dask futures; failures (I/O errors such as a full
+   disk included) are collected per task and summarised, every completed chunk stays.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ from typing import Callable
 
 from schlieren.pipeline.geometry import FlowGrid
 from schlieren.pipeline.stages import STAGES, RunConfig, bind_medium, config_to_dict
+from schlieren.storage.errors import StoreError
 from schlieren.storage.layout import result_layout
 from schlieren.storage.session import Session, load_session
 from schlieren.storage.store import ResultStore
@@ -62,6 +67,7 @@ class RunSummary:
     stage_cpu_seconds: dict[str, float] = field(default_factory=dict)
     receipts: list[dict] = field(default_factory=list)
     dashboard: str | None = None
+    integrity: object = None  # the VerifyReport of the markers checked before planning
 
     @property
     def ok(self) -> bool:
@@ -111,8 +117,33 @@ def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig) -> tup
         "stage_times": {},
     }
     markers = {st.name: st.over for st in STAGES}
-    store = ResultStore.create(out_path, layout, attrs=attrs, markers=markers)
+    try:
+        store = ResultStore.create(out_path, layout, attrs=attrs, markers=markers,
+                                   producers=producers(cfg, [s.name for s in layout]))
+    except OSError as exc:  # a full disk or a read-only folder while writing the template
+        raise StoreError(f"cannot write the store ({exc.strerror or exc}); nothing computed is lost, "
+                         "rerun when fixed", file=str(out_path)) from None
     return store, ext, fp[:10]
+
+
+def producers(cfg: RunConfig, names) -> dict[str, str]:
+    """Array -> the stage whose completion marker covers its chunks (the task writing them)."""
+    out = {a: st.name for st in STAGES for a in st.outputs if a in names}
+    if cfg.reconstruction == "direct" and "refractivity" in out:
+        out["refractivity"] = "tomography"  # solved directly by the tomography task
+    return out
+
+
+def store_lease(out_path, purpose: str = "run"):
+    """The lease of a folder store (a no-op context for other store objects)."""
+    import contextlib
+    import os
+
+    from schlieren.storage.lease import StoreLease
+
+    if isinstance(out_path, (str, os.PathLike)):
+        return StoreLease(out_path, purpose=purpose)
+    return contextlib.nullcontext()
 
 
 def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
@@ -121,7 +152,8 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
                 on_receipt: Callable[[dict], None] | None = None,
                 on_failure: Callable[[str, str], None] | None = None,
                 on_plan: Callable[[Plan], None] | None = None,
-                progress: bool = False, frames_per_task: int | None = None) -> RunSummary:
+                progress: bool = False, frames_per_task: int | None = None,
+                verify: bool = False) -> RunSummary:
     """Validate ``session_path``, then compute every missing chunk of ``out_path``.
 
     Parameters
@@ -142,17 +174,36 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
         Consecutive frames of one camera per task in the cheap 2D stages (default
         :func:`default_frames_per_task` of the image size; 1 = one task per camera and
         frame). Results, markers and resume do not depend on it.
+    verify : bool
+        Read every chunk of the existing store and check its checksum before trusting the
+        markers (otherwise only a listing checks that the marked chunks exist). Damaged
+        chunks are recomputed with everything downstream of them.
     """
     session = session_path if isinstance(session_path, Session) else load_session(session_path, frames=frames)
     cfg = bind_medium(config or RunConfig(), session.medium.n_ambient)
+    with store_lease(out_path):
+        return _run_leased(session, out_path, cfg, client=client, serial=serial, report=report,
+                           on_receipt=on_receipt, on_failure=on_failure, on_plan=on_plan,
+                           frames_per_task=frames_per_task, verify=verify)
+
+
+def _run_leased(session, out_path, cfg, *, client, serial, report, on_receipt, on_failure, on_plan,
+                frames_per_task, verify) -> RunSummary:
+    from schlieren.workers.verify import verify_store
+
     store, ext, token = prepare_store(session, out_path, cfg)
     if frames_per_task is None:
         frames_per_task = default_frames_per_task(session.cameras[0].image_size)
-    plan = make_plan(ext, token, done=store.is_done, frames_per_task=int(frames_per_task))
+    try:
+        check = verify_store(store, full=verify, repair=True, ext=ext)
+    except OSError as exc:
+        raise StoreError(f"cannot check the store ({exc.strerror or exc})", file=str(out_path)) from None
+    plan = make_plan(ext, token, done=lambda st, idx: tuple(idx) in check.done.get(st, ()),
+                     frames_per_task=int(frames_per_task))
     if on_plan:
         on_plan(plan)
     summary = RunSummary(store=str(out_path), executor="serial" if (serial or client is None) else "dask",
-                         tasks=len(plan.tasks), skipped=plan.skipped)
+                         tasks=len(plan.tasks), skipped=plan.skipped, integrity=check)
     t0 = time.time()
     stage_first: dict[str, float] = {}
     stage_last: dict[str, float] = {}
@@ -196,5 +247,10 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
         if s in stage_first:
             times[s] = {"started": stage_first[s], "completed": stage_last[s],
                         "task_seconds": stage_busy.get(s, 0.0), "executor": summary.executor}
-    store.update_attrs({"stage_times": times})
+    try:
+        store.update_attrs({"stage_times": times})
+    except OSError as exc:  # only the timing attributes are lost; every chunk and marker stays
+        from schlieren.workers.tasks import _failure_text
+
+        summary.failures["store-attributes"] = _failure_text(f"recording stage times in {out_path}", exc)
     return summary

@@ -146,6 +146,9 @@ def context(store_path: str, run_token: str = "") -> RunContext:
 @functools.lru_cache(maxsize=2)
 def _geometry(store_path: str, key: str):
     path = arrays_cache.cache_dir(store_path, "geometry", key)
+    bad = arrays_cache.verify_arrays(path)  # once per process: a damaged cache is never used
+    if bad:
+        raise TaskFailed(f"geometry cache {bad[0]}; rerun with `schlieren run ... --verify` to rebuild it")
     return tomography.load_geometry(arrays_cache.load_arrays(path))
 
 
@@ -241,18 +244,12 @@ def _potential(ctx: RunContext, c: int, k: int) -> dict:
     return {}
 
 
-def _summary(ctx: RunContext, c: int, k: int, kw: dict) -> np.ndarray:
-    s = ctx.store.read("potential_summary", (c, k))
-    if np.isnan(s[0]):  # the pixel count: NaN only where the chunk was never written
-        # potential computed by a version that kept no summary (a resumed older store)
-        s = masksmod.potential_summary(ctx.store.read("potential", (c, k)), **kw)
-    return s
-
-
 def _threshold(ctx: RunContext) -> dict:
     params = ctx.config.masks
-    kw = kernel_kwargs(params, masksmod.potential_summary)
-    summaries = [_summary(ctx, c, k, kw) for c in range(len(ctx.cameras)) for k in range(ctx.n_frames)]
+    # stores of versions that wrote no summaries are not resumed (no chunk checksums), so
+    # every summary under a set potential marker exists (a lost one raises ChunkError)
+    summaries = [ctx.store.read("potential_summary", (c, k))
+                 for c in range(len(ctx.cameras)) for k in range(ctx.n_frames)]
     thr = masksmod.threshold_from_summaries(
         summaries, **kernel_kwargs(params, masksmod.threshold_from_summaries))
     ctx.store.write("mask_threshold", (), np.array([thr], dtype=np.float64))
@@ -377,6 +374,25 @@ def run_task(store_path: str, stage_name: str, index: tuple[int, ...], *_deps, r
     ``run_token`` (the plan's) keys this process's caches of the run.
     """
     index = tuple(int(i) for i in index)
+    try:
+        return _run_task(store_path, stage_name, index, run_token)
+    except TaskFailed:
+        raise
+    except Exception as exc:  # the store unreadable, the disk full while marking...: one line
+        raise TaskFailed(_failure_text(f"{stage_name} {list(index)}", exc)) from exc
+
+
+def _failure_text(where: str, exc: BaseException) -> str:
+    """``where: Type: message`` on one line; a full disk says so and that nothing is lost."""
+    import errno
+
+    msg = f"{where}: {type(exc).__name__}: {exc}"
+    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        msg += " (the disk is full: free space and rerun; completed chunks are kept)"
+    return " ".join(msg.split())
+
+
+def _run_task(store_path: str, stage_name: str, index: tuple[int, ...], run_token: str) -> dict:
     t0 = time.perf_counter()
     c0 = time.thread_time()
     ctx = context(str(store_path), str(run_token))
@@ -402,9 +418,11 @@ def run_task(store_path: str, stage_name: str, index: tuple[int, ...], *_deps, r
     except TaskFailed:
         raise
     except Exception as exc:  # name the camera/frame; the original type stays in the text
-        msg = f"{_describe(stage_name, index, ctx)}: {type(exc).__name__}: {exc}"
-        raise TaskFailed(" ".join(msg.split())) from exc
-    ctx.store.mark_done(stage_name, index)
+        raise TaskFailed(_failure_text(_describe(stage_name, index, ctx), exc)) from exc
+    try:
+        ctx.store.mark_done(stage_name, index)
+    except Exception as exc:  # noqa: BLE001 - e.g. the disk filled up right now
+        raise TaskFailed(_failure_text(_describe(stage_name, index, ctx), exc)) from exc
     receipt.update(extra)
     receipt["seconds"] = time.perf_counter() - t0
     # CPU of this thread only: below ``seconds`` when other processes took the core
