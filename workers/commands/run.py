@@ -37,6 +37,10 @@ def add_common_run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--frames-per-task", type=positive_int, default=None, metavar="N",
                    help="frames of one camera per task in the cheap 2D stages (default: about 1.4 "
                         "megapixels per task, 8 frames at 480x360; results and resume do not depend on it)")
+    p.add_argument("--verify", action="store_true",
+                   help="before resuming, read every chunk of the existing store and check its checksum "
+                        "(a rerun always checks that the chunks of every completed task exist); damaged "
+                        "chunks are recomputed with everything downstream")
 
 
 def add_log_arg(p: argparse.ArgumentParser) -> None:
@@ -114,7 +118,8 @@ def execute(session: str, out: str, frames, args, *, console=None):
                                   serial=client is None, config=cfg, report=args.report,
                                   on_receipt=fan_out(prog.receipt, run_log.receipt),
                                   on_failure=fan_out(prog.failure, run_log.failure),
-                                  on_plan=prog.plan, frames_per_task=args.frames_per_task)
+                                  on_plan=prog.plan, frames_per_task=args.frames_per_task,
+                                  verify=bool(getattr(args, "verify", False)))
             log_finished(run_log, summary)
         summary.dashboard = link
     return summary
@@ -142,6 +147,11 @@ def log_finished(run_log, summary) -> None:
 def print_summary(summary, *, stream=None) -> None:
     stream = stream or sys.stderr
     roots = summary.root_failures()
+    check = getattr(summary, "integrity", None)
+    if check is not None and check.problems:
+        print(f"verify: {check.summary()}:", file=stream)
+        for line in check.lines(10):
+            print(f"  - {line}", file=stream)
     print(f"store: {summary.store}  ({summary.tasks} tasks run, {summary.skipped} already complete, "
           f"{summary.seconds:.1f} s, {summary.executor} executor)", file=stream)
     if summary.failures:
