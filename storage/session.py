@@ -555,9 +555,43 @@ def _resolve(spec: str, root: Path, *, allow_external: bool, file: str, camera: 
         if norm == ".." or norm.startswith(".." + os.sep) or norm.startswith("../"):
             raise SessionError(f"path {spec!r} escapes the session folder (set allow_external_paths: "
                                "true to allow it)", file=file, camera=camera, field=field)
-        return str(root / norm)
+        out = str(root / norm)
+        # folders on the way (a pattern's folder) may be symbolic links out of the session
+        existing = out
+        while not os.path.lexists(existing) and os.path.dirname(existing) != existing:
+            existing = os.path.dirname(existing)
+        _check_contained(existing, root, file=file, camera=camera, field=field, what=spec)
+        return out
     spec = os.path.expanduser(spec)
     return spec if os.path.isabs(spec) else os.path.normpath(str(root / spec))
+
+
+def _check_contained(path: str, root: Path, *, file: str, camera: str | None, field: str | None,
+                     what: str | None = None) -> None:
+    """Refuse ``path`` if, with every symbolic link resolved, it is not inside ``root``."""
+    real = os.path.realpath(path)
+    base = os.path.realpath(root)
+    if real != base and not real.startswith(base.rstrip(os.sep) + os.sep):
+        raise SessionError(f"path {what or path!r} leads outside the session folder through a symbolic link "
+                           f"(to {real}); set allow_external_paths: true to allow it", file=file, camera=camera,
+                           field=field)
+
+
+def _check_files_contained(i: int, cam: Camera, src: CameraSource, fs: FrameSource, indices, root: Path,
+                           mfile: str) -> None:
+    """Every frame and reference file a run will open, symlinks resolved, is in the session folder."""
+    frames = [fs.file_of(k) for k in indices] if isinstance(fs, ImageSequence) else [fs.path]
+    for k, f in zip(indices if isinstance(fs, ImageSequence) else [None], frames):
+        _check_contained(f, root, file=mfile, camera=cam.name,
+                         field=f"cameras[{i}].frames" + (f"[{k}]" if k is not None else ""), what=f)
+    if src.reference_kind == "sequence":
+        with _qualified(i, "reference"):
+            seq = ImageSequence(src.reference, camera_name=cam.name)
+        refs = [seq.file_of(k) for k in range(len(seq))]
+    else:
+        refs = [src.reference]
+    for f in refs:
+        _check_contained(f, root, file=mfile, camera=cam.name, field=f"cameras[{i}].reference", what=f)
 
 
 def _human_bytes(n: float) -> str:
@@ -681,10 +715,15 @@ class _qualified:
         raise SessionError(exc.message, file=exc.file, camera=exc.camera, field=f) from None
 
 
-def _check_camera_files(i: int, cam: Camera, source: CameraSource) -> FrameSource:
-    """Open the frames, decode frame 0 and compare its size with ``image_size``."""
+def _check_camera_files(i: int, cam: Camera, source: CameraSource, *, contained=None) -> FrameSource:
+    """Open the frames, decode frame 0 and compare its size with ``image_size``.
+
+    ``contained(fs)``, if given, checks the files before any is read (symlinks out of the
+    session folder)."""
     W, H = cam.image_size
     fs = open_frames(source.frames, camera_name=cam.name)
+    if contained is not None:
+        contained(fs)
     if len(fs) == 0:
         raise SessionError("the video holds no frames", file=source.frames, camera=cam.name,
                            field=f"cameras[{i}].frames")
@@ -907,8 +946,10 @@ def load_session(path: str | os.PathLike, *, frames: tuple[int, int] | None = No
     if check_files:
         opened: list[FrameSource] = []
         for i, (cam, src) in enumerate(zip(cameras, sources)):
+            check = None if m.allow_external_paths else (
+                lambda fs, i=i, cam=cam, src=src: _check_files_contained(i, cam, src, fs, range(len(fs)), root, mfile))
             with _qualified(i, "frames"):
-                fs = _check_camera_files(i, cam, src)
+                fs = _check_camera_files(i, cam, src, contained=check)
             if n_avail is None:
                 n_avail = len(fs)
             elif len(fs) != n_avail:

@@ -182,6 +182,52 @@ def test_external_paths_allowed_when_asked(session_builder, tmp_path):
     assert Path(s.sources[2].reference) == outside / "reference.png"
 
 
+@pytest.mark.parametrize("link", ["reference", "frame", "folder"])
+def test_symlinks_out_of_the_session_folder_are_refused_before_anything_is_read(session_builder, tmp_path,
+                                                                                 monkeypatch, link):
+    """Paths are resolved, symbolic links included, before the containment check: a
+    reference, a frame or a frame folder linked to a file outside is refused, naming the
+    camera and field, and nothing outside is opened."""
+    b = session_builder
+    secret = tmp_path / "secret"
+    secret.mkdir()
+    cam = b.root / "cam01"
+    if link == "reference":
+        target = secret / "passwd.png"
+        os.replace(cam / "reference.png", target)
+        os.symlink(target, cam / "reference.png")
+        field = "cameras[1].reference"
+    elif link == "frame":
+        target = secret / "00003.png"
+        os.replace(cam / "frames" / "00003.png", target)
+        os.symlink(target, cam / "frames" / "00003.png")
+        field = "cameras[1].frames[3]"
+    else:
+        target = secret / "frames"
+        os.replace(cam / "frames", target)
+        os.symlink(target, cam / "frames")
+        field = "cameras[1].frames"
+    opened = []
+    real_imread = cv2.imread
+    monkeypatch.setattr(cv2, "imread", lambda f, *a: opened.append(f) or real_imread(f, *a))
+    err = expect_error(b.root, file=b.root / "session.yaml", camera="cam01", field=field,
+                       match="leads outside the session folder through a symbolic link")
+    assert str(secret) in str(err)
+    assert not any(str(secret) in os.path.realpath(f) for f in opened)
+    # a link that stays inside the folder is fine, and allow_external_paths allows the rest
+    b.manifest["allow_external_paths"] = True
+    b.save()
+    assert load_session(b.root).n_frames_available == 6
+
+
+def test_a_symlink_inside_the_session_folder_is_fine(session_builder):
+    b = session_builder
+    cam = b.root / "cam00"
+    os.replace(cam / "reference.png", cam / "background.png")
+    os.symlink("background.png", cam / "reference.png")
+    assert load_session(b.root).n_frames_available == 6
+
+
 def test_parse_frame_range():
     assert parse_frame_range("3:9") == (3, 9)
     assert parse_frame_range((0, 5)) == (0, 5)

@@ -88,11 +88,16 @@ def client_for(args):
     if args.serial or (args.workers is not None and args.workers <= 1 and args.scheduler is None):
         yield None, None
         return
-    from schlieren.workers.cluster import ClusterOptions, open_client
+    from schlieren.workers.cli import CLIError
+    from schlieren.workers.cluster import ClusterOptions, connect_error, open_client
 
     opts = ClusterOptions(workers=args.workers if args.scheduler is None else None,
                           scheduler=args.scheduler, tls_dir=args.tls)
-    with open_client(opts) as (client, info):
+    with contextlib.ExitStack() as stack:
+        try:  # a missing --tls, a wrong CA, a wrong address: one line, not a traceback
+            client, info = stack.enter_context(open_client(opts))
+        except (ValueError, OSError, TimeoutError) as exc:
+            raise CLIError(connect_error(opts, exc)) from None
         yield client, info
 
 
