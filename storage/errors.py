@@ -46,6 +46,10 @@ class StoreError(SchlierenInputError):
     """The result store cannot be created, opened or resumed."""
 
 
+class ResourceError(SchlierenInputError):
+    """The run would not fit in the memory of its workers or on the store's disk."""
+
+
 class ChunkError(StoreError):
     """A chunk of the result store is corrupt, or missing although its stage is marked done.
 

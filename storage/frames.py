@@ -35,6 +35,7 @@ __all__ = [
     "is_pattern",
     "is_video",
     "image_header",
+    "image_incomplete",
     "VIDEO_EXTENSIONS",
     "IMAGE_EXTENSIONS",
 ]
@@ -135,6 +136,46 @@ def image_header(path: str | os.PathLike) -> tuple[int, int] | None:
             return int(im.size[0]), int(im.size[1])
     except (OSError, UnidentifiedImageError, ValueError, SyntaxError):
         return None
+
+
+_PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"
+
+
+def image_incomplete(path: str | os.PathLike) -> str | None:
+    """Why an image file is cut short, or None if its structure is complete.
+
+    Cheap structural checks that read a few bytes, not the pixels: a PNG must end with
+    its ``IEND`` chunk, a JPEG with its end-of-image marker, a TIFF's strips or tiles
+    must lie inside the file. Other formats are not checked (None).
+    """
+    p = os.fspath(path)
+    try:
+        size = os.path.getsize(p)
+        with open(p, "rb") as f:
+            head = f.read(8)
+            f.seek(max(0, size - 64))
+            tail = f.read()
+    except OSError as exc:
+        return f"cannot read it ({exc.strerror or exc})"
+    if head.startswith(b"\x89PNG\r\n\x1a\n"):
+        return None if tail.endswith(_PNG_END) else "the PNG ends before its IEND chunk"
+    if head.startswith(b"\xff\xd8"):
+        return None if b"\xff\xd9" in tail else "the JPEG has no end-of-image marker"
+    if head[:4] in (b"II*\x00", b"MM\x00*"):
+        try:
+            from PIL import Image
+
+            with Image.open(p) as im:
+                tags = im.tag_v2
+                offsets = tags.get(273) or tags.get(324)
+                counts = tags.get(279) or tags.get(325)
+        except Exception as exc:  # noqa: BLE001 - Pillow raises many types for broken files
+            return f"the TIFF header does not parse ({type(exc).__name__})"
+        if offsets and counts:
+            end = max(int(o) + int(c) for o, c in zip(offsets, counts))
+            if end > size:
+                return f"the TIFF's image data ends at byte {end}, past the file's {size} bytes"
+    return None
 
 
 class FrameSource:

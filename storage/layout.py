@@ -186,6 +186,11 @@ def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tup
         _f32("flow_raw", ("camera", "raw_frame", "v", "u", "component"), (C, R, h, w, 2), (1, 1, h, w, 2),
              {"long_name": "BOS deflection at each frame's own rolling-shutter times",
               "units": "pixel", "stage": "deflection", **cam}),
+        _f32("frame_quality", ("camera", "raw_frame", "quality"), (C, R, 4), (1, 1, 4),
+             {"long_name": "mean grey level, saturated fraction, mean absolute change from the previous "
+                           "frame, flags (1 dark, 2 saturated, 4 frozen: excluded from resampling)",
+              "quality_names": ["mean", "saturated_fraction", "mean_abs_change", "flags"],
+              "stage": "deflection", **cam}),
         _f32("flow", ("camera", "frame", "v", "u", "component"), (C, F, h, w, 2), (1, 1, h, w, 2),
              {"long_name": "BOS deflection resampled to the output times", "units": "pixel",
               "stage": "resample", **cam, **t}),

@@ -37,6 +37,7 @@ from schlieren.storage.frames import (
     ImageSequence,
     VideoFrames,
     image_header,
+    image_incomplete,
     is_pattern,
     is_video,
     open_frames,
@@ -758,6 +759,10 @@ def _check_frames_content(i: int, cam: Camera, fs: FrameSource, indices: list[in
             if size != (W, H):
                 raise SessionError(f"frame {k} is {size[0]}x{size[1]} pixels but image_size is [{W}, {H}]",
                                    file=fs.file_of(k), camera=cam.name, field=f"cameras[{i}].image_size")
+            why = image_incomplete(fs.file_of(k))
+            if why is not None:
+                raise SessionError(f"frame {k} is truncated: {why}", file=fs.file_of(k), camera=cam.name,
+                                   field=f"cameras[{i}].frames[{k}]")
     if indices:
         last = max(indices)
         img = fs.read(last)  # decodes fully; raises naming the frame index
@@ -801,6 +806,9 @@ def _check_reference(i: int, cam: Camera, source: CameraSource) -> None:
         if size != (W, H):
             raise SessionError(f"reference is {size[0]}x{size[1]} pixels but image_size is [{W}, {H}]",
                                file=f, camera=cam.name, field=fld)
+        why = image_incomplete(f) if source.reference_kind != "video" else None
+        if why is not None:
+            raise SessionError(f"the reference is truncated: {why}", file=f, camera=cam.name, field=fld)
 
 
 def _kind_of_frames(spec: str, file: str, camera: str, field: str) -> str:
@@ -838,8 +846,9 @@ def load_session(path: str | os.PathLike, *, frames: tuple[int, int] | None = No
         sizes, equal frame counts). ``False`` checks the manifest alone.
     decode_all_frames : bool
         Decode every frame in the range to process (and the strobe search range) before
-        returning. By default only the image headers of every frame, and the first and
-        last frame in full, are checked: a frame corrupt past its header is then
+        returning. By default every frame's header is decoded and its file checked for
+        completeness (a truncated PNG, JPEG or TIFF is refused here), and the first and
+        last frame are decoded in full: a frame corrupt inside its pixel data is then
         reported, with its index, when a task reads it.
 
     Returns

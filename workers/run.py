@@ -68,6 +68,7 @@ class RunSummary:
     receipts: list[dict] = field(default_factory=list)
     dashboard: str | None = None
     integrity: object = None  # the VerifyReport of the markers checked before planning
+    bad_frames: list = field(default_factory=list)  # (camera, capture frame, [reasons]) excluded
 
     @property
     def ok(self) -> bool:
@@ -90,8 +91,8 @@ def _fingerprint(session: Session, cfg: RunConfig, frames: tuple[int, int]) -> s
     return hashlib.sha256(blob.encode()).hexdigest()
 
 
-def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig) -> tuple[ResultStore, Extents, str]:
-    """Create (or reopen for resume) the result store for ``session`` and return the extents."""
+def run_layout(session: Session, cfg: RunConfig) -> tuple[list, Extents]:
+    """The store's arrays and the plan's extents for ``session`` and ``cfg``."""
     a, b = session.frames
     n_frames = b - a
     raw_first = max(0, a - RAW_MARGIN)
@@ -99,11 +100,21 @@ def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig) -> tup
     fg = FlowGrid(session.cameras[0].image_size, cfg.flow_factor)
     ext = Extents(camera=len(session.cameras), frame=n_frames, raw_frame=raw_last - raw_first,
                   raw_offset=a - raw_first, warm_start_block=cfg.warm_start_block)
-    fp = _fingerprint(session, cfg, (a, b))
     layout = result_layout(camera_names=[c.name for c in session.cameras], n_frames=n_frames,
                            flow_shape=fg.shape, grid=session.grid, first_frame=a,
                            n_raw=ext.raw_frame, raw_first=raw_first,
                            n_summary=cfg.masks.n_quantiles + 1)
+    return layout, ext
+
+
+def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig) -> tuple[ResultStore, Extents, str]:
+    """Create (or reopen for resume) the result store for ``session`` and return the extents."""
+    a, b = session.frames
+    n_frames = b - a
+    raw_first = max(0, a - RAW_MARGIN)
+    fg = FlowGrid(session.cameras[0].image_size, cfg.flow_factor)
+    layout, ext = run_layout(session, cfg)
+    fp = _fingerprint(session, cfg, (a, b))
     attrs = {
         "session": session.manifest,
         "session_path": str(Path(session.manifest_path).resolve()),
@@ -132,6 +143,25 @@ def producers(cfg: RunConfig, names) -> dict[str, str]:
     if cfg.reconstruction == "direct" and "refractivity" in out:
         out["refractivity"] = "tomography"  # solved directly by the tomography task
     return out
+
+
+def excluded_frames(store: ResultStore) -> list[tuple[str, int, list[str]]]:
+    """``(camera, capture frame, reasons)`` of every frame flagged dark, saturated or frozen."""
+    import numpy as np
+
+    from schlieren.pipeline.frame_quality import flag_names
+    from schlieren.storage.errors import ChunkError
+
+    if "frame_quality" not in store:
+        return []
+    try:
+        flags = np.asarray(store.array("frame_quality")[..., 3])
+    except ChunkError:
+        return []  # a damaged chunk is reported by the task that reads it
+    names = [str(n) for n in np.asarray(store.array("camera")[...])]
+    raw_first = int(store.attrs["run"]["raw_first"])
+    return [(names[int(c)], raw_first + int(j), flag_names(flags[c, j]))
+            for c, j in zip(*np.nonzero(np.nan_to_num(flags) > 0))]
 
 
 def store_lease(out_path, purpose: str = "run"):
@@ -179,8 +209,14 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
         markers (otherwise only a listing checks that the marked chunks exist). Damaged
         chunks are recomputed with everything downstream of them.
     """
+    from schlieren.workers.preflight import WorkerSlots, preflight, workers_of_client
+
     session = session_path if isinstance(session_path, Session) else load_session(session_path, frames=frames)
     cfg = bind_medium(config or RunConfig(), session.medium.n_ambient)
+    serial_run = serial or client is None
+    # memory and disk, with the measured model, before anything is written
+    preflight(session, cfg, run_layout(session, cfg)[0], out_path,
+              workers=[WorkerSlots()] if serial_run else workers_of_client(client))
     with store_lease(out_path):
         return _run_leased(session, out_path, cfg, client=client, serial=serial, report=report,
                            on_receipt=on_receipt, on_failure=on_failure, on_plan=on_plan,
@@ -247,6 +283,7 @@ def _run_leased(session, out_path, cfg, *, client, serial, report, on_receipt, o
         if s in stage_first:
             times[s] = {"started": stage_first[s], "completed": stage_last[s],
                         "task_seconds": stage_busy.get(s, 0.0), "executor": summary.executor}
+    summary.bad_frames = excluded_frames(store)
     try:
         store.update_attrs({"stage_times": times})
     except OSError as exc:  # only the timing attributes are lost; every chunk and marker stays

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from schlieren.pipeline import derived, flow as flowmod, hull as hullmod, masks as masksmod
+from schlieren.pipeline import derived, flow as flowmod, frame_quality as fq, hull as hullmod, masks as masksmod
 from schlieren.pipeline import poisson, sync, tomography
 from schlieren.pipeline.geometry import Camera, FlowGrid
 from schlieren.pipeline.stages import RunConfig, config_from_dict, frame_statistics, kernel_kwargs, stage
@@ -73,6 +73,17 @@ class RunContext:
             s = self.session.sources[c]
             src = self._sources[c] = open_frames(s, camera_name=s.name)
         return src
+
+    def frame(self, c: int, f: int) -> np.ndarray:
+        """Capture frame ``f`` of camera ``c``; the last two read per camera are kept (a
+        task over consecutive frames compares each with the one before)."""
+        kept = self._small.setdefault(("frames", c), OrderedDict())
+        img = kept.get(f)
+        if img is None:
+            img = kept[f] = self.frames(c).read(f)
+            while len(kept) > 2:
+                kept.popitem(last=False)
+        return img
 
     def _once(self, key, make):
         if key not in self._small:
@@ -204,10 +215,34 @@ def _clock(ctx: RunContext) -> dict:
 
 
 def _deflection(ctx: RunContext, c: int, j: int) -> dict:
-    img = ctx.frames(c).read(ctx.raw_first + j)
+    f = ctx.raw_first + j
+    img = ctx.frame(c, f)
     d = flowmod.deflection_stage(ctx.prepared_reference(c), img, ctx.config.flow)
     ctx.store.write("flow_raw", (c, j), d.astype(np.float32))
-    return {"max_px": float(np.nanmax(np.abs(d))) if d.size else 0.0}
+    # dark, saturated or frozen frames: flagged here, excluded by resampling
+    src = ctx.frames(c)
+    dtype = src.raw_dtype
+    full = float(np.iinfo(dtype).max) if np.issubdtype(dtype, np.integer) else None
+    ref_mean = ctx._once(("reference_mean", c), lambda: float(np.mean(ctx.reference(c), dtype=np.float64)))
+    q = fq.frame_quality(img, ctx.frame(c, f - 1) if f > 0 else None, reference_mean=ref_mean, full_scale=full)
+    ctx.store.write("frame_quality", (c, j), q)
+    out = {"max_px": float(np.nanmax(np.abs(d))) if d.size else 0.0}
+    bad = fq.flag_names(q[3])
+    if bad:
+        out["excluded"] = bad
+        log.warning("camera %s, frame %d: %s; excluded from the reconstruction", ctx.cameras[c].name, f,
+                    ", ".join(bad))
+    return out
+
+
+def bad_frames(ctx: RunContext, c: int, lo: int, hi: int) -> tuple[int, ...]:
+    """Capture frames in ``[lo, hi]`` of camera ``c`` flagged dark, saturated or frozen."""
+    out = []
+    for f in range(max(lo, ctx.raw_first), min(hi, ctx.raw_first + ctx.n_raw - 1) + 1):
+        q = ctx.read_upstream("frame_quality", (c, f - ctx.raw_first))
+        if np.isfinite(q[3]) and int(q[3]):
+            out.append(f)
+    return tuple(out)
 
 
 def _resample(ctx: RunContext, c: int, k: int) -> dict:
@@ -215,10 +250,14 @@ def _resample(ctx: RunContext, c: int, k: int) -> dict:
     cam = ctx.cameras[c]
     off = ctx.time_offset(c)
     t = float(ctx.times()[k])
-    excluded = ctx.flash_frames(c)
+    # the raw frames this task waits for (the plan's window): never read beyond them
+    centre = ctx.first_frame + k
+    halo = stage("resample").frame_halo
+    window = (max(ctx.raw_first, centre - halo), min(ctx.raw_first + ctx.n_raw, centre + halo + 1))
+    bad = bad_frames(ctx, c, window[0], window[1] - 1)
+    excluded = tuple(sorted(set(ctx.flash_frames(c)) | set(bad)))
     f0, f1 = sync.frames_needed(t, offset=off, frame_rate=s.frame_rate, line_time=cam.line_time,
-                                height=cam.height, excluded_frames=excluded,
-                                frame_range=(ctx.raw_first, ctx.raw_first + ctx.n_raw))
+                                height=cam.height, excluded_frames=excluded, frame_range=window)
     lo = max(ctx.raw_first, min(f0, ctx.raw_first + ctx.n_raw - 1))
     hi = max(lo, min(f1 - 1, ctx.raw_first + ctx.n_raw - 1))
     raw = np.stack([ctx.store.read("flow_raw", (c, f - ctx.raw_first)) for f in range(lo, hi + 1)])
@@ -226,7 +265,7 @@ def _resample(ctx: RunContext, c: int, k: int) -> dict:
                              line_time=cam.line_time, flow_grid=ctx.flow_grid,
                              excluded_frames=excluded, params=ctx.config.resample)
     ctx.store.write("flow", (c, k), np.asarray(out, dtype=np.float32))
-    return {"raw_frames": [lo, hi]}
+    return {"raw_frames": [lo, hi], **({"excluded_frames": list(bad)} if bad else {})}
 
 
 def _potential(ctx: RunContext, c: int, k: int) -> dict:

@@ -159,9 +159,21 @@ def test_a_corrupt_frame_fails_only_its_tasks(tiny_session, tmp_path):
     manifest = yaml.safe_load((sess / "session.yaml").read_text())
     first = manifest["frames"][0]
     bad = sess / "cam01" / "frames" / f"{first + 1:05d}.png"
-    data = bad.read_bytes()
-    bad.write_bytes(data[: len(data) // 2])  # header intact, pixel data truncated
+    data = bytearray(bad.read_bytes())
+    good = bytes(data)
+    # a truncated file is refused before any work (one line, no store)...
+    bad.write_bytes(good[: len(good) // 2])
     out = tmp_path / "bad.zarr"
+    proc = subprocess.run([sys.executable, "-m", "schlieren.workers.cli", "run", str(sess), "--out",
+                           str(out), "--serial", "--no-progress"], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+    assert f"camera cam01, field cameras[1].frames[{first + 1}]: frame {first + 1} is truncated" in proc.stderr
+    assert not out.exists()
+    # ...while a frame corrupt inside its pixel data (complete file, intact header) fails its tasks
+    for k in range(len(data) // 2, len(data) // 2 + 16):
+        data[k] ^= 0x5A
+    bad.write_bytes(bytes(data))
     proc = subprocess.run([sys.executable, "-m", "schlieren.workers.cli", "run", str(sess), "--out",
                            str(out), "--serial", "--no-progress", "--log", str(tmp_path / "run.jsonl")],
                           capture_output=True, text=True, timeout=600)

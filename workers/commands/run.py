@@ -157,6 +157,11 @@ def print_summary(summary, *, stream=None) -> None:
         print(f"verify: {check.summary()}:", file=stream)
         for line in check.lines(10):
             print(f"  - {line}", file=stream)
+    bad = getattr(summary, "bad_frames", None) or []
+    if bad:
+        shown = "; ".join(f"{cam} frame {f} ({', '.join(why)})" for cam, f, why in bad[:20])
+        more = f"; and {len(bad) - 20} more" if len(bad) > 20 else ""
+        print(f"excluded from the reconstruction: {shown}{more}", file=stream)
     print(f"store: {summary.store}  ({summary.tasks} tasks run, {summary.skipped} already complete, "
           f"{summary.seconds:.1f} s, {summary.executor} executor)", file=stream)
     if summary.failures:
