@@ -646,14 +646,30 @@ def test_truncated_last_frame_names_its_index(session_builder):
     data = bad.read_bytes()
     bad.write_bytes(data[: len(data) // 2])
     expect_error(b.root, file=bad, camera="cam00", field="cameras[0].frames[5]",
-                 match="cannot decode")
+                 match="truncated: the PNG ends before its IEND chunk")
+
+
+def test_a_truncated_frame_anywhere_is_refused_before_work(session_builder):
+    """Every frame's file is checked for completeness, not only the first and last."""
+    b = session_builder
+    bad = b.root / "cam02" / "frames" / "00003.png"
+    data = bad.read_bytes()
+    bad.write_bytes(data[: len(data) - 5])
+    expect_error(b.root, file=bad, camera="cam02", field="cameras[2].frames[3]", match="is truncated")
+    bad.write_bytes(data)
+    ref = b.root / "cam01" / "reference.png"
+    ref.write_bytes(ref.read_bytes()[:-3])
+    expect_error(b.root, file=ref, camera="cam01", field="cameras[1].reference", match="reference is truncated")
 
 
 def test_frame_corrupt_past_its_header_needs_decode_all_frames(session_builder):
     b = session_builder
     bad = b.root / "cam01" / "frames" / "00002.png"
     data = bad.read_bytes()
-    bad.write_bytes(data[: len(data) // 2])  # header intact, image data cut
+    broken = bytearray(data)
+    for k in range(len(data) // 2, len(data) // 2 + 8):
+        broken[k] ^= 0x5A  # header intact, file complete, pixel data broken
+    bad.write_bytes(bytes(broken))
     s = load_session(b.root)  # headers only: accepted here, reported when a task reads it
     with pytest.raises(SessionError, match="cannot decode") as info:
         s.sources[1].open_frames().read(2)
