@@ -77,6 +77,22 @@ def marker_index(array_dims, array_chunks, marker_dims, coords) -> tuple[int, ..
     return tuple(out)
 
 
+def covering_stage(info: dict | None, name: str) -> str | None:
+    """What says array ``name``'s chunks must exist: ``"template"`` (static arrays), the
+    producing stage's name, or None (nothing: a missing chunk is the fill value)."""
+    if not info:
+        return None
+    if name in (info.get("static") or ()):
+        return "template"
+    return (info.get("producers") or {}).get(name)
+
+
+def missing_reason(stage: str) -> str:
+    if stage == "template":
+        return "is missing from a template array (coordinates written when the store was created)"
+    return f"is missing although stage {stage} is marked complete"
+
+
 def check_coverage(name: str, dims, chunks, marker_dims) -> None:
     """Refuse a producer whose marker cannot say which chunks it covers."""
     for d in marker_dims:
@@ -191,14 +207,9 @@ class CheckedStore(WrapperStore):
 
     async def _required(self, name: str, meta: _Meta, coords, prototype) -> str | None:
         """Why the missing chunk ``name[coords]`` should exist, or None if it need not."""
-        info = await self._get_integrity(prototype)
-        if not info:
-            return None
-        if name in (info.get("static") or ()):
-            return "was written with the store's template"
-        stage = (info.get("producers") or {}).get(name)
-        if stage is None:
-            return None
+        stage = covering_stage(await self._get_integrity(prototype), name)
+        if stage in (None, "template"):
+            return None if stage is None else missing_reason(stage)
         mname = f"{MARKER_GROUP}/{stage}"
         mmeta = await self._get_meta(mname, prototype)
         if mmeta is None or not mmeta.zstd:
@@ -212,7 +223,7 @@ class CheckedStore(WrapperStore):
             done = _decode_marker(buf.to_bytes(), mmeta)
         except CorruptChunk as exc:
             raise chunk_error(self.location, mname, idx, exc.reason) from None
-        return f"is missing although stage {stage} is marked complete" if done else None
+        return missing_reason(stage) if done else None
 
     async def get(self, key, prototype, byte_range=None):
         buf = await self._store.get(key, prototype, byte_range)
@@ -228,8 +239,7 @@ class CheckedStore(WrapperStore):
         if buf is None:
             why = await self._required(name, meta, coords, prototype)
             if why is not None:
-                raise chunk_error(self.location, name, coords,
-                                  why if why.startswith("is missing") else f"is missing but {why}")
+                raise chunk_error(self.location, name, coords, why)
             return None
         if meta.checksum:
             try:

@@ -39,7 +39,15 @@ from zarr.codecs import Crc32cCodec, ZstdCodec
 
 from schlieren.storage.chunkio import ChunkLayout, CorruptChunk, chunk_layout
 from schlieren.storage.errors import ChunkError, StoreError
-from schlieren.storage.integrity import INTEGRITY_VERSION, check_coverage, checked, chunk_error, marker_index
+from schlieren.storage.integrity import (
+    INTEGRITY_VERSION,
+    check_coverage,
+    checked,
+    chunk_error,
+    covering_stage,
+    marker_index,
+    missing_reason,
+)
 from schlieren.storage.layout import STORE_FORMAT, ArraySpec, assert_aligned, normalize_region
 
 __all__ = ["ResultStore", "fingerprint", "to_json"]
@@ -498,20 +506,11 @@ class ResultStore:
 
     def _required(self, name: str, coords) -> str | None:
         """Why the chunk ``name[coords]`` must have a file, or None if it need not."""
-        info = self._integrity
-        if not info:
-            return None
-        if name in (info.get("static") or ()):
-            return "is missing from a template array"
-        stage = (info.get("producers") or {}).get(name)
-        if stage is None:
-            return None
-        idx = self.marker_position(name, stage, coords)
-        try:
-            done = self._marker_set(stage, idx)
-        except ChunkError:
-            raise
-        return f"is missing although stage {stage} is marked complete" if done else None
+        stage = covering_stage(self._integrity, name)
+        if stage in (None, "template"):
+            return None if stage is None else missing_reason(stage)
+        done = self._marker_set(stage, self.marker_position(name, stage, coords))  # ChunkError if corrupt
+        return missing_reason(stage) if done else None
 
     def marker_position(self, name: str, stage: str, coords) -> tuple[int, ...]:
         """Position in ``status/<stage>`` of the chunk at grid ``coords`` of array ``name``."""
