@@ -273,11 +273,15 @@ class Truth:
     attrs: dict
 
 
-def _open_group(path: str | os.PathLike, what: str):
+def _open_group(path: str | os.PathLike, what: str, *, checked_reads: bool = False):
     p = Path(path)
     if not p.exists():
         raise StoreError(f"{what} does not exist", file=str(p))
     try:
+        if checked_reads:
+            from schlieren.storage.integrity import checked
+
+            return zarr.open_group(checked(str(p), read_only=True), mode="r")
         return zarr.open_group(str(p), mode="r")
     except Exception as exc:  # zarr raises several types for a non-group
         raise StoreError(f"cannot open {what} as a Zarr group ({type(exc).__name__})", file=str(p)) from exc
@@ -305,9 +309,7 @@ def read_store_refractivity(path: str | os.PathLike) -> tuple[Any, np.ndarray, n
     time : ndarray (frame,)
     origin, voxel_size : ndarray (3,)
     """
-    from schlieren.storage.report import open_result
-
-    g = open_result(path)  # checked reads: a corrupt or lost chunk raises ChunkError
+    g = _open_group(path, "store", checked_reads=True)  # a corrupt or lost chunk raises ChunkError
     for name in ("refractivity", "time"):
         if name not in g:
             raise StoreError(f"the store has no '{name}' array", file=str(path), field=name)

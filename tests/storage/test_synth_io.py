@@ -88,7 +88,7 @@ def test_truth_group_round_trip(tmp_path):
 
 
 def test_store_reader_errors(tmp_path):
-    with pytest.raises(StoreError, match="not found"):
+    with pytest.raises(StoreError, match="does not exist"):
         sio.read_store_refractivity(tmp_path / "nope.zarr")
     g = zarr.open_group(str(tmp_path / "s.zarr"), mode="w")
     g.create_array("time", shape=(1,), dtype="float64")
