@@ -10,13 +10,13 @@ tomography geometry and compiles numba kernels, is what is measured: the worst c
 worker sees). The geometry cache's size on disk is recorded too.
 
 Fits (non-negative least squares): per 2-D stage ``c + p * pixels``; per 3-D stage
-``c + a * voxels + b * crossings`` (integration: no crossing term; ``crossings`` from
+``c + a * voxels + b * crossings + q * rays`` (integration: voxels only; ``crossings`` from
 :func:`schlieren.pipeline.resources.ray_crossings`); the cache ``r * rays + x * crossings``;
 the process baseline is the resident set of a process with the task code and
 ``distributed`` imported. The coefficients go into ``pipeline/resources.py`` (a test
 checks they equal ``benchmarks/results/memory.json``), which the preflight check uses.
 
-Run: ``.venv/bin/python benchmarks/memory.py [--quick]``; writes
+Run: ``.venv/bin/python benchmarks/memory.py [--quick] [--refit]``; writes
 ``benchmarks/results/memory.json`` and ``.md``.
 """
 
@@ -135,14 +135,14 @@ def fit(rows: list[dict]) -> dict:
     for s in STAGES_2D:
         y = np.array([r["tasks"][s]["bytes"] for r in rows], float)
         model["pixel_model"][s] = _nnls([one, pix], y)
+    rays = np.array([r["rays"] for r in rows], float)
     for s in STAGES_3D:
         y = np.array([r["tasks"][s]["bytes"] for r in rows], float)
         if s == "integrate":  # Poisson integration never sees the rays
             c, a = _nnls([one, vox], y)
-            model["task_model"][s] = [c, a, 0.0]
+            model["task_model"][s] = [c, a, 0.0, 0.0]
         else:
-            model["task_model"][s] = _nnls([one, vox, cross], y)
-    rays = np.array([r["rays"] for r in rows], float)
+            model["task_model"][s] = _nnls([one, vox, cross, rays], y)
     model["cache_model"] = _nnls([rays, cross], np.array([r["cache_bytes"] for r in rows], float))
     model["process_bytes"] = float(max(v["process"] for r in rows for v in r["tasks"].values()))
     # how well the fit predicts each measurement (the preflight's error)
@@ -150,8 +150,10 @@ def fit(rows: list[dict]) -> dict:
         r["predicted"] = {}
         for s, (c, p) in model["pixel_model"].items():
             r["predicted"][s] = c + p * r["pixels"]
-        for s, (c, a, b) in model["task_model"].items():
-            r["predicted"][s] = c + a * r["voxels"] + b * r["crossings"]
+        for s, (c, a, b, q) in model["task_model"].items():
+            r["predicted"][s] = c + a * r["voxels"] + b * r["crossings"] + q * r["rays"]
+    # the largest under-estimate over every measurement: the preflight multiplies by it
+    model["margin"] = float(max(r["tasks"][s]["bytes"] / r["predicted"][s] for r in rows for s in r["predicted"]))
     return model
 
 
@@ -172,13 +174,16 @@ def write(rows: list[dict], model: dict, quick: bool) -> None:
         lines.append(f"| {r['cameras']} | {r['image'][0]}x{r['image'][1]} | {r['voxel_size']} | {r['voxels']} | "
                      f"{r['rays']} | {r['crossings']:.3g} | " + " | ".join(cells) + f" | {r['cache_bytes'] / mib:.1f} |")
     lines += ["", "MiB measured (fitted model in parentheses).", "", "## Fitted model (pipeline/resources.py)", "",
-              "| stage | bytes | per pixel | per voxel | per crossing |", "| --- | --- | --- | --- | --- |"]
+              "| stage | bytes | per pixel | per voxel | per crossing | per ray |",
+             "| --- | --- | --- | --- | --- | --- |"]
     for s, (c, p) in model["pixel_model"].items():
-        lines.append(f"| {s} | {c / mib:.1f} MiB | {p:.1f} | | |")
-    for s, (c, a, b) in model["task_model"].items():
-        lines.append(f"| {s} | {c / mib:.1f} MiB | | {a:.1f} | {b:.1f} |")
+        lines.append(f"| {s} | {c / mib:.1f} MiB | {p:.1f} | | | |")
+    for s, (c, a, b, q) in model["task_model"].items():
+        lines.append(f"| {s} | {c / mib:.1f} MiB | | {a:.1f} | {b:.1f} | {q:.1f} |")
     r, x = model["cache_model"]
-    lines += ["", f"Geometry cache on disk: {r:.1f} bytes per flow-grid ray + {x:.1f} bytes per crossing. "
+    lines += ["", f"The preflight multiplies every task's model by {model['margin']:.3f}, the largest "
+              "under-estimate of a measurement above.",
+              "", f"Geometry cache on disk: {r:.1f} bytes per flow-grid ray + {x:.1f} bytes per crossing. "
               f"Worker process baseline (task code and distributed imported): "
               f"{model['process_bytes'] / mib:.0f} MiB.", "", f"Machine: {meta['machine']}, {meta['cpus']} CPUs. "
               f"Command: `{meta['command']}`."]
@@ -189,12 +194,19 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="four configurations instead of twelve")
     ap.add_argument("--workdir", default=None, help="keep the sessions and stores here")
+    ap.add_argument("--refit", action="store_true",
+                    help="fit the model again to the measurements in results/memory.json (no new runs)")
     args = ap.parse_args(argv)
-    with tempfile.TemporaryDirectory() as tmp:
-        work = Path(args.workdir or tmp)
-        rows = [measure_config(c, s, v, work) for c, s, v in (QUICK if args.quick else CONFIGS)]
+    if args.refit:
+        old = json.loads((RESULTS / "memory.json").read_text())
+        rows, quick = old["rows"], old["meta"]["quick"]
+    else:
+        quick = args.quick
+        with tempfile.TemporaryDirectory() as tmp:
+            work = Path(args.workdir or tmp)
+            rows = [measure_config(c, s, v, work) for c, s, v in (QUICK if args.quick else CONFIGS)]
     model = fit(rows)
-    write(rows, model, args.quick)
+    write(rows, model, quick)
     print(json.dumps(model, indent=2))
     return 0
 

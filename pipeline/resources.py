@@ -8,11 +8,13 @@ here; a test keeps them equal to the recorded results. The model:
 * a 2-D task (one camera-frame of deflection, resampling, potential or mask) needs
   ``c + p * pixels`` (:data:`PIXEL_MODEL`, per stage);
 * a 3-D task (geometry, tomography or integration of one frame) needs
-  ``c + a * voxels + b * crossings`` with ``crossings`` the number of (ray, voxel) pairs
-  the projection matrix holds, estimated by :func:`ray_crossings` from the cameras and
-  grid (every flow-grid ray's path through the box, in voxel lengths) (:data:`TASK_MODEL`,
-  per stage; ``c`` includes one-off costs of a process's first task such as compiling
-  numba kernels);
+  ``c + a * voxels + b * crossings + q * rays`` with ``crossings`` the number of
+  (ray, voxel) pairs the projection matrix holds, estimated by :func:`ray_crossings` from
+  the cameras and grid (every flow-grid ray's path through the box, in voxel lengths) and
+  ``rays`` the flow-grid pixels of all cameras (:data:`TASK_MODEL`, per stage; ``c``
+  includes one-off costs of a process's first task such as compiling numba kernels);
+* every estimate is multiplied by :data:`MODEL_MARGIN`, the fit's largest
+  under-estimate of a measurement;
 * every worker process carries ``PROCESS_BYTES`` of code and libraries.
 
 Pure numpy: no files, no Dask.
@@ -26,19 +28,34 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["BYTES_PER_PIXEL", "BYTES_PER_VOXEL", "PROCESS_BYTES", "PIXEL_MODEL", "TASK_MODEL", "CACHE_MODEL",
+           "MODEL_MARGIN",
            "ray_crossings",
            "MemoryEstimate", "estimate_memory", "estimate_disk"]
 
+# --- measured by benchmarks/memory.py (results/memory.json); do not edit by hand ---------
 #: 2-D tasks: ``(bytes, bytes per image pixel)`` of each per-camera-frame stage.
-PIXEL_MODEL: dict[str, tuple[float, float]] = {}
-#: 3-D tasks: ``(bytes, bytes per voxel, bytes per ray-voxel crossing)`` of each stage.
-TASK_MODEL: dict[str, tuple[float, float, float]] = {}
+PIXEL_MODEL: dict[str, tuple[float, float]] = {
+    'deflection': (51154953.76904317, 72.44275691463349),
+    'resample': (49901860.83513764, 19.809145702625045),
+    'potential': (2789828.8789866446, 8.990082594861095),
+    'mask': (2738987.787020186, 7.7982304283946915),
+}
+#: 3-D tasks: ``(bytes, bytes per voxel, bytes per ray-voxel crossing, bytes per flow-grid
+#: ray)`` of each stage.
+TASK_MODEL: dict[str, tuple[float, float, float, float]] = {
+    'geometry': (45754493.817809865, 72.76115639152084, 15.95310808202645, 271.0392983577276),
+    'tomography': (55026506.36640544, 290.74520630995386, 13.192663370501199, 214.5532536589242),
+    'integrate': (55546595.13458744, 116.5601259720464, 0.0, 0.0),
+}
 #: The geometry cache on disk: ``(bytes per flow-grid ray, bytes per crossing)``.
-CACHE_MODEL: tuple[float, float] = (0.0, 0.0)
-#: A worker process with the pipeline's libraries imported (before any task).
-PROCESS_BYTES = 0.0
+CACHE_MODEL: tuple[float, float] = (90.66880794904968, 25.120435587894406)
+#: A worker process with the pipeline's libraries and ``distributed`` imported.
+PROCESS_BYTES = 191307776.0
+#: The largest under-estimate of any measurement by the fitted model; tasks are scaled by it.
+MODEL_MARGIN = 1.070192337744042
+# -------------------------------------------------------------------------------------------
 #: The largest per-voxel coefficient of the 3-D stages (a lower bound per voxel and frame).
-BYTES_PER_VOXEL = max((a for _, a, _ in TASK_MODEL.values()), default=0.0)
+BYTES_PER_VOXEL = max((a for _, a, _, _ in TASK_MODEL.values()), default=0.0)
 #: The largest per-pixel coefficient of the 2-D stages.
 BYTES_PER_PIXEL = max((p for _, p in PIXEL_MODEL.values()), default=0.0)
 
@@ -85,12 +102,13 @@ class MemoryEstimate:
 
 def estimate_memory(cameras, grid, flow_grid, image_size) -> MemoryEstimate:
     """The measured model (:data:`TASK_MODEL`, :data:`BYTES_PER_PIXEL`) for one session."""
-    crossings, _ = ray_crossings(cameras, grid, flow_grid)
+    crossings, rays = ray_crossings(cameras, grid, flow_grid)
     nvox = int(math.prod(grid.shape))
     w, h = image_size
-    per_stage = {s: c + a * nvox + b * crossings for s, (c, a, b) in TASK_MODEL.items()}
+    per_stage = {s: MODEL_MARGIN * (c + a * nvox + b * crossings + q * rays)
+                 for s, (c, a, b, q) in TASK_MODEL.items()}
     stage = max(per_stage, key=per_stage.get) if per_stage else "tomography"
-    task_2d = max((c + p * w * h for c, p in PIXEL_MODEL.values()), default=0.0)
+    task_2d = MODEL_MARGIN * max((c + p * w * h for c, p in PIXEL_MODEL.values()), default=0.0)
     return MemoryEstimate(task_2d=task_2d, task_3d=per_stage.get(stage, 0.0), stage_3d=stage,
                           voxels=nvox, crossings=crossings, pixels=int(w * h))
 

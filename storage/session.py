@@ -30,6 +30,7 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from schlieren.pipeline import resources as _resources
 from schlieren.pipeline.geometry import Camera, Grid, Medium, rodrigues
 from schlieren.storage.errors import SessionError
 from schlieren.storage.frames import (
@@ -58,9 +59,11 @@ log = logging.getLogger(__name__)
 
 SESSION_FORMAT = "schlieren-session/1"
 MANIFEST_NAME = "session.yaml"
-#: Working set of the 3-D stage per voxel and frame (gradient, hull, solver vectors...),
-#: used to refuse voxel sizes that cannot fit in the machine's memory.
-BYTES_PER_VOXEL = 40
+#: Working set of the 3-D stages per voxel and frame (the largest per-voxel coefficient
+#: measured by benchmarks/memory.py, pipeline/resources.py), a first gate refusing grids
+#: that cannot fit in the machine's memory whatever the cameras; the run's preflight
+#: (workers/preflight.py) then checks the whole model times the workers.
+BYTES_PER_VOXEL = _resources.BYTES_PER_VOXEL
 DIST_LENGTHS = (4, 5, 8, 12, 14)
 ORTHONORMAL_TOL = 1e-6
 
@@ -627,7 +630,7 @@ def _check_volume(v: VolumeModel, file: str) -> Grid:
         nx, ny, nz = grid.shape_xyz
         raise SessionError(
             f"voxel_size {v.voxel_size:g} m gives {nx}x{ny}x{nz} = {n_vox:.3g} voxels; the 3-D stage "
-            f"needs about {_human_bytes(need)} per frame ({BYTES_PER_VOXEL} bytes/voxel), more than this "
+            f"needs about {_human_bytes(need)} per frame ({BYTES_PER_VOXEL:.0f} bytes/voxel, measured), more than this "
             f"machine's {_human_bytes(total)}: use a larger voxel_size", file=file, field="volume.voxel_size")
     return grid
 

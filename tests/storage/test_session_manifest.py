@@ -488,17 +488,20 @@ def test_non_positive_voxel_size(session_builder):
 def test_voxel_size_needing_more_memory_than_the_machine(session_builder, monkeypatch):
     import psutil
 
+    from schlieren.pipeline import resources
+
     class VM:
         total = 8 * 2**30
 
     monkeypatch.setattr(psutil, "virtual_memory", lambda: VM())
     b = session_builder
-    b.manifest["volume"]["voxel_size"] = 1e-4  # 1000^3 voxels * 40 B = 37 GiB > 8 GiB
+    b.manifest["volume"]["voxel_size"] = 1e-4  # 1000^3 voxels * the measured bytes per voxel
     b.save()
     err = expect_error(b.root, file=b.path, field="volume.voxel_size", match="more than this machine")
-    assert "37.3 GiB" in err.message and "8.0 GiB" in err.message
-    assert BYTES_PER_VOXEL == 40
-    b.manifest["volume"]["voxel_size"] = 5e-4  # 200^3 * 40 B = 0.3 GiB: fine
+    need = 1000 ** 3 * BYTES_PER_VOXEL / 2**30
+    assert f"{need:.1f} GiB" in err.message and "8.0 GiB" in err.message and "measured" in err.message
+    assert BYTES_PER_VOXEL == max(a for _, a, _, _ in resources.TASK_MODEL.values()) > 100
+    b.manifest["volume"]["voxel_size"] = 5e-4  # 200^3 voxels: fine
     b.save()
     load_session(b.root)
 

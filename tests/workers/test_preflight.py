@@ -32,9 +32,11 @@ def session(tiny_session):
 @pytest.fixture
 def model(monkeypatch):
     """A known model: 3-D tasks 1 kB per voxel, 2-D tasks 10 B per pixel, 100 MiB per process."""
-    monkeypatch.setattr(resources, "TASK_MODEL", {"tomography": (0.0, 1000.0, 0.0), "geometry": (5 * MiB, 0.0, 0.0)})
+    monkeypatch.setattr(resources, "TASK_MODEL", {"tomography": (0.0, 1000.0, 0.0, 0.0),
+                                                  "geometry": (5 * MiB, 0.0, 0.0, 0.0)})
     monkeypatch.setattr(resources, "PIXEL_MODEL", {"deflection": (0.0, 10.0)})
     monkeypatch.setattr(resources, "PROCESS_BYTES", 100 * MiB)
+    monkeypatch.setattr(resources, "MODEL_MARGIN", 1.0)
 
 
 def test_memory_is_per_task_times_slots_times_workers(session, model, monkeypatch, tmp_path):
@@ -130,4 +132,16 @@ def test_the_model_is_the_one_benchmarks_memory_measured():
     assert resources.TASK_MODEL == {k: tuple(v) for k, v in recorded["task_model"].items()}
     assert resources.CACHE_MODEL == tuple(recorded["cache_model"])
     assert resources.PROCESS_BYTES == recorded["process_bytes"]
+    assert resources.MODEL_MARGIN == recorded["margin"] >= 1.0
     assert resources.BYTES_PER_VOXEL > 0 and resources.BYTES_PER_PIXEL > 0
+
+
+def test_the_model_predicts_every_measurement_it_was_fitted_to_within_its_margin():
+    """The preflight never under-estimates a measured task (the margin covers the fit)."""
+    rows = json.loads((REPO / "benchmarks" / "results" / "memory.json").read_text())["rows"]
+    for r in rows:
+        for stage, (c, a, b, q) in resources.TASK_MODEL.items():
+            got = resources.MODEL_MARGIN * (c + a * r["voxels"] + b * r["crossings"] + q * r["rays"])
+            assert got >= r["tasks"][stage]["bytes"] * 0.999, (stage, r["image"], r["voxel_size"])
+        for stage, (c, p) in resources.PIXEL_MODEL.items():
+            assert resources.MODEL_MARGIN * (c + p * r["pixels"]) >= r["tasks"][stage]["bytes"] * 0.999
