@@ -72,7 +72,7 @@ def test_threshold_pools_the_summaries_the_potential_tasks_wrote(serial_store, t
     assert lo <= thr <= hi
     # summaries lost under set potential markers: the threshold task refuses to pool
     # fill values, naming the array and chunk (the verified resume recomputes them:
-    # tests/e2e/test_integrity.py)
+    # tests/e2e/test_lose_nothing.py)
     old = tmp_path / "old.zarr"
     shutil.copytree(serial_store, old)
     shutil.rmtree(old / "potential_summary" / "c")
