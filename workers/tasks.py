@@ -27,6 +27,7 @@ from schlieren.pipeline import poisson, sync, tomography
 from schlieren.pipeline.geometry import Camera, FlowGrid
 from schlieren.pipeline.stages import RunConfig, config_from_dict, frame_statistics, kernel_kwargs, stage
 from schlieren.storage import arrays_cache
+from schlieren.storage.errors import SessionError
 from schlieren.storage.frames import open_frames, read_reference
 from schlieren.storage.session import Session, load_session
 from schlieren.storage.store import ResultStore
@@ -224,7 +225,11 @@ def _deflection(ctx: RunContext, c: int, j: int) -> dict:
     dtype = src.raw_dtype
     full = float(np.iinfo(dtype).max) if np.issubdtype(dtype, np.integer) else None
     ref_mean = ctx._once(("reference_mean", c), lambda: float(np.mean(ctx.reference(c), dtype=np.float64)))
-    q = fq.frame_quality(img, ctx.frame(c, f - 1) if f > 0 else None, reference_mean=ref_mean, full_scale=full)
+    try:
+        previous = ctx.frame(c, f - 1) if f > 0 else None
+    except SessionError:  # the previous frame is unreadable (its own task reports it): not frozen
+        previous = None
+    q = fq.frame_quality(img, previous, reference_mean=ref_mean, full_scale=full)
     ctx.store.write("frame_quality", (c, j), q)
     out = {"max_px": float(np.nanmax(np.abs(d))) if d.size else 0.0}
     bad = fq.flag_names(q[3])

@@ -147,20 +147,33 @@ sys.exit(main(sys.argv[2:]))
 
 
 def _fill_the_disk(session, out: Path, tmp_path: Path) -> tuple[subprocess.CompletedProcess, str]:
-    """Run into a full disk: a real 2 MiB tmpfs in a private mount namespace where the
-    platform allows it (root, or unprivileged user namespaces), else a writer that raises
-    ENOSPC after 40 chunks (monkeypatched in the subprocess)."""
+    """Run into a full disk: a real tmpfs in a private mount namespace where the platform
+    allows it (root, or unprivileged user namespaces), filled by another file once the run
+    is under way (the preflight refuses a disk that is too small from the start: checked
+    first, with a 1 MiB tmpfs); else a writer that raises ENOSPC after 40 chunks
+    (monkeypatched in the subprocess)."""
     mnt = tmp_path / "small"
     mnt.mkdir()
     unshare = shutil.which("unshare")
     if unshare and sys.platform.startswith("linux"):
         user = [] if os.geteuid() == 0 else ["--user", "--map-root-user"]
-        script = (f"mount -t tmpfs -o size=2m tmpfs {mnt} || exit 97; "
-                  f"{' '.join(CLI)} run {session} --out {mnt}/store.zarr --serial --no-progress; rc=$?; "
-                  f"cp -a {mnt}/store.zarr {out}; exit $rc")
+        run = f"{' '.join(CLI)} run {session} --out {mnt}/store.zarr --serial --no-progress"
+        script = f"""
+            mount -t tmpfs -o size=1m tmpfs {mnt} || exit 97
+            {run} 2> {tmp_path}/tiny.err; echo $? > {tmp_path}/tiny.rc
+            umount {mnt}; mount -t tmpfs -o size=64m tmpfs {mnt} || exit 97
+            {run} & pid=$!
+            while [ ! -d {mnt}/store.zarr/status/deflection/c ] && kill -0 $pid 2>/dev/null; do sleep 0.02; done
+            dd if=/dev/zero of={mnt}/filler bs=64k 2>/dev/null
+            wait $pid; rc=$?
+            rm -f {mnt}/filler; cp -a {mnt}/store.zarr {out}; exit $rc
+        """
         proc = subprocess.run([unshare, *user, "--mount", "sh", "-c", script], capture_output=True, text=True,
                               timeout=600)
         if proc.returncode != 97 and "unshare" not in proc.stderr.split(":")[0]:
+            tiny = (tmp_path / "tiny.err").read_text()
+            assert (tmp_path / "tiny.rc").read_text().strip() == "2", tiny
+            assert "free" in tiny and "Traceback" not in tiny and len(tiny.strip().splitlines()) == 1, tiny
             return proc, "tmpfs"
         shutil.rmtree(out, ignore_errors=True)
     proc = subprocess.run([sys.executable, "-c", _ENOSPC_SHIM, "40", "run", str(session), "--out", str(out),
@@ -216,17 +229,24 @@ def _damage(store: Path, rng: random.Random, log: list[str]) -> None:
         log.append(f"flip {geo[0].relative_to(store)}")
 
 
+def _markers(store: Path) -> int:
+    return sum(1 for p in (store / "status").rglob("*") if p.is_file()) if (store / "status").exists() else 0
+
+
 def test_chaos_kills_and_damage_end_in_the_undisturbed_store(serial_store, tiny_session, tmp_path):
     rng = random.Random(1606)
     out = tmp_path / "chaos.zarr"
     log: list[str] = []
     cmd = CLI + ["run", str(tiny_session.session), "--out", str(out), "--serial", "--no-progress"]
     for round_ in range(6):
+        # kill once the run has made some random progress (machine load does not matter)
+        start, more = _markers(out), rng.randint(1, 40)
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         try:
-            deadline = time.time() + rng.uniform(2.5, 7.0)  # imports take ~2 s: kills land mid-run
-            while proc.poll() is None and time.time() < deadline:
-                time.sleep(0.05)
+            deadline = time.time() + 300
+            while proc.poll() is None and time.time() < deadline and _markers(out) < start + more:
+                time.sleep(0.02)
+            time.sleep(rng.uniform(0.0, 0.3))
             if proc.poll() is None:
                 os.kill(proc.pid, signal.SIGKILL)
                 log.append(f"round {round_}: SIGKILL")
