@@ -39,7 +39,7 @@ def ensure_env() -> None:
     print("dev.py: installing schlieren and its dependencies into .venv", file=sys.stderr)
     pip = [str(BIN / "python"), "-m", "pip", "--disable-pip-version-check", "-q"]
     subprocess.check_call(pip + ["install", "--upgrade", "pip"])
-    subprocess.check_call(pip + ["install", "-e", f"{ROOT}[test,cluster]"])
+    subprocess.check_call(pip + ["install", "-e", f"{ROOT}[test,cluster,bench]"])
     STAMP.write_text(_digest())
 
 

@@ -62,9 +62,8 @@ ctx = tasks.context(store)
 from schlieren.workers.serial import single_threaded_kernels
 base = status("VmRSS")
 if stage == "geometry":  # the stage builds the cache only if it is not there
-    import glob, shutil
-    for d in glob.glob(os.path.join(store, "_cache", "geometry-*")):
-        shutil.rmtree(d)
+    from schlieren.storage.arrays_cache import remove_cache
+    remove_cache(store)
 with single_threaded_kernels():
     ctx.store.unmark(stage, index)
     before = status("VmRSS")
@@ -83,6 +82,7 @@ def _du(path: Path) -> int:
 def measure_config(cams: int, size, voxel: float, work: Path) -> dict:
     from schlieren.pipeline.geometry import FlowGrid
     from schlieren.pipeline.resources import ray_crossings
+    from schlieren.storage.arrays_cache import cache_root
     from schlieren.storage.session import load_session
     from schlieren.workers.run import run_session
     from schlieren.workers.synth import synthesize
@@ -104,7 +104,7 @@ def measure_config(cams: int, size, voxel: float, work: Path) -> dict:
     ext = {"raw_offset": int(attrs["run"]["frames"][0]) - int(attrs["run"]["raw_first"])}
     row = {"cameras": cams, "image": list(size), "voxel_size": voxel, "pixels": size[0] * size[1],
            "voxels": int(np.prod(session.grid.shape)), "grid_zyx": list(session.grid.shape), "rays": int(rays),
-           "crossings": float(crossings), "cache_bytes": _du(store / "_cache"), "run_seconds": seconds,
+           "crossings": float(crossings), "cache_bytes": _du(cache_root(store)), "run_seconds": seconds,
            "tasks": {}}
     for stage, index in {**STAGES_2D, **STAGES_3D}.items():
         out = subprocess.run([sys.executable, "-c", CHILD, str(store), stage, json.dumps(list(index(ext)))],

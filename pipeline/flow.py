@@ -33,6 +33,7 @@ import numba as nb
 import numpy as np
 
 from schlieren.pipeline.geometry import FlowGrid
+from schlieren.pipeline.params import param
 
 __all__ = [
     "FlowParams",
@@ -48,6 +49,7 @@ __all__ = [
     "spline_coefficients",
     "warp_coefficients",
     "endpoint_error",
+    "invalid_pixels",
 ]
 
 log = logging.getLogger(__name__)
@@ -127,30 +129,40 @@ class FlowParams:
         (see :func:`deflection_stage`).
     factor : int
         Area-downsampling factor to the flow grid (rows = H // factor, cols = W // factor).
+    invalid_check : bool
+        In :func:`deflection_stage`: find pixels that cannot carry a deflection
+        (:func:`invalid_pixels`: non-finite, clipped black/white runs, textureless), give
+        them zero weight in the flow (LK, HS) and return NaN on the flow-grid cells they
+        dominate, instead of garbage that spreads over the window.
+    texture_threshold : float
+        A pixel is textureless where the local standard deviation of the image (7x7) is
+        below this fraction of its median over the image.
     """
 
-    method: str = "lk"
-    window: int = 17
-    window_type: str = "gaussian"
-    levels: int = 3
-    iterations: int = 2
-    fine_iterations: int = 1
-    presmooth: float = 0.6
-    regularisation: float = 1e-3
-    gradient: str = "frame"
-    alpha: float = 0.3
-    inner_iterations: int = 30
-    dis_preset: str = "medium"
-    corr_window: int = 32
-    corr_step: int = 16
-    corr_taper: bool = False
-    outlier_threshold: float = 3.0
-    outlier_epsilon: float = 0.01
-    smoothing_sigma: float = 1.5
-    adaptive_sigma: float = 9.0
-    adaptive_threshold: float = 3.0
-    texture_correction: bool = True
-    factor: int = 3
+    method: str = param("lk", unit="", choices=METHODS)
+    window: int = param(17, unit="px", ge=3, le=255, odd=True)
+    window_type: str = param("gaussian", choices=("box", "gaussian"))
+    levels: int = param(3, unit="1", ge=1, le=8)
+    iterations: int = param(2, unit="1", ge=1, le=50)
+    fine_iterations: int = param(1, unit="1", ge=1, le=50)
+    presmooth: float = param(0.6, unit="px", ge=0, le=20)
+    regularisation: float = param(1e-3, unit="1", ge=0, le=1e3)
+    gradient: str = param("frame", choices=("frame", "symmetric", "reference"))
+    alpha: float = param(0.3, unit="1", gt=0, le=1e3)
+    inner_iterations: int = param(30, unit="1", ge=1, le=1000)
+    dis_preset: str = param("medium", choices=("ultrafast", "fast", "medium"))
+    corr_window: int = param(32, unit="px", ge=8, le=512, even=True)
+    corr_step: int = param(16, unit="px", ge=1, le=512)
+    corr_taper: bool = param(False)
+    outlier_threshold: float = param(3.0, unit="1", ge=0, le=100)
+    outlier_epsilon: float = param(0.01, unit="px", ge=0, le=10)
+    smoothing_sigma: float = param(1.5, unit="px", ge=0, le=100)
+    adaptive_sigma: float = param(9.0, unit="px", ge=0, le=200)
+    adaptive_threshold: float = param(3.0, unit="1", gt=0, le=100)
+    texture_correction: bool = param(True)
+    factor: int = param(3, unit="px per flow cell", ge=1, le=32)
+    invalid_check: bool = param(True)
+    texture_threshold: float = param(0.1, unit="1", ge=0, le=1)
 
     def __post_init__(self):
         if self.method not in METHODS:
@@ -173,7 +185,7 @@ class FlowParams:
         """Keyword arguments of :func:`deflection_field` taken from these parameters."""
         d = asdict(self)
         for k in ("outlier_threshold", "outlier_epsilon", "smoothing_sigma", "adaptive_sigma",
-                  "adaptive_threshold", "texture_correction", "factor"):
+                  "adaptive_threshold", "texture_correction", "factor", "invalid_check", "texture_threshold"):
             d.pop(k)
         return d
 
@@ -487,6 +499,94 @@ def _as_image(a, name: str) -> np.ndarray:
     return np.ascontiguousarray(a, dtype=np.float32)
 
 
+def _normalisation(img: np.ndarray) -> tuple[float, float]:
+    """Mean and 1/std of the finite pixels (every 4th row and column)."""
+    sub = img[::4, ::4]
+    fin = sub[np.isfinite(sub)]
+    if fin.size == 0:
+        return 0.0, 1.0
+    std = float(fin.std())
+    return float(fin.mean()), (1.0 / std if std > 0 else 1.0)
+
+
+def _fill_nonfinite(img: np.ndarray, value: float) -> np.ndarray:
+    """``img`` with NaN / inf pixels set to ``value`` (the same array when all are finite)."""
+    bad = ~np.isfinite(img)
+    if bad.any():
+        img = np.where(bad, np.float32(value), img)
+    return img
+
+
+def invalid_pixels(image: np.ndarray, *, texture_threshold: float = 0.1, size: int = 7,
+                   clip_fraction: float = 0.6) -> np.ndarray:
+    """Pixels of one image that cannot carry a BOS deflection.
+
+    * non-finite values (NaN from a dead pixel map, inf);
+    * clipped runs: pixels at the image's minimum or maximum grey level where more than
+      ``clip_fraction`` of a ``size`` x ``size`` window is clipped the same way (a black or
+      saturated region; isolated extreme pixels of a contrasty background stay valid);
+    * textureless pixels: the local standard deviation (``size`` x ``size``) is below
+      ``texture_threshold`` times its median over the image (a blank wall, a stuck
+      region: optical flow there returns only noise or the regulariser's zero).
+
+    Parameters
+    ----------
+    image : ndarray, shape (H, W)
+        Grey levels.
+
+    Returns
+    -------
+    invalid : ndarray, shape (H, W), bool
+    """
+    img = _as_image(image, "image")
+    bad = ~np.isfinite(img)
+    fin = img[~bad]
+    if fin.size == 0:
+        return np.ones(img.shape, bool)
+    x = _fill_nonfinite(img, float(np.median(fin[:: max(fin.size // 20000, 1)])))
+    lo, hi = float(fin.min()), float(fin.max())
+    k = (size, size)
+    if hi > lo:
+        for c in (x <= lo, x >= hi):
+            frac = cv2.boxFilter(c.astype(np.float32), -1, k, borderType=cv2.BORDER_REFLECT)
+            bad |= c & (frac > clip_fraction)
+    m = cv2.boxFilter(x, -1, k, borderType=cv2.BORDER_REFLECT)
+    m2 = cv2.boxFilter(x * x, -1, k, borderType=cv2.BORDER_REFLECT)
+    sd = np.sqrt(np.maximum(m2 - m * m, 0.0))
+    med = float(np.median(sd[::3, ::3]))
+    if med <= 0:      # no texture in most of the image (a blank or black frame)
+        return np.ones(img.shape, bool) if texture_threshold > 0 else bad
+    if texture_threshold > 0:
+        bad |= sd < np.float32(texture_threshold * med)
+    return bad
+
+
+def _weight_pyramid(valid: np.ndarray, levels: int, dilate: int = 2) -> list[np.ndarray]:
+    """Per-level LK/HS data weights: 1 on valid pixels, 0 within ``dilate`` px of invalid ones
+    (the cubic warp of the reference reaches 2 px), a coarse pixel valid only if all of its
+    fine pixels are."""
+    inv = (~valid).astype(np.uint8)
+    if dilate > 0:
+        inv = cv2.dilate(inv, np.ones((2 * dilate + 1, 2 * dilate + 1), np.uint8))
+    w = (1 - inv).astype(np.float32)
+    out = [w]
+    for _ in range(levels - 1):
+        if min(out[-1].shape) < 16:
+            break
+        out.append((cv2.pyrDown(out[-1], borderType=cv2.BORDER_REFLECT) > 0.999).astype(np.float32))
+    return out
+
+
+def _nearest_fill(a: np.ndarray, bad: np.ndarray) -> np.ndarray:
+    """``a`` (h, w, ...) with the ``bad`` cells replaced by their nearest good cell."""
+    if not bad.any() or bad.all():
+        return a
+    from scipy import ndimage
+
+    idx = ndimage.distance_transform_edt(bad, return_distances=False, return_indices=True)
+    return a[idx[0], idx[1]]
+
+
 def _gaussian_taps(sigma: float) -> np.ndarray:
     r = max(1, int(np.ceil(3.0 * sigma)))
     x = np.arange(-r, r + 1, dtype=np.float64)
@@ -718,11 +818,8 @@ def prepare_reference(reference: np.ndarray, *, presmooth: float = 0.6, levels: 
         Pyramid levels (must match the flow parameters).
     """
     img = _as_image(reference, "reference")
-    sub = img[::4, ::4]
-    mean = float(sub.mean())
-    std = float(sub.std())
-    scale = 1.0 / std if np.isfinite(std) and std > 0 else 1.0
-    pyr = _pyramid(_standardise(img, mean, scale, presmooth), levels)
+    mean, scale = _normalisation(img)
+    pyr = _pyramid(_standardise(_fill_nonfinite(img, mean), mean, scale, presmooth), levels)
     coef = tuple(_spline_coefficients(p) for p in pyr)
     return PreparedReference(img, mean, scale, float(presmooth), int(levels), tuple(pyr), coef)
 
@@ -731,7 +828,7 @@ def prepare_reference(reference: np.ndarray, *, presmooth: float = 0.6, levels: 
 # Solvers (one pyramid level each); all share the driver in _pyramid_flow
 # ----------------------------------------------------------------------------------------
 def _lk_level(coef, frame, u, v, *, window, window_type, iterations, regularisation,
-              gradient="frame", keep=None, **_):
+              gradient="frame", keep=None, weight=None, **_):
     """Dense Lucas-Kanade on one level, warping the reference at every iteration.
 
     Each pixel ``q`` of the window of ``p`` is linearised around its own current warp:
@@ -743,10 +840,15 @@ def _lk_level(coef, frame, u, v, *, window, window_type, iterations, regularisat
     tensor is filtered once per level); the fixed point does not depend on it.
     The fixed point is the structure-tensor weighted window mean
     ``T_p^-1 sum_q w g_q g_q^T d_q`` of the true displacement (corrected to first order by
-    :func:`_texture_bias`). ``keep`` (a dict) receives the level's gradients.
+    :func:`_texture_bias`). ``keep`` (a dict) receives the level's gradients. ``weight``
+    (0/1 per pixel) removes invalid pixels from every window sum (their gradient is
+    zeroed, so they add neither to the structure tensor nor to the mismatch).
     """
     taps = _window_taps(window, window_type)
     gx, gy = _gradients(frame)
+    if weight is not None:
+        gx *= weight
+        gy *= weight
     if gradient != "frame":
         mix = np.float32(0.5 if gradient == "symmetric" else 1.0)
         g = (np.empty_like(frame), np.empty_like(frame))
@@ -754,6 +856,9 @@ def _lk_level(coef, frame, u, v, *, window, window_type, iterations, regularisat
         ey = np.empty_like(frame)
         for _ in range(iterations):
             _lk_residual_grad_kernel(coef, frame, gx, gy, u, v, mix, g[0], g[1], ex, ey)
+            if weight is not None:
+                for a in (g[0], g[1], ex, ey):
+                    a *= weight
             sxx = _window_filter(g[0] * g[0], taps)
             sxy = _window_filter(g[0] * g[1], taps)
             syy = _window_filter(g[1] * g[1], taps)
@@ -783,10 +888,14 @@ def _lk_level(coef, frame, u, v, *, window, window_type, iterations, regularisat
 _HS_KERNEL = np.array([[1, 2, 1], [2, 0, 2], [1, 2, 1]], np.float32) / 12.0
 
 
-def _hs_level(coef, frame, u, v, *, iterations, alpha, inner_iterations, **_):
+def _hs_level(coef, frame, u, v, *, iterations, alpha, inner_iterations, weight=None, **_):
     """Horn-Schunck (1981) with warping: Jacobi iterations on the linearised problem
-    ``min sum (e - g . (d - d0))^2 + alpha^2 |grad d|^2`` around the current warp ``d0``."""
+    ``min sum (e - g . (d - d0))^2 + alpha^2 |grad d|^2`` around the current warp ``d0``
+    (``weight`` zeroes the data term of invalid pixels; the smoothness term fills them)."""
     gx, gy = _gradients(frame)
+    if weight is not None:
+        gx *= weight
+        gy *= weight
     a2 = np.float32(alpha * alpha)
     denom = a2 + gx * gx + gy * gy
     warped = np.empty_like(frame)
@@ -807,7 +916,7 @@ def _hs_level(coef, frame, u, v, *, iterations, alpha, inner_iterations, **_):
 
 
 def _pyramid_flow(level_solver, prep: PreparedReference, frame_pyr, *, iterations,
-                  fine_iterations, keep=None, **kw):
+                  fine_iterations, keep=None, weights=None, **kw):
     kw0 = kw
     h, w = prep.pyramid[-1].shape
     u = np.zeros((h, w), np.float32)
@@ -818,8 +927,9 @@ def _pyramid_flow(level_solver, prep: PreparedReference, frame_pyr, *, iteration
         if u.shape != prep.pyramid[lev].shape:
             u, v = _upsample_flow(u, v, prep.pyramid[lev].shape)
         it = fine_iterations if lev == 0 else iterations
+        w = weights[lev] if weights is not None and lev < len(weights) else None
         u, v = level_solver(prep.coefficients[lev], frame_pyr[lev], u, v, iterations=it,
-                            keep=keep if lev == 0 else None, **kw)
+                            keep=keep if lev == 0 else None, weight=w, **kw)
     return u, v
 
 
@@ -878,16 +988,22 @@ def _correlation_flow(ref, frame, *, corr_window, corr_step, corr_taper):
         pr = np.clip(pr, 1, n - 2)
         pc = np.clip(pc, 1, n - 2)
         cmax = c[k, pr, pc]
-        floor = cmax * 1e-3
+        # a window without a positive peak (textureless, or all anti-correlated) gets no
+        # sub-pixel fit: the log of a non-positive floor was NaN
+        peak = cmax > 0
+        floor = np.where(peak, cmax * 1e-3, 1.0)
 
         def lg(x):
             return np.log(np.maximum(x, floor))
 
+        def fit(lm, l0, lp):
+            den = 2.0 * (lm - 2.0 * l0 + lp)
+            ok = peak & (den < -1e-12)
+            return np.where(ok, (lm - lp) / np.where(ok, den, -1.0), 0.0)
+
         l0 = lg(cmax)
-        lm, lp = lg(c[k, pr - 1, pc]), lg(c[k, pr + 1, pc])
-        dv = (lm - lp) / (2.0 * (lm - 2.0 * l0 + lp) - 1e-12)
-        lm, lp = lg(c[k, pr, pc - 1]), lg(c[k, pr, pc + 1])
-        du = (lm - lp) / (2.0 * (lm - 2.0 * l0 + lp) - 1e-12)
+        dv = fit(lg(c[k, pr - 1, pc]), l0, lg(c[k, pr + 1, pc]))
+        du = fit(lg(c[k, pr, pc - 1]), l0, lg(c[k, pr, pc + 1]))
         V[i] = pr - n // 2 + np.clip(dv, -1, 1)
         U[i] = pc - n // 2 + np.clip(du, -1, 1)
     # window centres at r0 + (n - 1) / 2; interpolate to every pixel
@@ -954,9 +1070,11 @@ def deflection_field(
 def _flow_components(reference, frame, *, method, window, window_type, levels, iterations,
                      fine_iterations, presmooth, regularisation, gradient, alpha,
                      inner_iterations, dis_preset, corr_window, corr_step, corr_taper,
-                     keep=None):
+                     keep=None, valid=None):
     """:func:`deflection_field` as two (H, W) float32 arrays (u, v); for LK, ``keep``
-    (a dict) receives the full-resolution frame gradients ``gx``, ``gy``."""
+    (a dict) receives the full-resolution frame gradients ``gx``, ``gy``. ``valid``
+    (H, W) bool: pixels the flow may use (LK and HS weight the others out; every method
+    gets NaN-free images)."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     frm = _as_image(frame, "frame")
@@ -970,23 +1088,23 @@ def _flow_components(reference, frame, *, method, window, window_type, levels, i
         prep = prepare_reference(reference, presmooth=presmooth, levels=levels)
     else:
         img = _as_image(reference, "reference")
-        sub = img[::4, ::4]
-        std = float(sub.std())
-        prep = PreparedReference(img, float(sub.mean()), 1.0 / std if std > 0 else 1.0,
-                                 0.0, 1, (), ())
+        mean, scale = _normalisation(img)
+        prep = PreparedReference(_fill_nonfinite(img, mean), mean, scale, 0.0, 1, (), ())
     if prep.shape != frm.shape:
         raise ValueError(f"reference {prep.shape} and frame {frm.shape} differ in shape")
+    frm = _fill_nonfinite(frm, prep.mean)
     if method in ("lk", "hs"):
         fpyr = _pyramid(_standardise(frm, prep.mean, prep.scale, presmooth), len(prep.pyramid))
+        weights = None if valid is None or valid.all() else _weight_pyramid(valid, len(prep.pyramid))
         if method == "lk":
             u, v = _pyramid_flow(_lk_level, prep, fpyr, window=window, window_type=window_type,
                                  iterations=iterations, fine_iterations=fine_iterations,
                                  regularisation=regularisation, gradient=gradient,
-                                 keep=keep)
+                                 keep=keep, weights=weights)
         else:
             u, v = _pyramid_flow(_hs_level, prep, fpyr, iterations=iterations,
                                  fine_iterations=fine_iterations, alpha=alpha,
-                                 inner_iterations=inner_iterations)
+                                 inner_iterations=inner_iterations, weights=weights)
     else:
         ref = _standardise(prep.image, prep.mean, prep.scale, 0.0)
         frs = _standardise(frm, prep.mean, prep.scale, 0.0)
@@ -1102,6 +1220,11 @@ def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowPara
     the flow is smooth (weak, slowly varying deflections: mostly noise) and keeps the
     ``smoothing_sigma`` result across structure.
 
+    With ``invalid_check``, pixels of the reference or the frame that cannot carry a
+    deflection (:func:`invalid_pixels`) get zero weight in the flow, and the flow-grid
+    cells where they hold half or more of the cell or of its LK window come back as NaN
+    (the masks treat them as "possibly flow", the tomography drops their rays).
+
     Parameters
     ----------
     reference : ndarray, shape (H, W), or PreparedReference
@@ -1116,15 +1239,33 @@ def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowPara
         Deflection in original-image pixels (component 0 = u, 1 = v).
     """
     keep = {} if params.method == "lk" and params.texture_correction else None
-    u, v = _flow_components(reference, frame, **params.field_kwargs(), keep=keep)
+    valid = None
+    if params.invalid_check:
+        ref_img = reference.image if isinstance(reference, PreparedReference) else reference
+        inv = invalid_pixels(ref_img, texture_threshold=params.texture_threshold) | \
+            invalid_pixels(frame, texture_threshold=params.texture_threshold)
+        valid = ~inv if inv.any() else None
+    u, v = _flow_components(reference, frame, **params.field_kwargs(), keep=keep, valid=valid)
     H, W = u.shape
     rows, cols = FlowGrid((W, H), params.factor).shape
     f = params.factor
-    comps = []
-    for comp in (u, v):  # exact block means (INTER_AREA with an integer factor)
-        crop = comp[: rows * f, : cols * f]
-        comps.append(np.ascontiguousarray(crop) if f == 1
-                     else cv2.resize(crop, (cols, rows), interpolation=cv2.INTER_AREA))
+
+    def block_mean(a):  # exact block means (INTER_AREA with an integer factor)
+        crop = a[: rows * f, : cols * f]
+        return np.ascontiguousarray(crop) if f == 1 else cv2.resize(crop, (cols, rows),
+                                                                    interpolation=cv2.INTER_AREA)
+
+    comps = [block_mean(u), block_mean(v)]
+    bad_cells = None
+    if valid is not None:
+        # a cell is kept if most of the window weight around its pixels lies on valid ones
+        w0 = _weight_pyramid(valid, 1)[0]
+        support = block_mean(_window_filter(w0, _window_taps(params.window, params.window_type)))
+        bad_cells = (block_mean(w0) < 0.5) | (support < 0.5)
+        if bad_cells.all():
+            return np.full((rows, cols, 2), np.nan, np.float32)
+        filled = _nearest_fill(np.dstack(comps), bad_cells)
+        comps = [np.ascontiguousarray(filled[..., 0]), np.ascontiguousarray(filled[..., 1])]
     if params.outlier_threshold > 0:
         cu, cv_, bad = _median_test(comps[0], comps[1], params.outlier_threshold,
                                     params.outlier_epsilon)
@@ -1145,6 +1286,8 @@ def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowPara
     if params.adaptive_sigma > 0:
         out = _adaptive_smoothing(out, np.dstack(comps), params.adaptive_sigma / params.factor,
                                   params.adaptive_threshold)
+    if bad_cells is not None and bad_cells.any():
+        out[bad_cells] = np.nan
     return out
 
 

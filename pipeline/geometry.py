@@ -1,6 +1,6 @@
 """Plain geometric data types shared by every stage: cameras, volume grid, flow grid.
 
-Conventions (see ../shared/SPEC.md):
+Conventions (user documentation: docs/session.md):
 
 * World frame right-handed, ``z`` up, metres.
 * Camera: OpenCV pinhole with distortion, ``x_cam = R @ x_world + t``.

@@ -15,6 +15,7 @@ import numpy as np
 import scipy.ndimage as ndi
 
 from schlieren.pipeline.geometry import Camera, FlowGrid, Grid
+from schlieren.pipeline.params import param
 
 __all__ = ["HullParams", "visual_hull"]
 
@@ -32,8 +33,8 @@ class HullParams:
         cameras is carved.
     """
 
-    margin_px: float = 0.0
-    min_views: int = 1
+    margin_px: float = param(0.0, unit="flow cells", ge=0, le=100)
+    min_views: int = param(1, unit="cameras", ge=1, le=1000)
 
 
 def visual_hull(masks: np.ndarray, cameras: list[Camera], grid: Grid, flow_grid: FlowGrid, *,

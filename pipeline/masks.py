@@ -31,6 +31,8 @@ import cv2
 import numpy as np
 from scipy import fft
 
+from schlieren.pipeline.params import param
+
 __all__ = [
     "MaskParams",
     "flow_potential",
@@ -69,13 +71,13 @@ class MaskParams:
         Gaussian smoothing of the flow before ``deflection_threshold``, flow-grid cells.
     """
 
-    percentile: float = 95.0
-    smooth_sigma: float = 1.0
-    dilation_radius: int = 4
-    temporal_radius: int = 1
-    n_quantiles: int = 2000
-    deflection_threshold: float = 0.015
-    flow_sigma: float = 1.5
+    percentile: float = param(95.0, unit="%", gt=0, lt=100)
+    smooth_sigma: float = param(1.0, unit="flow cells", ge=0, le=100)
+    dilation_radius: int = param(4, unit="flow cells", ge=0, le=100)
+    temporal_radius: int = param(1, unit="frames", ge=0, le=10)
+    n_quantiles: int = param(2000, unit="1", ge=10, le=100000)
+    deflection_threshold: float = param(0.015, unit="px", ge=0, le=100)
+    flow_sigma: float = param(1.5, unit="flow cells", ge=0, le=100)
 
     def __post_init__(self):
         if not 0.0 < self.percentile < 100.0:
@@ -111,11 +113,15 @@ def flow_potential(flow: np.ndarray) -> np.ndarray:
     -------
     potential : ndarray, shape (h, w), float32
         ``P`` with ``grad P ~= -delta`` (units: image pixels x flow-grid cells); positive
-        inside a hot (low-density) plume.
+        inside a hot (low-density) plume. NaN where the flow is NaN (cells the flow stage
+        found invalid; they are integrated as zero deflection).
     """
     d = np.asarray(flow, dtype=np.float64)
     if d.ndim != 3 or d.shape[-1] != 2:
         raise ValueError(f"flow must have shape (h, w, 2), got {d.shape}")
+    invalid = ~np.isfinite(d).all(axis=-1)
+    if invalid.any():
+        d = np.where(invalid[..., None], 0.0, d)
     h, w = d.shape[:2]
     gx = -0.5 * (d[:, 1:, 0] + d[:, :-1, 0])   # target P[:, j+1] - P[:, j], shape (h, w-1)
     gy = -0.5 * (d[1:, :, 1] + d[:-1, :, 1])   # target P[i+1] - P[i], shape (h-1, w)
@@ -133,12 +139,18 @@ def flow_potential(flow: np.ndarray) -> np.ndarray:
     p_hat = r / lam
     p_hat[0, 0] = 0.0
     P = fft.idctn(p_hat, type=2, norm="ortho")
-    P -= np.median(P)
+    P -= np.median(P[~invalid]) if not invalid.all() else np.median(P)
+    if invalid.any():
+        P[invalid] = np.nan
     return P.astype(np.float32)
 
 
 def _magnitude(potential: np.ndarray, smooth_sigma: float) -> np.ndarray:
+    """Smoothed ``|P|``; invalid (NaN) cells count as 0 and stay 0."""
     P = np.asarray(potential, dtype=np.float32)
+    bad = np.isnan(P)
+    if bad.any():
+        P = np.where(bad, np.float32(0.0), P)
     if smooth_sigma > 0:
         P = cv2.GaussianBlur(P, (0, 0), sigmaX=smooth_sigma, sigmaY=smooth_sigma,
                              borderType=cv2.BORDER_REFLECT)
@@ -164,7 +176,10 @@ def potential_summary(potential: np.ndarray, *, smooth_sigma: float = 1.0,
     """
     # sorted first: the same quantiles, but numpy's partition around 2 x n_quantiles
     # pivots is then cheap (1.7 -> 0.8 ms for a 160 x 120 flow grid)
-    m = np.sort(_magnitude(potential, smooth_sigma).ravel())
+    m = _magnitude(potential, smooth_sigma)
+    m = np.sort(m[~np.isnan(np.asarray(potential))])   # invalid cells are not counted
+    if m.size == 0:
+        return np.zeros(n_quantiles + 1)
     probs = (np.arange(n_quantiles) + 0.5) / n_quantiles
     q = np.quantile(m, probs)
     return np.concatenate([[float(m.size)], q])
@@ -192,6 +207,8 @@ def threshold_from_summaries(summaries, *, percentile: float = 95.0) -> float:
         raise ValueError("threshold_from_summaries needs at least one summary")
     vals = np.concatenate([s[1:] for s in summaries])
     wts = np.concatenate([np.full(len(s) - 1, s[0] / (len(s) - 1)) for s in summaries])
+    if not wts.sum() > 0:   # every cell of every frame invalid: nothing can be thresholded
+        return float("inf")
     order = np.argsort(vals, kind="stable")
     vals, wts = vals[order], wts[order]
     cdf = (np.cumsum(wts) - 0.5 * wts) / wts.sum()
@@ -258,8 +275,9 @@ def make_mask(potentials: np.ndarray, centre: int, threshold: float, *, flows=No
     m = np.zeros(P.shape[1:], bool)
     for j in range(lo, hi):
         m |= _magnitude(P[j], smooth_sigma) > threshold
+        m |= np.isnan(P[j])   # invalid cells: this camera cannot rule flow out there
         if flows is not None and deflection_threshold > 0:
-            fl = flows[j]
+            fl = np.nan_to_num(flows[j], nan=0.0)
             if flow_sigma > 0:
                 fl = cv2.GaussianBlur(fl, (0, 0), sigmaX=flow_sigma, sigmaY=flow_sigma,
                                       borderType=cv2.BORDER_REFLECT)

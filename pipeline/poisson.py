@@ -54,6 +54,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from schlieren.pipeline.geometry import Grid
+from schlieren.pipeline.params import param
 
 __all__ = ["PoissonParams", "PoissonInfo", "integrate", "diffusion_tensor", "assemble",
            "SOLVERS", "LaplaceMultigrid", "laplacian_matrix", "pcg"]
@@ -95,14 +96,14 @@ class PoissonParams:
         Iteration cap.
     """
 
-    alpha: float = 0.8
-    sigma: float = 0.5
-    k: float = 0.5e-5
-    value_scale: float = 255.0
-    box_boundary: str = "neumann"
-    solver: str = "mg"
-    tol: float = 1e-6
-    max_iter: int = 5000
+    alpha: float = param(0.8, unit="1", gt=0, le=1)
+    sigma: float = param(0.5, unit="voxels", ge=0, le=20)
+    k: float = param(0.5e-5, unit="1", gt=0, le=1e3)
+    value_scale: float = param(255.0, unit="1", gt=0, le=1e9)
+    box_boundary: str = param("neumann", choices=("neumann", "dirichlet"))
+    solver: str = param("mg", choices=SOLVERS)
+    tol: float = param(1e-6, unit="1", gt=0, lt=1)
+    max_iter: int = param(5000, unit="1", ge=1, le=100000)
 
 
 @dataclass(frozen=True)

@@ -26,9 +26,11 @@ from schlieren.pipeline import masks as _masks
 from schlieren.pipeline import poisson as _poisson
 from schlieren.pipeline import sync as _sync
 from schlieren.pipeline import tomography as _tomo
+from schlieren.pipeline.params import validate as _validate
+from schlieren.pipeline.params import param
 
 __all__ = ["Stage", "RunConfig", "STAGES", "stage", "FrameStatsParams", "frame_statistics",
-           "config_from_dict", "config_to_dict", "kernel_kwargs", "bind_medium"]
+           "config_from_dict", "config_to_dict", "check_config", "kernel_kwargs", "bind_medium"]
 
 
 @dataclass(frozen=True)
@@ -59,7 +61,18 @@ def frame_statistics(frame, *, params: FrameStatsParams | None = None):
 
 @dataclass(frozen=True)
 class RunConfig:
-    """Every parameter of a run, one frozen dataclass per stage (saved in the store)."""
+    """Every parameter of a run, one frozen dataclass per stage (saved in the store).
+
+    Attributes
+    ----------
+    reconstruction : {"two-step", "direct"}
+        Reconstruction method. ``two-step``: the paper's gradient tomography (``tomography``) followed by the
+        anisotropic Poisson integration (``poisson``); ``direct``: refractivity solved
+        directly from the deflections (``direct``, beyond the paper).
+    warm_start_block : int
+        Frames solved in sequence, each tomography solve warm-started from the previous
+        frame's solution; blocks are independent (more blocks, more parallel work).
+    """
 
     flow: _flow.FlowParams = field(default_factory=_flow.FlowParams)
     flash: _sync.FlashParams = field(default_factory=_sync.FlashParams)
@@ -68,8 +81,8 @@ class RunConfig:
     hull: _hull.HullParams = field(default_factory=_hull.HullParams)
     tomography: _tomo.TomoParams = field(default_factory=_tomo.TomoParams)
     poisson: _poisson.PoissonParams = field(default_factory=_poisson.PoissonParams)
-    reconstruction: str = "two-step"  # or "direct" (refractivity solved directly)
-    warm_start_block: int = 4  # frames solved in sequence, each warm-started from the last
+    reconstruction: str = param("two-step", choices=("two-step", "direct"))
+    warm_start_block: int = param(4, unit="frames", ge=1, le=10000)
     direct: _tomo.RefractivityParams = field(default_factory=_tomo.RefractivityParams)
 
     def __post_init__(self):
@@ -197,23 +210,19 @@ def config_to_dict(cfg: RunConfig) -> dict:
 
 
 def config_from_dict(d: dict | None) -> RunConfig:
-    """Rebuild a :class:`RunConfig` from :func:`config_to_dict` output (unknown keys refused)."""
-    d = dict(d or {})
-    kwargs = {}
-    for f in dataclasses.fields(RunConfig):
-        if f.name not in d:
-            continue
-        value = d.pop(f.name)
-        default = RunConfig.__dataclass_fields__[f.name].default_factory \
-            if f.default_factory is not dataclasses.MISSING else None
-        if default is not None and isinstance(value, dict):
-            cls = type(default())
-            names = {g.name for g in dataclasses.fields(cls)}
-            unknown = set(value) - names
-            if unknown:
-                raise ValueError(f"unknown parameter(s) {sorted(unknown)} for {f.name}")
-            value = cls(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in value.items()})
-        kwargs[f.name] = value
-    if d:
-        raise ValueError(f"unknown run parameter(s): {sorted(d)}")
-    return RunConfig(**kwargs)
+    """Build a :class:`RunConfig` from a nested mapping (a ``--params`` file, the store attrs).
+
+    Every value is checked against the parameter schema (:mod:`schlieren.pipeline.params`):
+    strict types, finite numbers, ranges, choices; unknown names are refused.
+
+    Raises
+    ------
+    schlieren.pipeline.params.ParamsError
+        A ``ValueError`` naming the parameter (``tomography.max_iter``) and its valid values.
+    """
+    return _validate(RunConfig, d)
+
+
+def check_config(cfg: RunConfig) -> RunConfig:
+    """``cfg`` checked against the schema like a ``--params`` file (for configurations built in Python)."""
+    return config_from_dict(config_to_dict(cfg))

@@ -26,6 +26,7 @@ import numpy as np
 
 from schlieren.pipeline.flow import spline_coefficients, warp_coefficients
 from schlieren.pipeline.geometry import FlowGrid
+from schlieren.pipeline.params import param
 
 __all__ = [
     "FlashDetection",
@@ -58,11 +59,11 @@ class FlashParams:
         The band's brightening must exceed this many robust noise sigmas of the
         frame-to-frame row-mean fluctuations.
     min_contrast : float
-        ... and this many grey levels.
+        The band's brightening must also exceed this many grey levels.
     """
 
-    min_snr: float = 10.0
-    min_contrast: float = 2.0
+    min_snr: float = param(10.0, unit="1", gt=0, le=1e6)
+    min_contrast: float = param(2.0, unit="grey levels", ge=0, le=65535)
 
 
 @dataclass(frozen=True)
@@ -371,11 +372,11 @@ class ResampleParams:
         (pulls the motion of flow-free regions to zero).
     """
 
-    method: str = "motion"
-    window: int = 15
-    levels: int = 3
-    iterations: int = 4
-    regularisation: float = 1e-2
+    method: str = param("motion", choices=("motion", "linear", "nearest"))
+    window: int = param(15, unit="flow cells", ge=3, le=101, odd=True)
+    levels: int = param(3, unit="1", ge=1, le=8)
+    iterations: int = param(4, unit="1", ge=1, le=50)
+    regularisation: float = param(1e-2, unit="1", ge=0, le=1e3)
 
     def __post_init__(self):
         if self.method not in ("motion", "linear", "nearest"):

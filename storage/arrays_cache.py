@@ -1,7 +1,8 @@
 """Per-session derived arrays (the tomography geometry) saved as ``.npy`` files.
 
-The projection geometry is computed once per session by one task and written next to
-the result store; every tomography task maps the files read-only (``mmap_mode="r"``)
+The projection geometry is computed once per session by one task and written beside
+the result store, in ``<store>.cache/`` (outside the Zarr hierarchy, so that zarr and
+xarray see only Zarr nodes in the store; ``schlieren clean STORE`` removes it); every tomography task maps the files read-only (``mmap_mode="r"``)
 instead of receiving the matrix through the task graph (DASK-ZARR.md item 6).
 The directory is written under a temporary name and renamed when complete, so a crash
 never leaves a half-written cache that looks valid; its manifest records each file's size
@@ -19,12 +20,28 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["cache_dir", "save_arrays", "load_arrays", "has_arrays", "verify_arrays", "remove_arrays"]
+__all__ = ["cache_root", "cache_dir", "save_arrays", "load_arrays", "has_arrays", "remove_cache", "verify_arrays"]
+
+
+def cache_root(store_path: str | os.PathLike) -> Path:
+    """The cache folder of a store: ``<store>.cache`` beside it (``run.zarr.cache``)."""
+    p = Path(os.fspath(store_path).rstrip("/\\"))
+    return p.with_name(p.name + ".cache")
 
 
 def cache_dir(store_path: str | os.PathLike, name: str, key: str) -> Path:
-    """Folder for a cached set of arrays: ``<store>/_cache/<name>-<key>``."""
-    return Path(store_path) / "_cache" / f"{name}-{key}"
+    """Folder for a cached set of arrays: ``<store>.cache/<name>-<key>``."""
+    return cache_root(store_path) / f"{name}-{key}"
+
+
+def remove_cache(store_path: str | os.PathLike) -> int:
+    """Delete the store's cache folder (and a pre-0.2 ``<store>/_cache``); returns the bytes freed."""
+    freed = 0
+    for root in (cache_root(store_path), Path(store_path) / "_cache"):
+        if root.is_dir():
+            freed += sum(f.stat().st_size for f in root.rglob("*") if f.is_file())
+            shutil.rmtree(root)
+    return freed
 
 
 def has_arrays(path: str | os.PathLike) -> bool:
@@ -102,13 +119,3 @@ def verify_arrays(path: str | os.PathLike, *, read: bool = True) -> list[str]:
         elif read and _file_crc(f)["crc32c"] != want["crc32c"]:
             problems.append(f"{f}: fails its CRC-32C checksum")
     return problems
-
-
-def remove_arrays(path: str | os.PathLike) -> None:
-    """Delete a saved set (a damaged cache, rebuilt by its stage)."""
-    path = Path(path)
-    if not path.exists():
-        return
-    trash = path.parent / f".{path.name}.{uuid.uuid4().hex}.trash"
-    os.replace(path, trash)  # atomic: no half-deleted set ever looks valid
-    shutil.rmtree(trash, ignore_errors=True)

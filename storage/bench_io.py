@@ -18,7 +18,7 @@ import zarr
 
 from schlieren.storage.synthetic_io import write_json
 
-__all__ = ["write_estimate_store", "write_text", "write_json", "remove_tree"]
+__all__ = ["write_estimate_store", "write_text", "write_json", "remove_tree", "cached_arrays"]
 
 ESTIMATE_FORMAT = "schlieren-estimate/1"
 
@@ -77,3 +77,23 @@ def remove_tree(path: str | os.PathLike) -> None:
     import shutil
 
     shutil.rmtree(path, ignore_errors=True)
+
+
+def cached_arrays(path: str | os.PathLike, compute) -> dict:
+    """Arrays saved at ``path`` (``.npz``), or ``compute()``'s dict of arrays, saved there first.
+
+    The write goes to a temporary file renamed into place, so a killed computation never
+    leaves a partial cache behind. Values are converted with :func:`numpy.asarray`
+    (scalars and strings become 0-d arrays).
+    """
+    p = Path(path)
+    if p.exists():
+        with np.load(p, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    arrays = {k: np.asarray(v) for k, v in compute().items()}
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = p.with_name(p.name + f".{os.getpid()}.partial")
+    with open(tmp, "wb") as f:
+        np.savez(f, **arrays)
+    os.replace(tmp, p)
+    return arrays

@@ -28,7 +28,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from schlieren.storage.errors import StoreError
-from schlieren.storage.report import frame_range, open_result, volume_grid
+from schlieren.storage.report import first_frame, frame_range, open_result, volume_grid
 
 __all__ = ["export", "ExportResult", "FORMATS", "QUANTITIES"]
 
@@ -86,11 +86,11 @@ def export(store_path: str | os.PathLike, out_path: str | os.PathLike, *, format
         The Zarr result store.
     out_path : path
         Output folder (created). Files are named ``<quantity>_<frame:05d>.<ext>`` with the
-        store's frame index.
+        capture frame index (the store's ``frame`` coordinate).
     format : {"vti", "raw", "nrrd"}
     quantity : {"refractivity", "density", "temperature", "gradient", "hull"}
     frames : (a, b), optional
-        Half-open range of store frames (default: all). Frames whose stage is not complete
+        Half-open range of capture frames (default: all). Frames whose stage is not complete
         (``status/<stage>`` marker unset) are skipped and listed in the result.
 
     Returns
@@ -113,7 +113,8 @@ def export(store_path: str | os.PathLike, out_path: str | os.PathLike, *, format
                          field=quantity)
     arr = group[quantity]
     grid = volume_grid(arr)
-    sel = frame_range(frames, int(arr.shape[0]))
+    first = first_frame(group)
+    sel = frame_range(frames, int(arr.shape[0]), first)
     times = np.asarray(group["time"][:], dtype=np.float64) if "time" in group else None
     out = Path(out_path)
     out.mkdir(parents=True, exist_ok=True)
@@ -130,12 +131,12 @@ def export(store_path: str | os.PathLike, out_path: str | os.PathLike, *, format
     dtype_name = ""
     for f in sel:
         if not done[f]:
-            result.skipped.append(f)
+            result.skipped.append(first + f)
             continue
         data = _frame_values(arr, f, quantity)
         dtype_name = {"<f4": "float32", "|u1": "uint8"}[data.dtype.str]
         t = None if times is None else float(times[f])
-        stem = f"{quantity}_{f:05d}"
+        stem = f"{quantity}_{first + f:05d}"
         if format == "vti":
             path = out / f"{stem}.vti"
             _write_vti(path, data, quantity, origin, h, ncomp)
@@ -149,12 +150,12 @@ def export(store_path: str | os.PathLike, out_path: str | os.PathLike, *, format
             result.entry_points.append(mhd)
         else:
             path = out / f"{stem}.nrrd"
-            _write_nrrd(path, data, quantity, units, origin, h, ncomp, f, t)
+            _write_nrrd(path, data, quantity, units, origin, h, ncomp, first + f, t)
             result.files.append(path)
             result.entry_points.append(path)
-        records.append({"frame": f, "time": t, "file": result.files[-1].name if format != "raw" else f"{stem}.raw"})
+        records.append({"frame": first + f, "time": t, "file": result.files[-1].name if format != "raw" else f"{stem}.raw"})
     if not records:
-        raise StoreError(f"no frame of {quantity!r} in {sel.start}:{sel.stop} is complete yet", file=str(store_path),
+        raise StoreError(f"no frame of {quantity!r} in {first + sel.start}:{first + sel.stop} is complete yet", file=str(store_path),
                          field=quantity)
     if result.skipped:
         log.warning("%s: frames %s are not complete yet and were not exported", quantity,

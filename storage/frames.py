@@ -1,8 +1,10 @@
 """Lazy random-access readers for camera frames and reference images.
 
-A camera's frames are either an image sequence named by a printf pattern
-(``cam00/frames/%05d.png``; 8/16-bit PNG or TIFF, colour converted to grey) or a video
-file read with OpenCV. Frames are returned as ``float32`` grey levels of the raw values
+A camera's frames are an image sequence (a printf pattern ``cam00/frames/%05d.png``, a
+glob pattern ``cam00/frames/*.tif`` or a folder ``cam00/frames/``, images in natural name
+order; 8/16-bit PNG or TIFF, colour converted to grey), a multi-page TIFF file, or a video
+file read with OpenCV (:data:`VIDEO_EXTENSIONS`, the one list every reader uses).
+Interlaced video is split into its two fields (:class:`InterlacedFields`). Frames are returned as ``float32`` grey levels of the raw values
 (a 16-bit frame keeps its 0..65535 numbers; nothing is rescaled or quantised, since BOS
 deflections are sub-pixel).
 
@@ -28,7 +30,12 @@ from schlieren.storage.errors import SessionError
 __all__ = [
     "FrameSource",
     "ImageSequence",
+    "ImageFiles",
+    "MultiPageTiff",
+    "InterlacedFields",
     "VideoFrames",
+    "frames_kind",
+    "is_glob",
     "open_frames",
     "read_reference",
     "read_image",
@@ -42,10 +49,13 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+#: Video containers read with OpenCV/FFmpeg, for every reader (session, init, calibrate):
+#: camcorder AVCHD (.mts, .m2ts), broadcast MXF and the common desktop containers.
 VIDEO_EXTENSIONS = frozenset({".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg",
-                              ".wmv", ".mj2", ".ogv"})
+                              ".wmv", ".mj2", ".ogv", ".mts", ".m2ts", ".mxf"})
 IMAGE_EXTENSIONS = frozenset({".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm",
                               ".exr"})
+TIFF_EXTENSIONS = frozenset({".tif", ".tiff"})
 
 #: Largest jump ahead that a video reader decodes through instead of seeking.
 FORWARD_GRAB_LIMIT = 16
@@ -62,6 +72,37 @@ def is_pattern(spec: str | os.PathLike) -> bool:
 def is_video(spec: str | os.PathLike) -> bool:
     """True if ``spec`` names a video file (by its extension) rather than a pattern or image."""
     return (not is_pattern(spec)) and Path(os.fspath(spec)).suffix.lower() in VIDEO_EXTENSIONS
+
+
+def is_glob(spec: str | os.PathLike) -> bool:
+    """True if ``spec`` is a glob pattern (``*``, ``?`` or ``[``) of image files."""
+    return not is_pattern(spec) and any(ch in os.fspath(spec) for ch in "*?[")
+
+
+def frames_kind(spec: str | os.PathLike) -> str | None:
+    """How a frames specification is read: ``"sequence"`` (printf pattern), ``"glob"``,
+    ``"folder"`` (an existing folder, or a path ending in a slash), ``"video"``,
+    ``"tiff"`` (a multi-page TIFF file), ``"image"`` (one other image file) or None."""
+    text = os.fspath(spec)
+    if is_pattern(text):
+        return "sequence"
+    if is_glob(text):
+        return "glob"
+    if text.endswith(("/", os.sep)) or os.path.isdir(text):
+        return "folder"
+    suffix = Path(text).suffix.lower()
+    if suffix in VIDEO_EXTENSIONS:
+        return "video"
+    if suffix in TIFF_EXTENSIONS:
+        return "tiff"
+    if suffix in IMAGE_EXTENSIONS:
+        return "image"
+    return None
+
+
+def _natural_key(path: str):
+    """Name order with numbers compared as numbers (``img2`` before ``img10``)."""
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", os.path.basename(path))]
 
 
 def _to_grey(img: np.ndarray) -> np.ndarray:
@@ -324,8 +365,174 @@ class ImageSequence(FrameSource):
                 f"{self._size[0]}x{self._size[1]}",
                 file=self.file_of(i), camera=self.camera_name, field=f"frames[{i}]")
 
+    def read_raw(self, i: int) -> np.ndarray:
+        """Frame ``i`` as stored (8/16-bit or float, grey or BGR), for lossless copies."""
+        i = self._check_index(i)
+        img = cv2.imread(self.file_of(i), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise SessionError("cannot decode the image (corrupt or unsupported format)", file=self.file_of(i),
+                               camera=self.camera_name, field=f"frames[{i}]")
+        return img
+
     def __repr__(self) -> str:
         return f"ImageSequence({self.path!r}, first={self.first}, n={self._count})"
+
+
+class ImageFiles(ImageSequence):
+    """Frames stored one image file each, from a glob pattern or a folder.
+
+    The files are taken in natural name order (``img2`` before ``img10``); frame ``i`` is
+    the ``i``-th. A folder takes every image file in it (:data:`IMAGE_EXTENSIONS`).
+    """
+
+    def __init__(self, spec: str | os.PathLike, *, camera_name: str | None = None):
+        import glob
+
+        self.path = os.fspath(spec)
+        self.camera_name = camera_name
+        if is_glob(self.path):
+            files = [f for f in glob.glob(self.path) if os.path.isfile(f)
+                     and Path(f).suffix.lower() in IMAGE_EXTENSIONS]
+            what = "the pattern matches no image files"
+        elif os.path.isdir(self.path):
+            files = [os.path.join(self.path, f) for f in os.listdir(self.path)
+                     if Path(f).suffix.lower() in IMAGE_EXTENSIONS and os.path.isfile(os.path.join(self.path, f))]
+            what = f"the folder holds no image files ({', '.join(sorted(IMAGE_EXTENSIONS))})"
+        else:
+            raise SessionError("the frame folder does not exist", file=self.path, camera=camera_name)
+        if not files:
+            raise SessionError(what, file=self.path, camera=camera_name, field="frames[0]")
+        self.files = sorted(files, key=_natural_key)
+        self.first, self._count = 0, len(self.files)
+        self._size = None
+        self._raw_dtype = None
+
+    def file_of(self, i: int) -> str:
+        return self.files[int(i)]
+
+    def __repr__(self) -> str:
+        return f"ImageFiles({self.path!r}, n={self._count})"
+
+
+class MultiPageTiff(FrameSource):
+    """Frames stored as the pages of one TIFF file (8/16-bit or float, read with Pillow)."""
+
+    def __init__(self, path: str | os.PathLike, *, camera_name: str | None = None):
+        self.path = os.fspath(path)
+        self.camera_name = camera_name
+        if not os.path.isfile(self.path):
+            raise SessionError("TIFF file not found", file=self.path, camera=camera_name)
+        self._size = None
+        self._raw_dtype = None
+        try:
+            from PIL import Image
+
+            with Image.open(self.path) as im:
+                self._count = int(getattr(im, "n_frames", 1))
+        except (OSError, ValueError, SyntaxError) as exc:
+            raise SessionError(f"cannot read the TIFF file ({exc})", file=self.path,
+                               camera=camera_name) from None
+
+    def __len__(self) -> int:
+        return self._count
+
+    def read_raw(self, i: int) -> np.ndarray:
+        """Page ``i`` as stored."""
+        from PIL import Image
+
+        i = self._check_index(i)
+        try:
+            with Image.open(self.path) as im:
+                im.seek(i)
+                page = np.array(im)
+        except (OSError, ValueError, EOFError, SyntaxError) as exc:
+            raise SessionError(f"cannot decode page {i} of the TIFF file ({exc})", file=self.path,
+                               camera=self.camera_name, field=f"frames[{i}]") from None
+        if page.ndim == 3 and page.shape[2] in (3, 4):
+            page = page[..., [2, 1, 0] + ([3] if page.shape[2] == 4 else [])]  # Pillow RGB -> OpenCV BGR
+        return page
+
+    def read(self, i: int) -> np.ndarray:
+        raw = self.read_raw(i)
+        img = _grey_of_raw(raw, file=self.path, camera=self.camera_name, field=f"frames[{i}]")
+        size = (img.shape[1], img.shape[0])
+        if self._size is None:
+            self._size, self._raw_dtype = size, np.dtype(raw.dtype)
+        elif size != self._size:
+            raise SessionError(f"page {i} is {size[0]}x{size[1]} pixels but page 0 is "
+                               f"{self._size[0]}x{self._size[1]}", file=self.path, camera=self.camera_name,
+                               field=f"frames[{i}]")
+        return img
+
+    def __repr__(self) -> str:
+        return f"MultiPageTiff({self.path!r}, n={self._count})"
+
+
+class InterlacedFields(FrameSource):
+    """The two fields of every interlaced frame, as frames of their own (twice as many).
+
+    Field ``2 f + k`` of frame ``f`` holds the rows of parity ``k`` (``top_first``: even
+    rows first, ``bottom_first``: odd rows first); the missing rows are the mean of the
+    field rows above and below (linear "bob" deinterlacing), so every field keeps the
+    full image size and the camera's calibration. Rows of a field are exposed one field
+    line time apart, as the session's rolling-shutter model expects (docs/session.md).
+    """
+
+    def __init__(self, frames: FrameSource, order: str = "top_first"):
+        if order not in ("top_first", "bottom_first"):
+            raise ValueError(f"order must be top_first or bottom_first, got {order!r}")
+        self.frames = frames
+        self.order = order
+        self.path = frames.path
+        self.camera_name = frames.camera_name
+        self._size = None
+        self._raw_dtype = None
+
+    def __len__(self) -> int:
+        return 2 * len(self.frames)
+
+    def file_of(self, i: int) -> str:
+        return self.frames.file_of(int(i) // 2)
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return self.frames.size
+
+    @property
+    def raw_dtype(self) -> np.dtype:
+        return self.frames.raw_dtype
+
+    def parity(self, i: int) -> int:
+        """Row parity (0 = even rows) held by field ``i``."""
+        return (int(i) % 2) ^ (self.order == "bottom_first")
+
+    def read(self, i: int) -> np.ndarray:
+        i = self._check_index(i)
+        return bob_field(self.frames.read(i // 2), self.parity(i))
+
+    def close(self) -> None:
+        if hasattr(self.frames, "close"):
+            self.frames.close()
+
+    def __repr__(self) -> str:
+        return f"InterlacedFields({self.frames!r}, {self.order})"
+
+
+def bob_field(frame: np.ndarray, parity: int) -> np.ndarray:
+    """The field of rows ``parity, parity + 2, ...`` of ``frame`` at full height: missing
+    rows are the mean of their neighbours in the field (the edge row repeats its neighbour)."""
+    img = np.asarray(frame, dtype=np.float32)
+    out = img.copy()
+    h = img.shape[0]
+    for r in range(1 - parity, h, 2):
+        up, down = r - 1, r + 1
+        if up < 0:
+            out[r] = img[down]
+        elif down >= h:
+            out[r] = img[up]
+        else:
+            out[r] = 0.5 * (img[up] + img[down])
+    return out
 
 
 class VideoFrames(FrameSource):
@@ -431,16 +638,22 @@ class VideoFrames(FrameSource):
 
     def read(self, i: int) -> np.ndarray:
         i = self._check_index(i)
-        self._seek(i)
-        ok, img = self._cap.read()
-        if not ok or img is None or img.size == 0:
-            raise self._decode_error(i)
-        self._next = i + 1
+        img = self.read_raw(i)
         grey = _grey_of_raw(img, file=self.path, camera=self.camera_name, field=f"frames[{i}]")
         size = (grey.shape[1], grey.shape[0])
         if self._size is None:
             self._size, self._raw_dtype = size, np.dtype(img.dtype)
         return grey
+
+    def read_raw(self, i: int) -> np.ndarray:
+        """Frame ``i`` as decoded (BGR or grey, 8/16-bit), for lossless copies."""
+        i = self._check_index(i)
+        self._seek(i)
+        ok, img = self._cap.read()
+        if not ok or img is None or img.size == 0:
+            raise self._decode_error(i)
+        self._next = i + 1
+        return img
 
     def iter_sequential(self):
         """Decode every frame in order (faster than random access), as float32 grey."""
@@ -471,8 +684,9 @@ def open_frames(source, *, camera_name: str | None = None) -> FrameSource:
     Parameters
     ----------
     source : str, path-like or CameraSource
-        A printf pattern of an image sequence (``cam00/frames/%05d.png``) or a video file;
-        a :class:`~schlieren.storage.session.CameraSource` gives its ``frames``.
+        An image sequence (printf pattern, glob pattern or folder), a multi-page TIFF or a
+        video file; a :class:`~schlieren.storage.session.CameraSource` gives its ``frames``
+        (split into fields when its ``interlaced`` is set).
     camera_name : str, optional
         Named in error messages (defaults to the CameraSource's name).
 
@@ -483,23 +697,36 @@ def open_frames(source, *, camera_name: str | None = None) -> FrameSource:
         ``src.raw_dtype``.
     """
     path, name = _source_path_and_name(source, camera_name)
-    if is_pattern(path):
-        return ImageSequence(path, camera_name=name)
-    if is_video(path):
-        return VideoFrames(path, camera_name=name)
-    raise SessionError(
-        "frames must be a printf pattern of an image sequence (e.g. cam00/frames/%05d.png) "
-        f"or a video file ({', '.join(sorted(VIDEO_EXTENSIONS))})", file=path, camera=name)
+    kind = frames_kind(path)
+    if kind == "sequence":
+        src = ImageSequence(path, camera_name=name)
+    elif kind in ("glob", "folder"):
+        src = ImageFiles(path, camera_name=name)
+    elif kind == "video":
+        src = VideoFrames(path, camera_name=name)
+    elif kind == "tiff":
+        src = MultiPageTiff(path, camera_name=name)
+    else:
+        raise SessionError(
+            "frames must be an image sequence (printf pattern cam00/frames/%05d.png, glob pattern "
+            "cam00/frames/*.png or a folder), a multi-page TIFF or a video file "
+            f"({', '.join(sorted(VIDEO_EXTENSIONS))})", file=path, camera=name)
+    order = getattr(source, "interlaced", None)
+    return InterlacedFields(src, order) if order else src
 
 
-def read_reference(source, *, camera_name: str | None = None) -> np.ndarray:
+def read_reference(source, *, camera_name: str | None = None, parity: int | None = None) -> np.ndarray:
     """The reference (no-flow background) image of a camera, as float32 grey levels.
 
     Parameters
     ----------
     source : str, path-like or CameraSource
-        One image file, a printf pattern (every frame is averaged) or a video (every frame
-        is averaged); a CameraSource gives its ``reference``.
+        One image file, or any frames specification of :func:`open_frames` (every frame is
+        averaged); a CameraSource gives its ``reference`` (fields of interlaced cameras).
+    parity : {0, 1}, optional
+        For an interlaced camera: the reference of the fields of this row parity (every
+        reference frame read as that field, :func:`bob_field`), so that a field is compared
+        with a reference deinterlaced exactly as it is. None: both fields averaged.
     camera_name : str, optional
 
     Returns
@@ -507,17 +734,28 @@ def read_reference(source, *, camera_name: str | None = None) -> np.ndarray:
     reference : ndarray, shape (H, W), float32
         Averages are accumulated in float64 and rounded to float32 once.
     """
+    order = None
     if hasattr(source, "reference") and hasattr(source, "name") and not isinstance(source, (str, os.PathLike)):
         path = os.fspath(source.reference)
         name = camera_name if camera_name is not None else source.name
+        order = getattr(source, "interlaced", None)
     else:
         path, name = os.fspath(source), camera_name
-    if is_pattern(path):
-        seq = ImageSequence(path, camera_name=name)
-        return _average((seq.read(i) for i in range(len(seq))), path, name)
-    if is_video(path):
+    kind = frames_kind(path)
+    if order and parity is not None:
+        if kind in ("sequence", "glob", "folder", "tiff", "video"):
+            src = open_frames(path, camera_name=name)
+            return _average((bob_field(src.read(i), parity) for i in range(len(src))), path, name)
+        img, _ = read_image(path, camera_name=name, field="reference")
+        return bob_field(img, parity)
+    if kind == "video" and not order:
         vid = VideoFrames(path, camera_name=name)
         return _average(vid.iter_sequential(), path, name)
+    if kind in ("sequence", "glob", "folder", "tiff", "video"):
+        src = open_frames(path, camera_name=name)
+        if order:  # the mean of both fields of every reference frame, like the frames
+            src = InterlacedFields(src, order)
+        return _average((src.read(i) for i in range(len(src))), path, name)
     img, _ = read_image(path, camera_name=name, field="reference")
     return img
 

@@ -201,6 +201,11 @@ class CheckedStore(WrapperStore):
             except ValueError:
                 attrs = {}
             info = attrs.get("integrity")
+            if isinstance(info, str):  # nested attributes are stored as JSON text (netCDF-safe)
+                try:
+                    info = json.loads(info)
+                except ValueError:
+                    info = None
             self._integrity = info if isinstance(info, dict) else None
             self._integrity_read = buf is not None
         return self._integrity
@@ -302,7 +307,8 @@ class Problem:
 
     def __str__(self) -> str:
         task = f" (task {self.stage} {format_chunk(self.index)})" if self.stage is not None else ""
-        return f"{self.array} chunk {format_chunk(self.chunk)}: {self.kind}: {self.reason}{task}"
+        where = f"{self.array} chunk {format_chunk(self.chunk)}" if self.chunk else self.array
+        return f"{where}: {self.kind}: {self.reason}{task}"
 
 
 @dataclass

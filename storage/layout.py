@@ -97,7 +97,8 @@ def _f32(name, dims, shape, chunks, attrs, fill=np.nan, dtype="float32") -> Arra
 
 def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tuple[int, int],
                   grid: Grid, n_stats: int = 4, first_frame: int = 0, n_raw: int | None = None,
-                  raw_first: int | None = None, n_summary: int = 2001) -> list[ArraySpec]:
+                  raw_first: int | None = None, n_summary: int = 2001,
+                  flow_factor: int | None = None) -> list[ArraySpec]:
     """Every array of a run's store (SPEC section 2 and docs/design.md).
 
     Parameters
@@ -124,6 +125,9 @@ def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tup
     n_summary : int
         Length of each camera-frame's ``potential_summary`` (pixel count, then
         ``MaskParams.n_quantiles`` quantiles of the potential's magnitude).
+    flow_factor : int, optional
+        Image pixels per flow cell (``FlowGrid.factor``): with it the ``u`` and ``v``
+        coordinates give the image position (pixels) of every flow cell's centre.
 
     Returns
     -------
@@ -142,13 +146,21 @@ def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tup
     vol_attrs = grid.to_attrs()
     x, y, z = grid.axes()
     t = {"coordinates": "time"}  # xarray attaches the time coordinate to frame arrays
-    cam = {"camera_names": list(camera_names)}
+    uv = []
+    if flow_factor is not None:
+        f = int(flow_factor)  # cell j averages pixels [f j, f j + f): centre f j + (f - 1) / 2
+        for name, n, what in (("u", w, "column (image x)"), ("v", h, "row (image y)")):
+            uv.append(ArraySpec(name, (name,), (n,), (n,), "float64", np.nan,
+                                {"long_name": f"image {what} of the flow-cell centres", "units": "pixel",
+                                 "flow_factor": f},
+                                data=f * np.arange(n, dtype=np.float64) + (f - 1) / 2.0))
+    cam: dict = {}  # camera names: the `camera` coordinate (a list attribute would not survive netCDF)
     stat_names = list(STAT_NAMES[:n_stats]) + [f"stat{i}" for i in range(len(STAT_NAMES), n_stats)]
 
     specs = [
         # ---- coordinates -----------------------------------------------------------
         ArraySpec("frame", ("frame",), (F,), (F,), "int64", -1,
-                  {"long_name": "frame index in the capture", "units": "1"},
+                  {"long_name": "capture frame index (frame number in the cameras' recordings)", "units": "1"},
                   data=np.arange(first_frame, first_frame + F, dtype=np.int64)),
         *([ArraySpec("raw_frame", ("raw_frame",), (R,), (R,), "int64", -1,
                      {"long_name": "capture frame index of flow_raw", "units": "1"},
@@ -165,18 +177,20 @@ def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tup
                   {"long_name": "statistic of the frame's grey levels"},
                   data=np.asarray(stat_names, dtype=object)),
         ArraySpec("x", ("x",), (nx,), (nx,), "float64", np.nan,
-                  {"long_name": "world x of voxel centres", "units": "m"}, data=x.astype(np.float64)),
+                  {"long_name": "world x of voxel centres", "units": "m", "axis": "X"}, data=x.astype(np.float64)),
         ArraySpec("y", ("y",), (ny,), (ny,), "float64", np.nan,
-                  {"long_name": "world y of voxel centres", "units": "m"}, data=y.astype(np.float64)),
+                  {"long_name": "world y of voxel centres", "units": "m", "axis": "Y"}, data=y.astype(np.float64)),
         ArraySpec("z", ("z",), (nz,), (nz,), "float64", np.nan,
-                  {"long_name": "world z of voxel centres", "units": "m"}, data=z.astype(np.float64)),
+                  {"long_name": "world z of voxel centres", "units": "m", "axis": "Z", "positive": "up"},
+                  data=z.astype(np.float64)),
+        *uv,
         ArraySpec("time", ("frame",), (F,), (F,), "float64", np.nan,
                   {"long_name": "session-clock time of each reconstructed frame", "units": "s",
                    "stage": "resample"}),
         # ---- per camera ----------------------------------------------------------------
         _f32("frame_stats", ("camera", "frame", "stat"), (C, F, n_stats), (1, 1, n_stats),
              {"long_name": "grey-level statistics of each frame", "units": "grey level",
-              "stat_names": stat_names, "stage": "frames", **cam, **t}),
+              "stage": "frames", **cam, **t}),
         _f32("time_offset", ("camera",), (C,), (1,),
              {"long_name": "session-clock time at which row 0 of frame 0 starts", "units": "s",
               "stage": "sync", **cam}, dtype="float64"),
@@ -209,15 +223,18 @@ def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tup
         ArraySpec("hull", ("frame", "z", "y", "x"), (F, nz, ny, nx), (1, nz, ny, nx), "bool", False,
                   {"long_name": "visual hull", "units": "1", "stage": "hull", **vol_attrs, **t}),
         _f32("gradient", ("frame", "z", "y", "x", "axis"), (F, nz, ny, nx, 3), (1, nz, ny, nx, 3),
-             {"long_name": "gradient of the refractive index", "units": "1/m", "stage": "tomography",
+             {"long_name": "gradient of the refractive index", "units": "m-1", "stage": "tomography",
               **vol_attrs, **t}),
         _f32("refractivity", ("frame", "z", "y", "x"), (F, nz, ny, nx), (1, nz, ny, nx),
-             {"long_name": "refractivity n - 1", "units": "1", "stage": "integrate", **vol_attrs, **t}),
+             {"long_name": "refractivity n - 1 (refractive index minus one)", "units": "1", "stage": "integrate",
+              **vol_attrs, **t}),
         _f32("density", ("frame", "z", "y", "x"), (F, nz, ny, nx), (1, nz, ny, nx),
-             {"long_name": "density (Gladstone-Dale)", "units": "kg/m^3", "stage": "integrate",
+             {"long_name": "density (Gladstone-Dale)", "standard_name": "air_density", "units": "kg m-3",
+              "stage": "integrate",
               **vol_attrs, **t}),
         _f32("temperature", ("frame", "z", "y", "x"), (F, nz, ny, nx), (1, nz, ny, nx),
-             {"long_name": "temperature (ideal gas at p_ambient)", "units": "K", "stage": "integrate",
+             {"long_name": "temperature (ideal gas at p_ambient)", "standard_name": "air_temperature", "units": "K",
+              "stage": "integrate",
               **vol_attrs, **t}),
     ]
     return specs

@@ -40,9 +40,10 @@ import numpy as np
 from schlieren.pipeline.geometry import Camera, Grid, Medium, rodrigues
 from schlieren.storage.errors import SchlierenInputError, StoreError
 from schlieren.storage.layout import STORE_FORMAT
+from schlieren.storage.store import decode_attrs
 
 __all__ = ["ReportReader", "ReportWriter", "ReportPage", "html_img", "html_table", "fmt_number", "safe_name",
-           "open_result", "volume_grid", "cameras_from_session", "medium_from_session", "frame_range",
+           "open_result", "volume_grid", "cameras_from_session", "medium_from_session", "frame_range", "first_frame",
            "EXPECTED_ARRAYS", "VOLUME_ARRAYS", "STORE_FORMAT"]
 
 log = logging.getLogger(__name__)
@@ -120,13 +121,23 @@ def volume_grid(array) -> Grid:
     return grid
 
 
-def frame_range(frames, n_frames: int) -> range:
-    """Validated half-open frame range ``[a, b)`` within ``0 .. n_frames``.
+def frame_range(frames, n_frames: int, first: int = 0) -> range:
+    """Store indices of a validated half-open range of capture frames ``[a, b)``.
 
     Parameters
     ----------
     frames : None, (a, b) or range
-        ``None`` = every frame; ``b`` may be None (to the end) and is clipped to ``n_frames``.
+        Capture frame indices (the store's ``frame`` coordinate, the numbers every command
+        shows); ``None`` = every frame; ``b`` may be None (to the end) and is clipped.
+    n_frames : int
+        Frames in the store.
+    first : int
+        Capture index of store frame 0 (``frame[0]``).
+
+    Returns
+    -------
+    range
+        Store indices ``a - first .. b - first``.
     """
     if frames is None:
         return range(n_frames)
@@ -134,13 +145,21 @@ def frame_range(frames, n_frames: int) -> range:
         a, b = frames.start, frames.stop
     else:
         a, b = frames
-    a = 0 if a is None else int(a)
+    a = first if a is None else int(a)
     want = f"{a}:{'' if b is None else int(b)}"
-    b = n_frames if b is None else min(int(b), n_frames)
-    if a < 0 or a >= b:
-        raise StoreError(f"frame range {want} is empty or outside the store's frames 0:{n_frames}",
-                         field="frames")
-    return range(a, b)
+    b = first + n_frames if b is None else min(int(b), first + n_frames)
+    if a < first or a >= b:
+        raise StoreError(f"frame range {want} is empty or outside the store's frames "
+                         f"{first}:{first + n_frames}", field="frames")
+    return range(a - first, b - first)
+
+
+def first_frame(group) -> int:
+    """Capture index of a store's frame 0 (its ``frame`` coordinate; 0 without one)."""
+    try:
+        return int(np.asarray(group["frame"][0]))
+    except (KeyError, IndexError, ValueError, TypeError):
+        return 0
 
 
 def _get(d: dict, key: str, default=None):
@@ -258,7 +277,7 @@ class ReportReader:
         self.path = Path(store_path)
         self._group = open_result(store_path)
         #: root attributes of the store (``session``, ``params``, ``stage_times``, ``run``, ...)
-        self.attrs: dict = dict(self._group.attrs)
+        self.attrs: dict = decode_attrs(self._group.attrs)
         self._arrays = {k: self._group[k] for k in EXPECTED_ARRAYS if k in self._group}
         self._done: dict[str, np.ndarray | None] = {}
 

@@ -1,16 +1,19 @@
-"""Scaffold a capture session (``schlieren init``): videos + calibration -> ``session.yaml``.
+"""Scaffold a capture session (``schlieren init``): frames + calibration -> ``session.yaml``.
 
-:func:`scaffold_session` checks every camera's video (frame count, size, frame rate:
-all must agree, and the size must be the calibration's ``image_size``), extracts each
-camera's reference (no-flow) frames, and writes a SPEC ``schlieren-session/1`` manifest
-that ``schlieren run`` accepts:
+:func:`scaffold_session` checks every camera's frames (a video, an image sequence given
+by a printf pattern, a glob pattern or a folder, or a multi-page TIFF: frame count, size,
+frame rate must agree, and the size must be the calibration's ``image_size``), extracts
+each camera's reference (no-flow) frames, and writes a ``schlieren-session/1`` manifest
+(docs/session.md) that ``schlieren run`` accepts. The manifest is loaded back with the
+session reader before it is put in place; if anything fails, whatever this call created
+is removed again (a failed init leaves nothing behind, so the retry is not refused).
 
-* ``frames:`` the video itself; relative to the session folder when the video lies
-  inside it, else copied into ``<camera>/`` (``copy_videos=True``) or referenced by
-  absolute path with ``allow_external_paths: true``.
-* ``reference:`` the frames ``[A, B)`` of the same video, written losslessly as
+* ``frames:`` the source itself; relative to the session folder when it lies inside it,
+  else copied into ``<camera>/`` (``copy_videos=True``) or referenced by absolute path
+  with ``allow_external_paths: true``.
+* ``reference:`` the frames ``[A, B)`` of the same source, written losslessly as
   ``<camera>/reference/%05d.png`` (the very pixels the decoder returns, renumbered from
-  0); the session reader averages them. A printf pattern rather than one averaged
+  0; 16-bit stays 16-bit, float frames become ``.tif``); the session reader averages them. A printf pattern rather than one averaged
   image keeps the grey-level scale of the video frames exactly (an averaged 8-bit image
   would be re-quantised, a 16-bit one would be on another scale).
 * camera geometry (``image_size, K, dist, R, t, background``) copied from the
@@ -37,9 +40,10 @@ import yaml
 from schlieren.pipeline.geometry import Camera, Grid, Medium
 from schlieren.storage.calibration_io import CalibrationFile, read_calibration
 from schlieren.storage.errors import SchlierenInputError
+from schlieren.storage.frames import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, frames_kind, is_pattern, open_frames
 
-__all__ = ["VideoInfo", "probe_video", "find_videos", "write_reference_frames", "scaffold_session",
-           "SESSION_FORMAT", "MANIFEST_NAME"]
+__all__ = ["VideoInfo", "probe_video", "probe_source", "find_sources", "find_videos", "write_reference_frames",
+           "scaffold_session", "SESSION_FORMAT", "MANIFEST_NAME"]
 
 log = logging.getLogger(__name__)
 
@@ -115,18 +119,58 @@ def probe_video(path: str | os.PathLike, *, camera: str | None = None,
     return VideoInfo(p, n, int(w), int(h), fps if np.isfinite(fps) else 0.0)
 
 
-def find_videos(patterns: Sequence[str], *, base: str | os.PathLike | None = None) -> dict[str, str]:
-    """Camera name -> video path from ``[NAME=]PATH_OR_GLOB`` arguments.
+def probe_source(spec: str | os.PathLike, *, camera: str | None = None,
+                 count_frames: bool = False) -> VideoInfo:
+    """Frame count and size of a camera's frames (any kind :func:`find_sources` returns).
 
-    A glob (quoted on the shell) may match several videos; each is named after its file
-    stem. Relative patterns are tried against the current directory, then ``base``.
+    Videos are probed with :func:`probe_video` (frame rate from the container); image
+    sequences and multi-page TIFFs have no frame rate (``fps`` 0).
+    """
+    if frames_kind(spec) == "video":
+        return probe_video(spec, camera=camera, count_frames=count_frames)
+    fs = open_frames(os.fspath(spec), camera_name=camera)
+    w, h = fs.size  # decodes frame 0
+    return VideoInfo(os.fspath(spec), len(fs), int(w), int(h), 0.0)
+
+
+def _image_name(path: str) -> str:
+    """Camera name of an image sequence: its folder (``cam00/frames/`` -> ``cam00``)."""
+    folder = Path(os.path.abspath(path))
+    if is_pattern(path) or frames_kind(path) == "glob" or folder.is_file():
+        folder = folder.parent
+    if folder.name in ("frames", "images", "img") and folder.parent.name:
+        folder = folder.parent
+    return folder.name
+
+
+def find_sources(patterns: Sequence[str], *, base: str | os.PathLike | None = None) -> dict[str, str]:
+    """Camera name -> frames specification from ``[NAME=]PATH`` arguments of ``schlieren init``.
+
+    ``PATH`` may be
+
+    * a video file, or a quoted glob matching several videos: one camera per video,
+      named after its file stem;
+    * an image sequence: a printf pattern (``cam00/frames/%05d.png``), a quoted glob of
+      images (``'cam00/*.tif'``) or a folder of images: one camera, named after the
+      folder (``cam00``; a folder named ``frames`` or ``images`` gives its parent's name);
+    * a folder of videos: one camera per video;
+    * a multi-page TIFF file: one camera, named after its stem.
+
+    Relative paths are tried against the current directory, then ``base``.
 
     Raises
     ------
     SchlierenInputError
-        A pattern matching nothing, or two videos with the same camera name.
+        A path matching nothing, or two sources with the same camera name.
     """
     out: dict[str, str] = {}
+
+    def add(cam: str, spec: str) -> None:
+        if cam in out and os.path.abspath(out[cam]) != os.path.abspath(spec):
+            raise SchlierenInputError(f"two sources for the same camera ({out[cam]} and {spec}); "
+                                      "name them with NAME=PATH", file=spec, camera=cam)
+        out[cam] = spec
+
     for arg in patterns:
         name = None
         spec = arg
@@ -137,30 +181,59 @@ def find_videos(patterns: Sequence[str], *, base: str | os.PathLike | None = Non
         candidates = [spec]
         if base is not None and not os.path.isabs(spec):
             candidates.append(os.path.join(os.fspath(base), spec))
-        files: list[str] = []
+        found = None
         for c in candidates:
-            files = sorted(f for f in glob.glob(c) if os.path.isfile(f))
-            if files:
+            if is_pattern(c):
+                d = os.path.dirname(c) or "."
+                if os.path.isdir(d):
+                    found = ("sequence", [c])
+            elif os.path.isdir(c):
+                entries = sorted(os.path.join(c, f) for f in os.listdir(c))
+                videos = [f for f in entries if Path(f).suffix.lower() in VIDEO_EXTENSIONS and os.path.isfile(f)]
+                images = [f for f in entries if Path(f).suffix.lower() in IMAGE_EXTENSIONS and os.path.isfile(f)]
+                if images:
+                    found = ("folder", [c])
+                elif videos:
+                    found = ("videos", videos)
+            else:
+                files = sorted(f for f in glob.glob(c) if os.path.isfile(f))
+                videos = [f for f in files if Path(f).suffix.lower() in VIDEO_EXTENSIONS]
+                images = [f for f in files if Path(f).suffix.lower() in IMAGE_EXTENSIONS]
+                if frames_kind(c) == "glob" and images and not videos:
+                    found = ("glob", [c])
+                elif len(files) == 1 and frames_kind(files[0]) == "tiff":
+                    found = ("tiff", files)
+                elif videos:
+                    found = ("videos", videos)
+            if found:
                 break
-        if not files:
-            raise SchlierenInputError("no video matches", file=spec, camera=name)
-        if name is not None and len(files) > 1:
-            raise SchlierenInputError(f"NAME= needs exactly one video but the pattern matches {len(files)}",
-                                      file=spec, camera=name)
-        for f in files:
-            cam = name or Path(f).stem
-            if cam in out and os.path.abspath(out[cam]) != os.path.abspath(f):
-                raise SchlierenInputError(f"two videos for the same camera ({out[cam]} and {f}); "
-                                          "name them with NAME=PATH", file=f, camera=cam)
-            out[cam] = f
+        if not found:
+            raise SchlierenInputError("no video, image sequence or multi-page TIFF matches", file=spec, camera=name)
+        kind, items = found
+        if kind == "videos":
+            if name is not None and len(items) > 1:
+                raise SchlierenInputError(f"NAME= needs exactly one video but the pattern matches {len(items)}",
+                                          file=spec, camera=name)
+            for f in items:
+                add(name or Path(f).stem, f)
+        elif kind == "tiff":
+            add(name or Path(items[0]).stem, items[0])
+        else:
+            add(name or _image_name(items[0]), items[0])
     return out
+
+
+#: The name of 0.1 (videos only); it now finds every kind of source.
+find_videos = find_sources
 
 
 def write_reference_frames(video: str | os.PathLike, frames: tuple[int, int], out_dir: str | os.PathLike,
                            *, camera: str | None = None) -> int:
-    """Write frames ``[A, B)`` of a video losslessly as ``out_dir/%05d.png`` (from 00000).
+    """Write frames ``[A, B)`` of a camera's frames losslessly as ``out_dir/%05d.png`` (from 00000).
 
-    Stale ``*.png`` files of an earlier run in ``out_dir`` are removed first.
+    ``video`` is any frames specification (:func:`find_sources`); 8- and 16-bit frames
+    are written as PNG, float frames as ``%05d.tif``. Stale numbered files of an earlier
+    run in ``out_dir`` are removed first.
 
     Returns
     -------
@@ -175,9 +248,19 @@ def write_reference_frames(video: str | os.PathLike, frames: tuple[int, int], ou
     a, b = int(frames[0]), int(frames[1])
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    for old in out.glob("[0-9][0-9][0-9][0-9][0-9].png"):
-        old.unlink()
+    for pattern in ("[0-9][0-9][0-9][0-9][0-9].png", "[0-9][0-9][0-9][0-9][0-9].tif"):
+        for old in out.glob(pattern):
+            old.unlink()
     p = os.fspath(video)
+    if frames_kind(p) != "video":
+        src = open_frames(p, camera_name=camera)
+        for k in range(a, b):
+            raw = src.read_raw(k)
+            ext = ".png" if raw.dtype in (np.uint8, np.uint16) else ".tif"
+            dest = out / f"{k - a:05d}{ext}"
+            if not cv2.imwrite(str(dest), raw):
+                raise SchlierenInputError("cannot write the reference frame", file=str(dest), camera=camera)
+        return b - a
     cap = cv2.VideoCapture(p)
     try:
         if not cap.isOpened():
@@ -242,15 +325,17 @@ def scaffold_session(session_dir: str | os.PathLike, videos: Mapping[str, str],
                      background_distance: float | Mapping[str, float] | None = None,
                      medium: Medium | None = None, name: str | None = None,
                      copy_videos: bool = False, count_frames: bool = False,
-                     overwrite: bool = False) -> Path:
+                     overwrite: bool = False, interlaced: str | Mapping[str, str] | None = None) -> Path:
     """Check the videos against the calibration and write ``SESSION_DIR/session.yaml``.
 
     Parameters
     ----------
     session_dir : path
         Created if missing.
-    videos : mapping of str to path
-        Camera name -> video file; every name must be in the calibration.
+    videos : mapping of str to str
+        Camera name -> frames specification (:func:`find_sources`: a video, an image
+        sequence pattern, glob or folder, or a multi-page TIFF); every name must be in
+        the calibration.
     calibration : path or CalibrationFile
     reference_frames : (int, int)
         Half-open range of frames without flow, averaged into each camera's reference.
@@ -281,6 +366,10 @@ def scaffold_session(session_dir: str | os.PathLike, videos: Mapping[str, str],
         Count frames by decoding (exact) rather than trusting the containers.
     overwrite : bool
         Replace an existing ``session.yaml``.
+    interlaced : str or mapping, optional
+        ``"top_first"`` or ``"bottom_first"`` for every camera, or per camera: the frames
+        are interlaced video whose two fields are processed as frames of their own
+        (docs/session.md, "Interlaced video").
 
     Returns
     -------
@@ -312,7 +401,7 @@ def scaffold_session(session_dir: str | os.PathLike, videos: Mapping[str, str],
     order = [n for n in calib.names if n in videos]  # calibration order
 
     # ---- the videos ------------------------------------------------------------------
-    infos = {n: probe_video(videos[n], camera=n, count_frames=count_frames) for n in order}
+    infos = {n: probe_source(videos[n], camera=n, count_frames=count_frames) for n in order}
     first = order[0]
     for n in order:
         info, entry = infos[n], calib.camera(n)
@@ -334,7 +423,8 @@ def scaffold_session(session_dir: str | os.PathLike, videos: Mapping[str, str],
     if frame_rate is None:
         if any(r <= 0 for r in rates.values()):
             bad = next(n for n in order if rates[n] <= 0)
-            raise SchlierenInputError("the video does not state its frame rate; give --frame-rate",
+            raise SchlierenInputError("the frames do not state their frame rate (image sequences never do); "
+                                      "give --frame-rate",
                                       file=infos[bad].path, camera=bad, field="frame_rate")
         for n in order:
             if abs(rates[n] - rates[first]) > _FPS_RTOL * rates[first]:
@@ -368,6 +458,16 @@ def scaffold_session(session_dir: str | os.PathLike, videos: Mapping[str, str],
                                       "by every camera) or --time-offset [NAME=]SECONDS",
                                       camera=lacking[0], field="time_offset")
     lines = _per_camera(line_times, order, "rolling_shutter.line_time")
+    if isinstance(interlaced, str) or interlaced is None:
+        fields = {n: interlaced for n in order} if interlaced else {}
+    else:
+        fields = dict(interlaced)
+    for n, v in fields.items():
+        if n not in order:
+            raise SchlierenInputError("interlacing given for a camera without frames", camera=n, field="interlaced")
+        if v not in ("top_first", "bottom_first"):
+            raise SchlierenInputError(f"interlaced must be top_first or bottom_first, got {v!r}", camera=n,
+                                      field="interlaced")
     for n, v in lines.items():
         if v < 0:
             raise SchlierenInputError("the line time must be >= 0 seconds", camera=n,
@@ -417,75 +517,119 @@ def scaffold_session(session_dir: str | os.PathLike, videos: Mapping[str, str],
         if c.name not in seeing:
             log.warning("camera %s does not see the volume centre", c.name)
 
-    # ---- files -----------------------------------------------------------------------
-    root.mkdir(parents=True, exist_ok=True)
-    external = False
-    cam_docs = []
-    for (e, bg), cam in zip(entries, cameras):
-        n = cam.name
-        video = videos[n]
-        rel = _rel_inside(video, root)
-        if rel is None and copy_videos:
-            dest = root / n / Path(video).name
-            dest.parent.mkdir(parents=True, exist_ok=True)
-            log.info("copying %s to %s", video, dest)
-            shutil.copy2(video, dest)
-            rel = _rel_inside(str(dest), root)
-        if rel is None:
-            external = True
-            frames_spec = os.path.abspath(video)
-        else:
-            frames_spec = rel
-        write_reference_frames(video, reference_frames, root / n / "reference", camera=n)
-        doc = {
-            "name": n,
-            "frames": frames_spec,
-            "reference": f"{n}/reference/%05d.png",
-            "image_size": list(e["image_size"]),
-            "K": e["K"],
-            "dist": e["dist"],
-            "R": e["R"],
-            "t": e["t"],
-            "background": bg,
-            "rolling_shutter": {"line_time": float(lines.get(n, 0.0))},
-        }
-        if n in offsets:
-            doc["time_offset"] = offsets[n]
-        cam_docs.append(doc)
-    med = medium or Medium()
-    manifest = {
-        "format": SESSION_FORMAT,
-        "name": name or root.resolve().name,
-        "frame_rate": float(frame_rate),
-    }
-    if frames is not None:
-        manifest["frames"] = [int(frames[0]), int(frames[1])]
-    manifest["volume"] = {"min": [float(v) for v in vmin], "max": [float(v) for v in vmax],
-                          "voxel_size": float(voxel_size)}
-    manifest["medium"] = {"n_ambient": med.n_ambient, "T_ambient": med.T_ambient,
-                          "p_ambient": med.p_ambient, "gladstone_dale": med.gladstone_dale}
-    if strobe_frames is not None:
-        manifest["sync"] = {"strobe": {"search_frames": [int(strobe_frames[0]), int(strobe_frames[1])]}}
-    if external:
-        manifest["allow_external_paths"] = True
-    manifest["cameras"] = cam_docs
-
-    header = [f"# Written by `schlieren init` from {os.path.abspath(calib.path)}",
-              f"# {len(order)} cameras, {n_frames} frames each at {frame_rate:.6g} fps; reference = frames "
-              f"[{reference_frames[0]}, {reference_frames[1]}) of each video",
-              f"# grid {grid.shape[2]} x {grid.shape[1]} x {grid.shape[0]} voxels (x, y, z)"]
-    for n in order:
-        e = calib.camera(n)
-        if "rms" in e:
-            header.append(f"# {n}: calibration RMS {float(e['rms']):.3f} px over "
-                          f"{e.get('n_views', '?')} views")
+    # ---- files (everything created here is removed again if anything fails) --------------
+    created: list[Path] = []  # paths this call created, removed on failure
+    if not root.exists():
+        created.append(root)
     tmp = manifest_path.with_name(MANIFEST_NAME + ".tmp")
-    with open(tmp, "w", encoding="utf-8") as fh:
-        fh.write("\n".join(header) + "\n")
-        yaml.safe_dump(manifest, fh, sort_keys=False, default_flow_style=None, width=100)
-    os.replace(tmp, manifest_path)
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        external = False
+        cam_docs = []
+        for (e, bg), cam in zip(entries, cameras):
+            n = cam.name
+            video = videos[n]
+            frames_spec, is_external = _place_frames(video, root, n, copy_videos, created)
+            external = external or is_external
+            ref_dir = root / n / "reference"
+            for p in (root / n, ref_dir):
+                if not p.exists():
+                    created.append(p)
+            write_reference_frames(video, reference_frames, ref_dir, camera=n)
+            ext = ".png" if any(ref_dir.glob("00000.png")) else ".tif"
+            doc = {
+                "name": n,
+                "frames": frames_spec,
+                "reference": f"{n}/reference/%05d{ext}",
+                "image_size": list(e["image_size"]),
+                "K": e["K"],
+                "dist": e["dist"],
+                "R": e["R"],
+                "t": e["t"],
+                "background": bg,
+                "rolling_shutter": {"line_time": float(lines.get(n, 0.0))},
+            }
+            if n in fields:
+                doc["interlaced"] = fields[n]
+            if n in offsets:
+                doc["time_offset"] = offsets[n]
+            cam_docs.append(doc)
+        med = medium or Medium()
+        manifest = {
+            "format": SESSION_FORMAT,
+            "name": name or root.resolve().name,
+            "frame_rate": float(frame_rate),
+        }
+        if frames is not None:
+            manifest["frames"] = [int(frames[0]), int(frames[1])]
+        manifest["volume"] = {"min": [float(v) for v in vmin], "max": [float(v) for v in vmax],
+                              "voxel_size": float(voxel_size)}
+        manifest["medium"] = {"n_ambient": med.n_ambient, "T_ambient": med.T_ambient,
+                              "p_ambient": med.p_ambient, "gladstone_dale": med.gladstone_dale}
+        if strobe_frames is not None:
+            manifest["sync"] = {"strobe": {"search_frames": [int(strobe_frames[0]), int(strobe_frames[1])]}}
+        if external:
+            manifest["allow_external_paths"] = True
+        manifest["cameras"] = cam_docs
+
+        header = [f"# Written by `schlieren init` from {os.path.abspath(calib.path)}",
+                  f"# {len(order)} cameras, {n_frames} frames each at {frame_rate:.6g} fps; reference = frames "
+                  f"[{reference_frames[0]}, {reference_frames[1]}) of each camera's frames",
+                  f"# grid {grid.shape[2]} x {grid.shape[1]} x {grid.shape[0]} voxels (x, y, z)"]
+        for n in order:
+            e = calib.camera(n)
+            if "rms" in e:
+                header.append(f"# {n}: calibration RMS {float(e['rms']):.3f} px over "
+                              f"{e.get('n_views', '?')} views")
+        with open(tmp, "w", encoding="utf-8") as fh:
+            fh.write("\n".join(header) + "\n")
+            yaml.safe_dump(manifest, fh, sort_keys=False, default_flow_style=None, width=100)
+        from schlieren.storage.session import load_session
+
+        load_session(tmp)  # the reader `schlieren run` uses: fail here, before the manifest is in place
+        os.replace(tmp, manifest_path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        for p in reversed(created):
+            if p.is_dir():
+                shutil.rmtree(p, ignore_errors=True)
+            elif p.exists():
+                p.unlink()
+        raise
     log.info("wrote %s", manifest_path)
     return manifest_path
+
+
+def _place_frames(spec: str, root: Path, camera: str, copy: bool, created: list) -> tuple[str, bool]:
+    """The manifest's ``frames`` for a camera's source: relative inside ``root``, copied into
+    ``root/<camera>/`` when ``copy``, else absolute (external). Returns ``(spec, external)``."""
+    rel = _rel_inside(spec, root)
+    if rel is not None:
+        return rel, False
+    if not copy:
+        return os.path.abspath(spec), True
+    kind = frames_kind(spec)
+    if kind in ("video", "tiff"):
+        dest = root / camera / Path(spec).name
+        files, new_spec = [spec], dest
+    else:  # an image sequence: its files into <camera>/frames/, same names
+        src = open_frames(spec, camera_name=camera)
+        files = [src.file_of(i) for i in range(len(src))]
+        dest = root / camera / "frames"
+        new_spec = dest / ("" if kind == "folder" else Path(spec).name)
+    for p in (root / camera, dest if kind not in ("video", "tiff") else None):
+        if p is not None and not p.exists():
+            created.append(p)
+    folder = dest.parent if kind in ("video", "tiff") else dest
+    folder.mkdir(parents=True, exist_ok=True)
+    log.info("copying %d file(s) of camera %s into %s", len(files), camera, folder)
+    for f in files:
+        target = folder / Path(f).name
+        if not target.exists():
+            created.append(target)
+        shutil.copy2(f, target)
+    rel = _rel_inside(str(new_spec), root)
+    return (rel + "/" if kind == "folder" else rel), False
 
 
 def _sees_point(cam: Camera, X: np.ndarray) -> bool:

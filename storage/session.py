@@ -36,11 +36,12 @@ from schlieren.storage.errors import SessionError
 from schlieren.storage.frames import (
     FrameSource,
     ImageSequence,
+    InterlacedFields,
+    VIDEO_EXTENSIONS,
     VideoFrames,
+    frames_kind,
     image_header,
     image_incomplete,
-    is_pattern,
-    is_video,
     open_frames,
     read_image,
 )
@@ -65,6 +66,9 @@ MANIFEST_NAME = "session.yaml"
 #: (workers/preflight.py) then checks the whole model times the workers.
 BYTES_PER_VOXEL = _resources.BYTES_PER_VOXEL
 DIST_LENGTHS = (4, 5, 8, 12, 14)
+#: Fewest frames in ``sync.strobe.search_frames`` (the flash detector compares each frame
+#: with the others of the window: pipeline.sync.detect_flash needs at least 3).
+MIN_STROBE_FRAMES = 3
 ORTHONORMAL_TOL = 1e-6
 
 
@@ -272,6 +276,7 @@ class CameraModel(_Model):
     background: BackgroundModel
     rolling_shutter: RollingShutterModel = RollingShutterModel()
     time_offset: float | None = None
+    interlaced: typing.Literal["top_first", "bottom_first"] | None = None
 
     @field_validator("image_size", mode="before")
     @classmethod
@@ -433,8 +438,11 @@ class CameraSource:
         printf pattern of an image sequence or a video file.
     reference : str
         One image, a printf pattern or a video (averaged).
-    frames_kind : {"sequence", "video"}
-    reference_kind : {"image", "sequence", "video"}
+    frames_kind : {"sequence", "glob", "folder", "tiff", "video"}
+    reference_kind : {"image", "sequence", "glob", "folder", "tiff", "video"}
+    interlaced : {"top_first", "bottom_first"} or None
+        Interlaced video: each frame is split into its two fields, read as frames of
+        their own (:class:`~schlieren.storage.frames.InterlacedFields`).
     """
 
     name: str
@@ -442,10 +450,11 @@ class CameraSource:
     reference: str
     frames_kind: str
     reference_kind: str
+    interlaced: str | None = None
 
     def open_frames(self) -> FrameSource:
         """Random-access reader of this camera's frames (see :func:`storage.frames.open_frames`)."""
-        return open_frames(self.frames, camera_name=self.name)
+        return open_frames(self, camera_name=self.name)
 
 
 @dataclass(frozen=True, eq=False)
@@ -461,7 +470,8 @@ class Session:
         The manifest as loaded (plain JSON-compatible data).
     format : str
     frame_rate : float
-        Frames per second of every camera.
+        Frames per second of every camera (fields per second for interlaced cameras:
+        twice the manifest's ``frame_rate``).
     frames : tuple of int or None
         Half-open range ``(A, B)`` of frames to process. None only when loaded with
         ``check_files=False`` and neither the manifest nor the caller gave a range.
@@ -648,8 +658,11 @@ def _camera_from_model(i: int, c: CameraModel, file: str) -> Camera:
         point, normal = Camera.background_from_distance(R, t, c.background.distance)
     else:
         point, normal = np.asarray(c.background.point), np.asarray(c.background.normal)
+    # interlaced: each field is read at full height (missing rows interpolated), its rows one
+    # field line apart; in the image's row numbering that is half the field line time per row
+    line_time = c.rolling_shutter.line_time / (2.0 if c.interlaced else 1.0)
     return Camera(c.name, np.asarray(c.K), np.asarray(c.dist), R, t, tuple(c.image_size), point, normal,
-                  line_time=c.rolling_shutter.line_time, time_offset=c.time_offset)
+                  line_time=line_time, time_offset=c.time_offset)
 
 
 def _check_background(i: int, cam: Camera, file: str) -> None:
@@ -725,7 +738,7 @@ def _check_camera_files(i: int, cam: Camera, source: CameraSource, *, contained=
     ``contained(fs)``, if given, checks the files before any is read (symlinks out of the
     session folder)."""
     W, H = cam.image_size
-    fs = open_frames(source.frames, camera_name=cam.name)
+    fs = open_frames(source, camera_name=cam.name)  # fields of interlaced video
     if contained is not None:
         contained(fs)
     if len(fs) == 0:
@@ -788,23 +801,26 @@ def _check_reference(i: int, cam: Camera, source: CameraSource) -> None:
             size = (img.shape[1], img.shape[0])
         files = [ref]
         sizes = [size]
-    elif source.reference_kind == "sequence":
-        seq = ImageSequence(ref, camera_name=cam.name)
-        files = [seq.file_of(k) for k in range(len(seq))]
-        sizes = []
-        for f in files:
-            size = image_header(f)
-            if size is None:
-                img, _ = read_image(f, camera_name=cam.name, field=fld)
-                size = (img.shape[1], img.shape[0])
-            sizes.append(size)
-    else:
+    elif source.reference_kind == "video":
         vid = VideoFrames(ref, camera_name=cam.name)
         if len(vid) == 0:
             raise SessionError("the reference video holds no frames", file=ref, camera=cam.name, field=fld)
         files = [ref]
         sizes = [vid.size]
         vid.close()
+    else:  # an image sequence (pattern, glob, folder) or a multi-page TIFF
+        seq = open_frames(ref, camera_name=cam.name)
+        if isinstance(seq, ImageSequence):
+            files = [seq.file_of(k) for k in range(len(seq))]
+            sizes = []
+            for f in files:
+                size = image_header(f)
+                if size is None:
+                    img, _ = read_image(f, camera_name=cam.name, field=fld)
+                    size = (img.shape[1], img.shape[0])
+                sizes.append(size)
+        else:
+            files, sizes = [ref], [seq.size]
     for f, size in zip(files, sizes):
         if size != (W, H):
             raise SessionError(f"reference is {size[0]}x{size[1]} pixels but image_size is [{W}, {H}]",
@@ -815,20 +831,17 @@ def _check_reference(i: int, cam: Camera, source: CameraSource) -> None:
 
 
 def _kind_of_frames(spec: str, file: str, camera: str, field: str) -> str:
-    if is_pattern(spec):
-        return "sequence"
-    if is_video(spec):
-        return "video"
-    raise SessionError(f"frames {spec!r} must be a printf pattern of an image sequence (e.g. "
-                       "cam00/frames/%05d.png) or a video file", file=file, camera=camera, field=field)
+    kind = frames_kind(spec)
+    if kind in (None, "image"):
+        raise SessionError(f"frames {spec!r} must be an image sequence (printf pattern cam00/frames/%05d.png, "
+                           "glob pattern cam00/frames/*.png or a folder cam00/frames/), a multi-page TIFF or a "
+                           f"video file ({', '.join(sorted(VIDEO_EXTENSIONS))})", file=file, camera=camera,
+                           field=field)
+    return kind
 
 
 def _kind_of_reference(spec: str) -> str:
-    if is_pattern(spec):
-        return "sequence"
-    if is_video(spec):
-        return "video"
-    return "image"
+    return frames_kind(spec) or "image"
 
 
 # --------------------------------------------------------------------------------------
@@ -903,6 +916,13 @@ def load_session(path: str | os.PathLike, *, frames: tuple[int, int] | None = No
                                camera=c.name, field=f"cameras[{i}].name")
         seen[c.name] = i
 
+    laced = {c.interlaced is not None for c in m.cameras}
+    if len(laced) > 1:
+        i, c = next((i, c) for i, c in enumerate(m.cameras)
+                    if (c.interlaced is None) != (m.cameras[0].interlaced is None))
+        raise SessionError("some cameras are interlaced and some are not: every camera of a session needs the "
+                           "same frame (or field) rate", file=mfile, camera=c.name, field=f"cameras[{i}].interlaced")
+    interlaced = m.cameras[0].interlaced is not None if m.cameras else False
     grid = _check_volume(m.volume, mfile)
     medium = Medium(**m.medium.model_dump())
 
@@ -910,6 +930,10 @@ def load_session(path: str | os.PathLike, *, frames: tuple[int, int] | None = No
     if m.sync is not None and m.sync.strobe is not None:
         strobe = tuple(m.sync.strobe.search_frames)
         _check_range(strobe, None, file=mfile, field="sync.strobe.search_frames", what="search_frames")
+        if strobe[1] - strobe[0] < MIN_STROBE_FRAMES:
+            raise SessionError(f"search_frames {list(strobe)} holds {strobe[1] - strobe[0]} frame(s); the flash is "
+                               f"found against the frames around it, so give at least {MIN_STROBE_FRAMES}",
+                               file=mfile, field="sync.strobe.search_frames")
     else:
         for i, c in enumerate(m.cameras):
             if c.time_offset is None:
@@ -942,7 +966,7 @@ def load_session(path: str | os.PathLike, *, frames: tuple[int, int] | None = No
                        camera=c.name, field=f"cameras[{i}].reference")
         kind = _kind_of_frames(c.frames, mfile, c.name, f"cameras[{i}].frames")
         cameras.append(cam)
-        sources.append(CameraSource(c.name, fr, ref, kind, _kind_of_reference(c.reference)))
+        sources.append(CameraSource(c.name, fr, ref, kind, _kind_of_reference(c.reference), c.interlaced))
 
     seeing = [cam.name for cam in cameras if _sees_volume(cam, grid)]
     if not seeing:
@@ -981,15 +1005,25 @@ def load_session(path: str | os.PathLike, *, frames: tuple[int, int] | None = No
                 _check_frames_content(i, cam, fs, sorted(wanted), decode_all=decode_all_frames)
             with _qualified(i, "reference"):
                 _check_reference(i, cam, src)
-            if isinstance(fs, VideoFrames):
+            if hasattr(fs, "close"):
                 fs.close()
+
+    # after the file checks (which name the frame whose size differs from its camera's)
+    sizes = {tuple(c.image_size) for c in m.cameras}
+    if len(sizes) > 1:
+        first = m.cameras[0]
+        i, c = next((i, c) for i, c in enumerate(m.cameras) if tuple(c.image_size) != tuple(first.image_size))
+        raise SessionError(f"image_size {list(c.image_size)} differs from camera {first.name}'s "
+                           f"{list(first.image_size)}: every camera of a session needs the same image size "
+                           "(resize or crop the frames of the odd cameras, and recalibrate them)", file=mfile,
+                           camera=c.name, field=f"cameras[{i}].image_size")
 
     return Session(
         name=m.name if m.name is not None else root.name,
         root=root,
         manifest=raw,
         format=m.format,
-        frame_rate=float(m.frame_rate),
+        frame_rate=float(m.frame_rate) * (2.0 if interlaced else 1.0),
         frames=rng,
         grid=grid,
         medium=medium,

@@ -50,7 +50,7 @@ from schlieren.storage.integrity import (
 )
 from schlieren.storage.layout import STORE_FORMAT, ArraySpec, assert_aligned, normalize_region
 
-__all__ = ["ResultStore", "fingerprint", "to_json"]
+__all__ = ["ResultStore", "fingerprint", "to_json", "decode_attrs", "JSON_ATTRS", "remove_store"]
 
 log = logging.getLogger(__name__)
 
@@ -89,6 +89,43 @@ def to_json(obj: Any) -> Any:
     if isinstance(obj, (_dt.datetime, _dt.date)):
         return obj.isoformat()
     raise TypeError(f"cannot store a {type(obj).__name__} in the store attributes")
+
+
+#: Root attribute listing (space-separated) the root attributes stored as JSON text.
+JSON_ATTRS = "json_attrs"
+
+
+def _flat(v: Any) -> bool:
+    """A value netCDF can hold as an attribute: a number, text, or a flat list of numbers."""
+    if isinstance(v, (str, int, float)) or v is None:
+        return True
+    return isinstance(v, list) and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)
+
+
+def _encode_attrs(values: dict, encoded: set[str]) -> dict:
+    """Nested values (mappings, lists of text or of mappings) and booleans as JSON text, so
+    that the attributes survive ``xarray.Dataset.to_netcdf``; updates ``encoded``."""
+    out = {}
+    for k, v in values.items():
+        if k == JSON_ATTRS:
+            continue
+        if _flat(v) and not isinstance(v, bool):
+            encoded.discard(k)
+            out[k] = v
+        else:
+            encoded.add(k)
+            out[k] = json.dumps(v, separators=(",", ":"), allow_nan=False)
+    out[JSON_ATTRS] = " ".join(sorted(encoded))
+    return out
+
+
+def decode_attrs(raw: Mapping[str, Any]) -> dict:
+    """Root attributes as written: the JSON-text ones (listed in ``json_attrs``) parsed back."""
+    d = dict(raw)
+    for k in str(d.pop(JSON_ATTRS, "") or "").split():
+        if isinstance(d.get(k), str):
+            d[k] = json.loads(d[k])
+    return d
 
 
 def fingerprint(*parts: Any) -> str:
@@ -146,7 +183,7 @@ class ResultStore:
         self._mode = mode
         self._arrays: dict[str, zarr.Array] = {}
         self._layouts: dict[str, ChunkLayout | None] = {}
-        info = group.attrs.get("integrity")
+        info = decode_attrs(group.attrs).get("integrity")
         self._integrity: dict | None = info if isinstance(info, dict) else None
 
     # -- construction ---------------------------------------------------------------
@@ -192,6 +229,7 @@ class ResultStore:
         except TypeError as exc:
             raise StoreError(str(exc), file=loc, field="attrs") from None
         root_attrs["format"] = STORE_FORMAT
+        root_attrs["template_complete"] = False
         sizes: dict[str, int] = {}
         for spec in layout:
             for d, n in zip(spec.dims, spec.shape):
@@ -219,14 +257,16 @@ class ResultStore:
             existing._check_resume(root_attrs, specs)
             existing._create_missing(specs)
             existing._repair_static(specs)
-            if not existing._group.attrs.get("template_complete", False):
-                existing._group.attrs.update({"template_complete": True})
+            if not existing.attrs.get("template_complete", False):
+                existing.update_attrs({"template_complete": True})
+            else:
+                existing._consolidate()
             log.info("resuming the existing store %s", loc)
             return existing
 
         try:
             group = zarr.open_group(checked(path, read_only=False, location=loc), mode="w-",
-                                    attributes={**root_attrs, "template_complete": False, "created": _now()},
+                                    attributes=_encode_attrs({**root_attrs, "created": _now()}, set()),
                                     zarr_format=3)
         except (FileExistsError, zarr.errors.ContainsGroupError, zarr.errors.ContainsArrayError):
             # created concurrently by someone else
@@ -234,7 +274,7 @@ class ResultStore:
                              file=loc) from None
         store = cls(group, loc, path, "r+")
         store._create_missing(specs)
-        group.attrs.update({"template_complete": True})
+        store.update_attrs({"template_complete": True})  # also consolidates the metadata
         return store
 
     @staticmethod
@@ -264,7 +304,7 @@ class ResultStore:
         return ResultStore(group, loc, path, "r+")
 
     def _check_resume(self, new_attrs: dict, specs: list[ArraySpec]) -> None:
-        old = dict(self._group.attrs)
+        old = decode_attrs(self._group.attrs)
         loc = self._location
         if old.get("format") != STORE_FORMAT:
             raise StoreError(f"the path holds a Zarr group that is not a {STORE_FORMAT} store; not "
@@ -280,10 +320,12 @@ class ResultStore:
                              "the same run; not overwriting it (choose another output path)", file=loc,
                              field="fingerprint")
         if new_fp != old_fp:
-            raise StoreError(f"a result store for a different session or configuration already exists here "
-                             f"(fingerprint {str(old_fp)[:12]}, this run {str(new_fp)[:12]}); not overwriting "
-                             "it (choose another output path or remove it yourself)", file=loc,
-                             field="fingerprint")
+            diff = _differences({k: old.get(k) for k in ("session", "params", "run")},
+                                {k: new_attrs.get(k) for k in ("session", "params", "run")})
+            shown = "; ".join(diff[:6]) + (f"; and {len(diff) - 6} more" if len(diff) > 6 else "")
+            raise StoreError(f"a result store of a different session or configuration exists here (differing: "
+                             f"{shown or 'the fingerprint'}); not overwriting it: choose another output "
+                             "path, or pass --overwrite to replace it", file=loc, field="fingerprint")
         for spec in specs:
             try:
                 arr = self._group[spec.name]
@@ -374,8 +416,8 @@ class ResultStore:
 
     @property
     def attrs(self) -> dict:
-        """Root attributes (a fresh copy)."""
-        return dict(self._group.attrs)
+        """Root attributes (a fresh copy), nested ones parsed from their JSON text."""
+        return decode_attrs(self._group.attrs)
 
     def array(self, name: str) -> zarr.Array:
         """The zarr array ``name`` (``flow``, ``status/tomography``), cached."""
@@ -682,8 +724,8 @@ class ResultStore:
         """Is the marker chunk at grid ``coords`` set? :class:`ChunkError` if it is corrupt."""
         return self._marker_set(stage, tuple(int(c) for c in coords))
 
-    def unmark(self, stage: str, index) -> None:
-        """Clear the marker of ``stage`` at ``index`` (its task will be recomputed)."""
+    def unmark(self, stage: str, index=()) -> None:
+        """Clear the marker of ``stage`` at ``index``: its task runs again on the next run."""
         if self._mode == "r":
             raise StoreError("the store is open read-only", file=self._location, field=stage)
         arr = self._marker(stage)
@@ -717,19 +759,73 @@ class ResultStore:
         Only the coordinator calls this (concurrent metadata writes are unsafe in zarr 3).
         """
         ts = timestamp.isoformat() if isinstance(timestamp, _dt.datetime) else (timestamp or _now())
-        done = dict(self._group.attrs.get("stages_completed", {}))
+        done = dict(self.attrs.get("stages_completed", {}))
         done[stage] = ts
-        self._group.attrs.update({"stages_completed": done})
+        self.update_attrs({"stages_completed": done})
 
     def update_attrs(self, values: Mapping[str, Any]) -> None:
-        """Merge ``values`` into the root attrs (coordinator only)."""
+        """Merge ``values`` into the root attrs (coordinator only) and re-consolidate the metadata.
+
+        Nested values are stored as JSON text (netCDF-compatible, see :func:`decode_attrs`).
+        """
         values = to_json(dict(values))
         if "format" in values and values["format"] != STORE_FORMAT:
             raise ValueError("the store format attribute cannot be changed")
-        self._group.attrs.update(values)
+        encoded = set(str(self._group.attrs.get(JSON_ATTRS, "") or "").split())
+        self._group.attrs.update(_encode_attrs(values, encoded))
+        self._consolidate()
+
+    def _consolidate(self) -> None:
+        """Write the consolidated metadata (one read opens the store: xarray's default).
+
+        Only the coordinator calls this, after the template and after attribute updates;
+        tasks write chunks only, which leaves the metadata unchanged.
+        """
+        import warnings
+
+        with warnings.catch_warnings():
+            # "consolidated metadata is not part of the Zarr v3 specification": xarray, zarr-python
+            # and the other main readers use it; readers without it read the metadata files
+            warnings.simplefilter("ignore", category=UserWarning)
+            zarr.consolidate_metadata(self._group.store, zarr_format=3)
 
     def __repr__(self) -> str:
         return f"ResultStore({self._location!r}, mode={self._mode!r})"
+
+
+def _differences(old: Any, new: Any, where: str = "") -> list[str]:
+    """Dotted names of the values that differ between two nested mappings, ``name: old -> new``."""
+    if isinstance(old, Mapping) and isinstance(new, Mapping):
+        out = []
+        for k in list(old) + [k for k in new if k not in old]:
+            out += _differences(old.get(k), new.get(k), f"{where}.{k}" if where else str(k))
+        return out
+    if old == new or to_json(old) == to_json(new):
+        return []
+    def short(v):
+        r = json.dumps(to_json(v)) if v is not None else "(none)"
+        return r if len(r) <= 40 else r[:37] + "..."
+    return [f"{where}: {short(old)} -> {short(new)}"]
+
+
+def remove_store(path: str | os.PathLike) -> None:
+    """Delete a result store folder (``--overwrite``), and its cache; refuses anything else.
+
+    Raises
+    ------
+    StoreError
+        The path is not a folder holding a ``schlieren-store/1`` group.
+    """
+    import shutil
+
+    from schlieren.storage.arrays_cache import remove_cache
+
+    p = Path(os.fspath(path))
+    if not p.exists():
+        return
+    ResultStore.open(p, mode="r")  # a StoreError unless it is one of our stores: never delete anything else
+    remove_cache(p)
+    shutil.rmtree(p)
 
 
 def _reopen(path: str, mode: str) -> ResultStore:

@@ -46,10 +46,12 @@ from schlieren.pipeline.geometry import Camera, Grid, Medium
 from schlieren.storage.errors import StoreError
 
 __all__ = [
+    "read_store_frames",
     "frame_pattern",
     "write_manifest",
     "write_frame",
     "write_reference",
+    "write_reference_frames",
     "VideoSink",
     "TruthWriter",
     "Truth",
@@ -157,24 +159,66 @@ def write_reference(out_dir: str | os.PathLike, camera_name: str, image: np.ndar
 
 
 class VideoSink:
-    """Lossless video of one camera (FFV1 in Matroska, 8-bit grey), written frame by frame."""
+    """Video of one camera (8-bit grey), written frame by frame.
 
-    def __init__(self, out_dir: str | os.PathLike, camera_name: str, frame_rate: float, size: tuple[int, int]):
-        self.rel = f"{camera_name}/capture.mkv"
-        path = Path(out_dir) / self.rel
-        path.parent.mkdir(parents=True, exist_ok=True)
-        self._w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), float(frame_rate),
-                                  (int(size[0]), int(size[1])), False)
-        if not self._w.isOpened():
-            raise OSError(f"cannot open a FFV1 video writer for {path}")
+    ``codec="ffv1"``: lossless FFV1 in Matroska through OpenCV (``capture.mkv``).
+    ``codec="h264"``: lossy H.264 (yuv420p, constant bitrate of ``bits_per_pixel`` per
+    pixel and frame, like a camcorder's AVCHD stream: about 0.16 at 1440x1080 and
+    15 Mbit/s, 60 fields/s) in MP4 through the ``ffmpeg`` binary of ``imageio-ffmpeg``
+    (optional, extra ``bench``). ``name`` is the file's stem.
+    """
+
+    def __init__(self, out_dir: str | os.PathLike, camera_name: str, frame_rate: float, size: tuple[int, int],
+                 *, codec: str = "ffv1", bits_per_pixel: float = 0.16, name: str = "capture"):
+        self.codec = codec
+        self._size = (int(size[0]), int(size[1]))
+        if codec == "ffv1":
+            self.rel = f"{camera_name}/{name}.mkv"
+            path = Path(out_dir) / self.rel
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self._w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), float(frame_rate),
+                                      self._size, False)
+            if not self._w.isOpened():
+                raise OSError(f"cannot open a FFV1 video writer for {path}")
+        elif codec == "h264":
+            try:
+                import imageio_ffmpeg
+            except ImportError as exc:
+                raise ImportError("lossy video needs imageio-ffmpeg: pip install 'schlieren[bench]'") from exc
+            self.rel = f"{camera_name}/{name}.mp4"
+            path = Path(out_dir) / self.rel
+            path.parent.mkdir(parents=True, exist_ok=True)
+            kbps = max(int(round(bits_per_pixel * self._size[0] * self._size[1] * frame_rate / 1000.0)), 16)
+            self._w = imageio_ffmpeg.write_frames(
+                str(path), self._size, fps=float(frame_rate), codec="libx264", pix_fmt_in="gray",
+                pix_fmt_out="yuv420p", bitrate=f"{kbps}k", macro_block_size=1,
+                output_params=["-maxrate", f"{kbps}k", "-bufsize", f"{2 * kbps}k", "-g", "15", "-bf", "2"],
+                ffmpeg_log_level="error")
+            self._w.send(None)
+        else:
+            raise ValueError(f"video codec must be 'ffv1' or 'h264', not {codec!r}")
 
     def write(self, image: np.ndarray) -> None:
         if image.dtype != np.uint8:
             raise ValueError("video frames must be 8-bit")
-        self._w.write(image)
+        if self.codec == "ffv1":
+            self._w.write(image)
+        else:
+            self._w.send(np.ascontiguousarray(image))
 
     def close(self) -> None:
-        self._w.release()
+        if self.codec == "ffv1":
+            self._w.release()
+        else:
+            self._w.close()
+
+
+def write_reference_frames(out_dir: str | os.PathLike, camera_name: str, images) -> str:
+    """Write several reference images (no flow) as a PNG sequence; returns the relative printf pattern."""
+    rel = f"{camera_name}/reference/%03d.png"
+    for i, img in enumerate(images):
+        _write_png(Path(out_dir) / (rel % i), img)
+    return rel
 
 
 # --------------------------------------------------------------------------------------
@@ -321,6 +365,14 @@ def read_store_refractivity(path: str | os.PathLike) -> tuple[Any, np.ndarray, n
         raise StoreError("refractivity lacks the origin/voxel_size attributes", file=str(path),
                          field=f"refractivity.attrs.{exc.args[0]}") from None
     return r, np.asarray(g["time"][:], dtype=np.float64), origin, vs
+
+
+def read_store_frames(path: str | os.PathLike) -> np.ndarray:
+    """Capture frame index of every store frame (the ``frame`` coordinate; 0.. without one)."""
+    g = _open_group(path, "store")
+    if "frame" in g:
+        return np.asarray(g["frame"][:], dtype=np.int64)
+    return np.arange(int(g["time"].shape[0]), dtype=np.int64)
 
 
 def write_json(path: str | os.PathLike, obj: Any) -> None:

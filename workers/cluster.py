@@ -18,9 +18,13 @@ Every entry point obtains its client from :func:`open_client` (or, for batch clu
 from __future__ import annotations
 
 import contextlib
+import copy
 import json
 import logging
 import os
+import re
+import secrets
+import shlex
 import socket
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
@@ -555,6 +559,7 @@ def _local_client(opts: ClusterOptions) -> Iterator[tuple[Client, ClusterInfo]]:
         client = Client(cluster, set_as_default=True)
         try:
             client.wait_for_workers(n_workers, timeout=opts.connect_timeout)
+            client.register_plugin(LocalInterrupts())
             info = _prepare(client, opts, "local")
             log.info("local cluster with %d worker(s), dashboard %s", info.n_workers, info.dashboard_link)
             yield client, info
@@ -606,7 +611,9 @@ def _underscore(mapping: Mapping[str, Any]) -> dict[str, Any]:
 def schlieren_section(config: Mapping[str, Any]) -> dict[str, Any]:
     """The ``schlieren:`` section of a submit config (keys with ``_``), defaults filled in.
 
-    Keys: ``scale`` (jobs / pods to start, default 1), ``tomo-slots`` (default 1),
+    Keys: ``scale`` (jobs / pods to start, default 1), ``adapt`` (``{minimum: A, maximum: B}``
+    jobs / pods: scale adaptively instead, replacing workers that reach their ``--lifetime``;
+    ``--scale N`` on the command line drops it), ``tomo-slots`` (default 1),
     ``tls`` (a mapping for :func:`~schlieren.workers.security.tls_files_from_config`, or
     absent), ``dashboard-address`` (default ``127.0.0.1:8787``), ``wait-workers``
     (workers to wait for before running, default 1), ``wait-timeout`` (seconds, default
@@ -616,7 +623,7 @@ def schlieren_section(config: Mapping[str, Any]) -> dict[str, Any]:
     if not isinstance(raw, Mapping):
         raise ValueError("the 'schlieren' section of the config must be a mapping")
     sec = _underscore(raw)
-    known = {"scale", "tomo_slots", "tls", "dashboard_address", "wait_workers", "wait_timeout", "dask"}
+    known = {"scale", "adapt", "tomo_slots", "tls", "dashboard_address", "wait_workers", "wait_timeout", "dask"}
     unknown = set(sec) - known
     if unknown:
         raise ValueError(f"unknown key(s) in the 'schlieren' section: {', '.join(sorted(unknown))}")
@@ -628,6 +635,7 @@ def schlieren_section(config: Mapping[str, Any]) -> dict[str, Any]:
         "wait_workers": int(sec.get("wait_workers", 1)),
         "wait_timeout": sec.get("wait_timeout"),
         "dask": dict(sec.get("dask") or {}),
+        "adapt": _adapt_bounds(sec.get("adapt")),
     }
     if out["scale"] < 1 or out["tomo_slots"] < 1:
         raise ValueError("scale and tomo-slots must be at least 1")
@@ -636,14 +644,99 @@ def schlieren_section(config: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _tls_security(sec: Mapping[str, Any]) -> Security | None:
+def _adapt_bounds(raw: Any) -> tuple[int, int] | None:
+    """``schlieren.adapt`` as ``(minimum, maximum)``, or None when absent."""
+    if raw is None:
+        return None
+    if not isinstance(raw, Mapping):
+        raise ValueError("the 'adapt' entry must be a mapping with minimum and maximum")
+    a = _underscore(raw)
+    unknown = set(a) - {"minimum", "maximum"}
+    if unknown or "maximum" not in a:
+        raise ValueError("the 'adapt' entry takes minimum (default 0) and maximum (required)")
+    lo, hi = int(a.get("minimum", 0)), int(a["maximum"])
+    if not 0 <= lo <= hi or hi < 1:
+        raise ValueError(f"adapt needs 0 <= minimum <= maximum and maximum >= 1, got {lo} and {hi}")
+    return lo, hi
+
+
+def _walltime_seconds(walltime: Any, kind: str) -> float:
+    """Seconds of a batch walltime, as the batch system reads it.
+
+    SLURM: ``M``, ``M:S``, ``H:M:S``, ``D-H``, ``D-H:M``, ``D-H:M:S``; PBS: ``S``, ``M:S``,
+    ``H:M:S``. Anything else is read as a Dask duration (``"2h"``).
+    """
+    text = str(walltime).strip()
+    try:
+        if kind == "slurm" and "-" in text:
+            d, rest = text.split("-", 1)
+            hms = [float(x) for x in rest.split(":")] + [0.0, 0.0]
+            return int(d) * 86400 + hms[0] * 3600 + hms[1] * 60 + hms[2]
+        parts = [float(x) for x in text.split(":")]
+    except ValueError:
+        from dask.utils import parse_timedelta
+
+        return float(parse_timedelta(text))
+    if len(parts) == 1:
+        return parts[0] * (60 if kind == "slurm" else 1)
+    if len(parts) > 3:
+        raise ValueError(f"jobqueue.{kind}.walltime: cannot read {walltime!r}")
+    parts = [0.0] * (3 - len(parts)) + parts
+    return parts[0] * 3600 + parts[1] * 60 + parts[2]
+
+
+def _flag_value(args: list[str], flag: str) -> str | None:
+    """Value of ``--flag V`` or ``--flag=V`` in an argument list (the last one wins, as in click)."""
+    value = None
+    for i, a in enumerate(args):
+        if a == flag and i + 1 < len(args):
+            value = args[i + 1]
+        elif a.startswith(flag + "="):
+            value = a.split("=", 1)[1]
+    return value
+
+
+def _check_lifetime(kind: str, walltime: Any, extra_args: list[str]) -> None:
+    """Workers must leave (``--lifetime`` + ``--lifetime-stagger``) before the batch system kills them."""
+    if walltime is None:
+        return
+    from dask.utils import parse_timedelta
+
+    wall = _walltime_seconds(walltime, kind)
+    lifetime = _flag_value(extra_args, "--lifetime")
+    if lifetime is None:
+        raise ValueError(
+            f"jobqueue.{kind}.walltime is {walltime} but worker-extra-args has no --lifetime: the batch system "
+            "would kill workers mid-task; add --lifetime (a few minutes less than the walltime) and --lifetime-stagger"
+        )
+    stagger = _flag_value(extra_args, "--lifetime-stagger") or "0s"
+    total = float(parse_timedelta(lifetime)) + float(parse_timedelta(stagger))
+    if total >= wall:
+        raise ValueError(
+            f"jobqueue.{kind}: --lifetime {lifetime} + --lifetime-stagger {stagger} must end before the "
+            f"walltime {walltime}"
+        )
+
+
+def _shell_word(value: str, where: str) -> str:
+    """``value`` as one word of the job script's shell command line; ``$VARS`` still expand there."""
+    if len(value) >= 2 and value[0] == value[-1] and value[0] in "'\"":
+        return value
+    if "$" in value:
+        if any(c in value for c in '"`\\'):
+            raise ValueError(f"{where}: cannot quote {value!r} for the job script; remove quotes, backquotes, backslashes")
+        return f'"{value}"'
+    return shlex.quote(value)
+
+
+def _tls_security(sec: Mapping[str, Any], check: bool = True) -> Security | None:
     """``Security`` with all three roles for a cluster whose scheduler runs with the client."""
     tls = sec.get("tls")
     if not tls:
         return None
     tls_u = _underscore(tls)
     if tls_u.get("dir") and set(tls_u) == {"dir"}:
-        return cluster_security(Path(tls_u["dir"]).expanduser())
+        return cluster_security(Path(tls_u["dir"]).expanduser(), check=check)
     files = {role: tls_files_from_config(tls, role) for role in ("scheduler", "worker", "client")}
     kwargs: dict[str, str] = {"tls_ca_file": str(files["client"].ca_file)}
     for role, f in files.items():
@@ -652,7 +745,8 @@ def _tls_security(sec: Mapping[str, Any]) -> Security | None:
     return Security(require_encryption=True, **kwargs)
 
 
-def jobqueue_kwargs(kind: str, config: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+def jobqueue_kwargs(kind: str, config: Mapping[str, Any], *,
+                    check_files: bool = True) -> tuple[dict[str, Any], dict[str, Any]]:
     """Keyword arguments for a dask-jobqueue cluster built from a submit config.
 
     ``config["jobqueue"][kind]`` holds dask-jobqueue's own settings (the same keys as its
@@ -663,7 +757,14 @@ def jobqueue_kwargs(kind: str, config: Mapping[str, Any]) -> tuple[dict[str, Any
     * the job script exports the thread caps of :data:`THREAD_ENV` before anything starts;
     * with a ``schlieren.tls`` section, scheduler and workers use ``tls://`` with the
       project certificates;
-    * the scheduler's dashboard binds loopback (reach it through an SSH tunnel).
+    * the scheduler's dashboard binds loopback (reach it through an SSH tunnel);
+    * ``interface`` is the workers' network only: the scheduler (in this process, on the
+      login node) does not inherit it; give it ``scheduler-options: {interface: ...}`` or
+      ``{host: ...}``, else it listens on all interfaces and advertises the host's address;
+    * ``local-directory`` is one shell word in the job script (``"${TMPDIR:-/tmp}"`` expands
+      on the compute node and survives an empty or spaced ``$TMPDIR``);
+    * with a ``walltime``, ``worker-extra-args`` must hold a ``--lifetime`` (+ stagger) that
+      ends before it, so workers leave gracefully instead of being killed mid-task.
 
     Returns
     -------
@@ -692,6 +793,9 @@ def jobqueue_kwargs(kind: str, config: Mapping[str, Any]) -> tuple[dict[str, Any
     if "--resources" not in extra_args:
         extra_args += ["--resources", f"{TOMO}={sec['tomo_slots']}"]
     kw["worker_extra_args"] = extra_args
+    _check_lifetime(kind, kw.get("walltime"), extra_args)
+    if "local_directory" in kw:
+        kw["local_directory"] = _shell_word(str(kw["local_directory"]), f"jobqueue.{kind}.local-directory")
 
     prologue = [str(line) for line in (kw.pop("job_script_prologue", None) or [])]
     exports = [f"export {k}={v}" for k, v in THREAD_ENV.items()]
@@ -703,8 +807,12 @@ def jobqueue_kwargs(kind: str, config: Mapping[str, Any]) -> tuple[dict[str, Any
             cluster_kw[key] = kw.pop(key)
     sched = dict(cluster_kw.get("scheduler_options") or {})
     sched.setdefault("dashboard_address", sec["dashboard_address"])
+    if "host" not in sched and "interface" not in sched:
+        # dask-jobqueue would give the scheduler the workers' interface (ib0 on the compute
+        # nodes), which the login node may not have; host None: all interfaces
+        sched["host"] = None
     cluster_kw["scheduler_options"] = sched
-    security = _tls_security(sec)
+    security = _tls_security(sec, check=check_files)
     if security is not None:
         kw["protocol"] = "tls://"
         kw["security"] = security
@@ -722,13 +830,15 @@ def _jobqueue_class(kind: str) -> type:
     return {"slurm": dask_jobqueue.SLURMCluster, "pbs": dask_jobqueue.PBSCluster}[kind]
 
 
-def job_script(kind: str, config: Mapping[str, Any], *, scheduler_address: str | None = None) -> str:
+def job_script(kind: str, config: Mapping[str, Any], *, scheduler_address: str | None = None,
+               check_files: bool = True) -> str:
     """The batch script dask-jobqueue would submit for one worker job, without starting anything.
 
     Built by the jobqueue ``Job`` class from :func:`jobqueue_kwargs`, exactly as the
     cluster object does for its preview (``JobQueueCluster.job_script``).
+    ``check_files=False`` renders the TLS paths without requiring the certificates yet.
     """
-    job_kw, cluster_kw = jobqueue_kwargs(kind, config)
+    job_kw, cluster_kw = jobqueue_kwargs(kind, config, check_files=check_files)
     cls = _jobqueue_class(kind)
     scheme = "tls" if cluster_kw.get("protocol") == "tls://" else "tcp"
     address = scheduler_address or f"{scheme}://<insert-scheduler-address-here>:8786"
@@ -738,16 +848,78 @@ def job_script(kind: str, config: Mapping[str, Any], *, scheduler_address: str |
     return job.job_script()
 
 
+#: uid/gid of the ``schlieren`` user in the image (deploy/Containerfile); pods run as it.
+IMAGE_UID = 10001
+#: where a ``tls-secret`` is mounted in the pods
+TLS_MOUNT = "/etc/schlieren/tls"
+#: Kubernetes names: RFC 1123 labels (DaskCluster names become Service names)
+_K8S_NAME = re.compile(r"^[a-z]([-a-z0-9]*[a-z0-9])?$")
+#: longest ``kubernetes.name``: it gets a ``-xxxxxx`` suffix per submit, and the operator
+#: names worker deployments ``<name>-default-worker-<10 chars>`` (63 at most)
+_MAX_NAME = 32
+
+
+def _volumes(raw: Any) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """``kubernetes.volumes`` as (pod volumes, container volumeMounts).
+
+    Each entry is a Kubernetes volume (``name`` and one source such as
+    ``persistentVolumeClaim``, ``nfs``, ``secret``, ``csi``) plus ``mount-path`` (required),
+    ``read-only`` and ``sub-path``.
+    """
+    if raw is None:
+        return [], []
+    if not isinstance(raw, list):
+        raise ValueError("kubernetes.volumes must be a list of volumes (name, mount-path and one volume source)")
+    volumes, mounts, paths = [], [], set()
+    for i, item in enumerate(raw):
+        where = f"kubernetes.volumes[{i}]"
+        if not isinstance(item, Mapping):
+            raise ValueError(f"{where}: expected a mapping with name, mount-path and a volume source")
+        entry = {str(k): v for k, v in item.items()}
+        name = str(entry.pop("name", ""))
+        mount_path = entry.pop("mount-path", entry.pop("mountPath", None))
+        read_only = entry.pop("read-only", entry.pop("readOnly", False))
+        sub_path = entry.pop("sub-path", entry.pop("subPath", None))
+        if not _K8S_NAME.match(name) or name == "tls":
+            raise ValueError(f"{where}.name: {name!r} is not a volume name (lowercase letters, digits, '-'; not 'tls')")
+        if not isinstance(mount_path, str) or not mount_path.startswith("/"):
+            raise ValueError(f"{where}.mount-path: expected an absolute path inside the pods, got {mount_path!r}")
+        if mount_path in paths or mount_path.rstrip("/") == TLS_MOUNT:
+            raise ValueError(f"{where}.mount-path: {mount_path} is already mounted")
+        paths.add(mount_path)
+        if len(entry) != 1:
+            raise ValueError(
+                f"{where}: expected exactly one volume source (persistentVolumeClaim, nfs, secret, ...), "
+                f"got {', '.join(sorted(entry)) or 'none'}"
+            )
+        volumes.append({"name": name, **entry})
+        mount: dict[str, Any] = {"name": name, "mountPath": mount_path}
+        if read_only:
+            mount["readOnly"] = True
+        if sub_path:
+            mount["subPath"] = str(sub_path)
+        mounts.append(mount)
+    return volumes, mounts
+
+
 def daskcluster_manifest(config: Mapping[str, Any]) -> dict[str, Any]:
     """A ``DaskCluster`` resource (Dask Kubernetes operator, ``kubernetes.dask.org/v1``).
 
     From ``config["kubernetes"]``: ``name``, ``image``, ``workers`` (replicas, overridden
     by ``schlieren.scale``), ``worker-memory`` / ``worker-cpu`` (requests = limits),
-    ``scheduler-memory`` / ``scheduler-cpu``, ``env`` (mapping), ``tls-secret`` (name of
-    a Secret holding the files of ``schlieren tls init``; with it scheduler and workers
-    talk ``tls://`` and mount it read-only at ``/etc/schlieren/tls``), ``image-pull-policy``,
-    ``service-account``. Workers run one thread, advertise ``TOMO=<tomo-slots>``, get
-    the thread caps as environment variables and a memory limit equal to their request.
+    ``scheduler-memory`` / ``scheduler-cpu``, ``env`` (mapping), ``volumes`` (see
+    :func:`_volumes`: the session and store, mounted in every worker), ``tls-secret``
+    (name of a Secret holding the files of ``schlieren tls init``; with it scheduler and
+    workers talk ``tls://`` and mount it read-only at ``/etc/schlieren/tls``),
+    ``image-pull-policy``, ``service-account``, ``namespace``, ``idle-timeout`` (seconds
+    after which the operator deletes an idle cluster; 0: never), ``run-as-user`` (the
+    image's uid, 10001).
+
+    Pods run as that uid and gid with it as ``fsGroup`` (mounted secrets are group-readable,
+    mode 0440), ``seccompProfile: RuntimeDefault``, every capability dropped and no
+    privilege escalation (the "restricted" Pod Security Standard). Workers run one thread,
+    advertise ``TOMO=<tomo-slots>``, get the thread caps as environment variables and a
+    memory limit equal to their request.
     """
     k8s = config.get("kubernetes")
     if not isinstance(k8s, Mapping):
@@ -755,13 +927,18 @@ def daskcluster_manifest(config: Mapping[str, Any]) -> dict[str, Any]:
     kc = _underscore(k8s)
     known = {
         "name", "image", "workers", "worker_memory", "worker_cpu", "scheduler_memory", "scheduler_cpu",
-        "env", "tls_secret", "image_pull_policy", "service_account", "namespace",
+        "env", "tls_secret", "image_pull_policy", "service_account", "namespace", "volumes", "idle_timeout",
+        "run_as_user",
     }
     unknown = set(kc) - known
     if unknown:
         raise ValueError(f"unknown key(s) in the 'kubernetes' section: {', '.join(sorted(unknown))}")
     sec = schlieren_section(config)
     name = str(kc.get("name", "schlieren"))
+    if not _K8S_NAME.match(name) or len(name) > _MAX_NAME + 7:
+        raise ValueError(
+            f"kubernetes.name {name!r}: lowercase letters, digits and '-', starting with a letter, at most {_MAX_NAME}"
+        )
     image = kc.get("image")
     if not image:
         raise ValueError("kubernetes.image is required (the image built from deploy/Containerfile)")
@@ -774,21 +951,38 @@ def daskcluster_manifest(config: Mapping[str, Any]) -> dict[str, Any]:
     env = {**THREAD_ENV, **{str(k): str(v) for k, v in (kc.get("env") or {}).items()}}
     env_list = [{"name": k, "value": v} for k, v in env.items()]
     tls_secret = kc.get("tls_secret")
-    mount = "/etc/schlieren/tls"
     pull = str(kc.get("image_pull_policy", "IfNotPresent"))
+    uid = int(kc.get("run_as_user", IMAGE_UID))
+    if uid < 1:
+        raise ValueError("kubernetes.run-as-user must be a non-root uid (the image's is 10001)")
+    data_volumes, data_mounts = _volumes(kc.get("volumes"))
 
     def tls_args(role: str) -> list[str]:
         if not tls_secret:
             return []
         return [
-            "--tls-ca-file", f"{mount}/ca.pem",
-            "--tls-cert", f"{mount}/{role}.pem",
-            "--tls-key", f"{mount}/{role}-key.pem",
+            "--tls-ca-file", f"{TLS_MOUNT}/ca.pem",
+            "--tls-cert", f"{TLS_MOUNT}/{role}.pem",
+            "--tls-key", f"{TLS_MOUNT}/{role}-key.pem",
         ]
 
-    volumes = [{"name": "tls", "secret": {"secretName": str(tls_secret), "defaultMode": 0o400}}] if tls_secret else []
-    mounts = [{"name": "tls", "mountPath": mount, "readOnly": True}] if tls_secret else []
-    security_ctx = {"runAsNonRoot": True, "allowPrivilegeEscalation": False}
+    # 0440 + fsGroup: the kubelet makes the files root:<uid>, readable by the pod's group only
+    tls_volumes = [{"name": "tls", "secret": {"secretName": str(tls_secret), "defaultMode": 0o440}}] if tls_secret else []
+    tls_mounts = [{"name": "tls", "mountPath": TLS_MOUNT, "readOnly": True}] if tls_secret else []
+    pod_security = {
+        "runAsNonRoot": True,
+        "runAsUser": uid,
+        "runAsGroup": uid,
+        "fsGroup": uid,
+        # chown a volume only when its root is not yet ours: a store holds millions of chunk files
+        "fsGroupChangePolicy": "OnRootMismatch",
+        "seccompProfile": {"type": "RuntimeDefault"},
+    }
+    container_security = {
+        "runAsNonRoot": True,
+        "allowPrivilegeEscalation": False,
+        "capabilities": {"drop": ["ALL"]},
+    }
 
     worker_args = ["dask", "worker"]
     if tls_secret:
@@ -806,8 +1000,8 @@ def daskcluster_manifest(config: Mapping[str, Any]) -> dict[str, Any]:
     if tls_secret:
         scheduler_args += ["--protocol", "tls", *tls_args("scheduler")]
 
-    def pod(container: dict[str, Any]) -> dict[str, Any]:
-        spec: dict[str, Any] = {"containers": [container]}
+    def pod(container: dict[str, Any], volumes: list[dict[str, Any]]) -> dict[str, Any]:
+        spec: dict[str, Any] = {"securityContext": pod_security, "containers": [container]}
         if volumes:
             spec["volumes"] = volumes
         if kc.get("service_account"):
@@ -822,7 +1016,7 @@ def daskcluster_manifest(config: Mapping[str, Any]) -> dict[str, Any]:
         "env": env_list,
         "resources": {"requests": {"cpu": wcpu, "memory": wmem}, "limits": {"cpu": wcpu, "memory": wmem}},
         "ports": [{"name": "http-dashboard", "containerPort": 8788, "protocol": "TCP"}],
-        "securityContext": security_ctx,
+        "securityContext": container_security,
     }
     scheduler = {
         "name": "scheduler",
@@ -842,33 +1036,55 @@ def daskcluster_manifest(config: Mapping[str, Any]) -> dict[str, Any]:
             "timeoutSeconds": 300,
         },
         "livenessProbe": {"httpGet": {"port": "http-dashboard", "path": "/health"}, "initialDelaySeconds": 15, "periodSeconds": 20},
-        "securityContext": security_ctx,
+        "securityContext": container_security,
     }
-    if mounts:
-        worker["volumeMounts"] = mounts
-        scheduler["volumeMounts"] = mounts
+    if tls_mounts or data_mounts:
+        worker["volumeMounts"] = tls_mounts + data_mounts
+    if tls_mounts:
+        scheduler["volumeMounts"] = tls_mounts
+    spec: dict[str, Any] = {}
+    if kc.get("idle_timeout") is not None:
+        spec["idleTimeout"] = int(kc["idle_timeout"])
+    spec["worker"] = {"replicas": replicas, "spec": pod(worker, tls_volumes + data_volumes)}
+    spec["scheduler"] = {
+        "spec": pod(scheduler, tls_volumes),
+        "service": {
+            "type": "ClusterIP",
+            "selector": {"dask.org/cluster-name": name, "dask.org/component": "scheduler"},
+            "ports": [
+                {"name": "tcp-comm", "protocol": "TCP", "port": 8786, "targetPort": "tcp-comm"},
+                {"name": "http-dashboard", "protocol": "TCP", "port": 8787, "targetPort": "http-dashboard"},
+            ],
+        },
+    }
     manifest: dict[str, Any] = {
         "apiVersion": "kubernetes.dask.org/v1",
         "kind": "DaskCluster",
         "metadata": {"name": name},
-        "spec": {
-            "worker": {"replicas": replicas, "spec": pod(worker)},
-            "scheduler": {
-                "spec": pod(scheduler),
-                "service": {
-                    "type": "ClusterIP",
-                    "selector": {"dask.org/cluster-name": name, "dask.org/component": "scheduler"},
-                    "ports": [
-                        {"name": "tcp-comm", "protocol": "TCP", "port": 8786, "targetPort": "tcp-comm"},
-                        {"name": "http-dashboard", "protocol": "TCP", "port": 8787, "targetPort": "http-dashboard"},
-                    ],
-                },
-            },
-        },
+        "spec": spec,
     }
     if kc.get("namespace"):
         manifest["metadata"]["namespace"] = str(kc["namespace"])
     return json.loads(json.dumps(manifest))  # no shared sub-objects (YAML anchors when dumped)
+
+
+def unique_cluster_config(config: Mapping[str, Any]) -> dict[str, Any]:
+    """``config`` with ``kubernetes.name`` made unique for one submit (``<name>-<6 hex>``).
+
+    ``schlieren submit`` creates a fresh DaskCluster each time instead of connecting to a
+    leftover one of the same name (whose workers may run other code or versions).
+    """
+    out = copy.deepcopy(dict(config))
+    k8s = out.get("kubernetes")
+    if not isinstance(k8s, dict):
+        raise ValueError("the config has no 'kubernetes:' section")
+    base = str(k8s.get("name", "schlieren"))
+    if not _K8S_NAME.match(base) or len(base) > _MAX_NAME:
+        raise ValueError(
+            f"kubernetes.name {base!r}: lowercase letters, digits and '-', starting with a letter, at most {_MAX_NAME}"
+        )
+    k8s["name"] = f"{base}-{secrets.token_hex(3)}"
+    return out
 
 
 def jobqueue_cluster(kind: str, config: Mapping[str, Any]) -> Any:
@@ -883,10 +1099,12 @@ def make_batch_cluster(kind: str, config: Mapping[str, Any]) -> Any:
 
     * ``slurm`` / ``pbs``: ``dask_jobqueue.SLURMCluster`` / ``PBSCluster`` with
       :func:`jobqueue_kwargs`; the scheduler runs in this process (on the login node);
-      ``scale`` jobs are submitted.
+      ``scale`` jobs are submitted, or with ``adapt`` between its minimum and maximum.
     * ``kubernetes``: ``dask_kubernetes.operator.KubeCluster`` with the
-      :func:`daskcluster_manifest` resource (needs the Dask operator installed in the
-      Kubernetes cluster and the ``dask-kubernetes`` package here). The operator's client
+      :func:`daskcluster_manifest` resource under a name unique to this call
+      (:func:`unique_cluster_config`), created only (never connected to a leftover) and
+      deleted when the cluster object closes; needs the Dask operator installed in the
+      Kubernetes cluster and the ``dask-kubernetes`` package here. The operator's client
       side speaks plain ``tcp://`` to the scheduler, so a ``tls-secret`` manifest is meant
       for ``kubectl apply`` + ``schlieren run --scheduler tls://...`` instead (see
       ``deploy/GUIDE.md``); with it this function refuses.
@@ -900,9 +1118,13 @@ def make_batch_cluster(kind: str, config: Mapping[str, Any]) -> Any:
     with dask.config.set(dask_settings(sec["dask"])):
         if kind in ("slurm", "pbs"):
             cluster = jobqueue_cluster(kind, config)
-            cluster.scale(jobs=sec["scale"])
+            if sec["adapt"] is not None:
+                # jobs whose workers retire at --lifetime are replaced, up to maximum
+                cluster.adapt(minimum_jobs=sec["adapt"][0], maximum_jobs=sec["adapt"][1])
+            else:
+                cluster.scale(jobs=sec["scale"])
             return cluster
-        manifest = daskcluster_manifest(config)
+        manifest = daskcluster_manifest(unique_cluster_config(config))
         if _underscore(config["kubernetes"]).get("tls_secret"):
             raise ValueError(
                 "KubeCluster cannot talk TLS to the scheduler: apply the manifest with kubectl and use "
@@ -910,7 +1132,76 @@ def make_batch_cluster(kind: str, config: Mapping[str, Any]) -> Any:
             )
         try:
             from dask_kubernetes.operator import KubeCluster
+            from dask_kubernetes.operator.kubecluster.kubecluster import CreateMode
         except ImportError as exc:
             raise RuntimeError("dask-kubernetes is not installed: pip install dask-kubernetes") from exc
         namespace = _underscore(config["kubernetes"]).get("namespace")
-        return KubeCluster(custom_cluster_spec=manifest, namespace=namespace)
+        # a new cluster every time (never a leftover of the same name), deleted when closed
+        cluster = KubeCluster(
+            custom_cluster_spec=manifest,
+            namespace=namespace,
+            create_mode=CreateMode.CREATE_ONLY,
+            shutdown_on_close=True,
+        )
+        if sec["adapt"] is not None:
+            cluster.adapt(minimum=sec["adapt"][0], maximum=sec["adapt"][1])
+        return cluster
+
+
+class TomoResource(WorkerPlugin):
+    """Give a worker the ``TOMO`` resource if it was started without one.
+
+    Tomography tasks request ``resources={"TOMO": 1}``; on workers that do not advertise
+    it they would wait forever. Registered by :func:`adopt_client` on a user's cluster.
+    """
+
+    idempotent = True
+    name = "schlieren-tomo-resource"
+
+    def __init__(self, slots: float = 1) -> None:
+        self.slots = float(slots)
+
+    def setup(self, worker: Any):
+        if TOMO in worker.state.total_resources:
+            return None
+        return worker.set_resources(**{TOMO: self.slots})
+
+
+def adopt_client(client: Client, opts: ClusterOptions | None = None) -> ClusterInfo:
+    """Prepare a client the user made (``schlieren.run(client=...)``) like our own clusters.
+
+    Registers :class:`SchlierenWorkerSetup` (thread caps, zarr concurrency, logging) and
+    :class:`TomoResource` on every current and future worker, then checks versions.
+    """
+    client.register_plugin(TomoResource(1))
+    return _prepare(client, opts or ClusterOptions(), "client")
+
+
+class _CancelledOnClose(logging.Filter):
+    """Drops distributed's "Async instruction for <Task cancelled ...>" warnings: tasks the
+    worker was running when the client closed the cluster (Ctrl-C); nothing is lost."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "Task cancelled" not in record.getMessage()
+
+
+class LocalInterrupts(WorkerPlugin):
+    """Workers of a local cluster leave Ctrl-C to the client process.
+
+    A terminal's Ctrl-C reaches every process of its foreground group, the worker
+    processes of a local cluster included: each printed a KeyboardInterrupt traceback
+    before the client's one-line "interrupted" message. The client closes the cluster
+    (which stops the workers) and keeps every completed chunk; the workers ignore SIGINT.
+    Registered only on local clusters (a worker started by hand keeps its Ctrl-C).
+    """
+
+    idempotent = True
+    name = "schlieren-local-interrupts"
+
+    def setup(self, worker: Any) -> None:
+        import signal
+        import threading
+
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+        logging.getLogger("distributed.worker.state_machine").addFilter(_CancelledOnClose())

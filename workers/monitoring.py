@@ -247,6 +247,6 @@ def performance_report_cm(path: str | os.PathLike[str] | None, *, stacklevel: in
 
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    with performance_report(filename=os.fspath(p), stacklevel=stacklevel + 1):
+    with performance_report(filename=os.fspath(p), stacklevel=stacklevel + 1, mode="inline"):  # offline-readable
         yield p
     log.info("performance report written to %s", p)

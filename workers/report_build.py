@@ -65,7 +65,7 @@ def build_report(store_path: str | os.PathLike, out_dir: str | os.PathLike, *, f
     out_dir : path
         Created if needed; files in it are overwritten.
     frames : (a, b), optional
-        Half-open range of store frames to show (default: all). The single-frame figures
+        Half-open range of capture frames to show (default: all). The single-frame figures
         use the middle complete frame; the animation covers the complete frames of the range.
     render_size : (width, height), optional
         Pixels of each volume rendering (default: 480 on the long side, the box's aspect).
@@ -97,7 +97,7 @@ def build_report(store_path: str | os.PathLike, out_dir: str | os.PathLike, *, f
             page.missing.append(f"attribute {key}")
 
     n_frames = rd.n_frames
-    sel = frame_range(frames, n_frames) if n_frames else range(0)
+    sel = frame_range(frames, n_frames, rd.capture_index(0)) if n_frames else range(0)
     shown = _pick_shown(rd, sel, n_frames)
     times = rd.times()
     medium = rd.medium()
@@ -119,8 +119,10 @@ def build_report(store_path: str | os.PathLike, out_dir: str | os.PathLike, *, f
     _timings_section(page, attrs, writer)
     if params:
         page.add("Parameters", f"<pre>{html.escape(json.dumps(params, indent=2, default=str))}</pre>", "params")
-    page.summary.update({"session": name, "frames": [sel.start, sel.stop] if len(sel) else [],
-                         "shown_frame": shown, "missing": page.missing})
+    page.summary.update({"session": name, "frames": [rd.capture_index(sel.start), rd.capture_index(sel.start)
+                                                     + len(sel)] if len(sel) else [],
+                         "shown_frame": None if shown is None else rd.capture_index(shown),
+                         "missing": page.missing})
     return writer.finish(page)
 
 
@@ -144,12 +146,13 @@ def _summary_html(rd: ReportReader, store_path, name, grid: Grid | None, cameras
                   medium: Medium) -> str:
     attrs = rd.attrs
     session = rd.session
-    when = "none" if shown is None else f"store frame {shown} (capture frame {rd.capture_index(shown)}" + (
-        f", t = {fmt_number(times[shown], 6)} s)" if times is not None and np.isfinite(times[shown]) else ")")
+    when = "none" if shown is None else f"frame {rd.capture_index(shown)}" + (
+        f" (t = {fmt_number(times[shown], 6)} s)" if times is not None and np.isfinite(times[shown]) else "")
     rows = [["session", name], ["store", str(Path(store_path).resolve())],
             ["format", attrs.get("format", "missing")], ["software version", attrs.get("version", "missing")],
             ["frames in store", n_frames],
-            ["frames shown", f"{sel.start}:{sel.stop}" if len(sel) else "none"],
+            ["frames shown", f"{rd.capture_index(sel.start)}:{rd.capture_index(sel.start) + len(sel)}"
+             if len(sel) else "none"],
             ["single-frame figures", when]]
     if _get(session, "frame_rate") is not None:
         rows.append(["frame rate", f"{fmt_number(session['frame_rate'])} 1/s"])
@@ -215,7 +218,7 @@ def _deflection_section(page: ReportPage, rd: ReportReader, writer: ReportWriter
     for c in range(n_cam if max_cameras is None else min(n_cam, max_cameras)):
         flow = rd.camera_frame("flow", c, shown)
         if flow is None:
-            parts.append(f"<p class='missing'>Camera {html.escape(names[c])}: flow of store frame {shown} "
+            parts.append(f"<p class='missing'>Camera {html.escape(names[c])}: flow of frame {rd.capture_index(shown)} "
                          "not computed yet.</p>")
             continue
         mask = rd.camera_frame("mask", c, shown)
@@ -223,7 +226,7 @@ def _deflection_section(page: ReportPage, rd: ReportReader, writer: ReportWriter
         image, source = rd.camera_image(c, rd.capture_index(shown))
         fig = viz.deflection_figure(image, flow, mask=None if mask is None else mask.astype(bool), potential=pot,
                                     threshold=threshold, step=max(1, flow.shape[1] // 16),
-                                    potential_units=str(units), title=f"camera {names[c]}, store frame {shown}")
+                                    potential_units=str(units), title=f"camera {names[c]}, frame {rd.capture_index(shown)}")
         rel = _figure(writer, f"deflection_{safe_name(names[c])}.png", fig)
         parts.append(html_img(rel, f"deflections of camera {names[c]}",
                               f"Camera {names[c]} ({source}). Top: camera frame, deflection colour coding "
@@ -238,7 +241,7 @@ def _hull_section(page: ReportPage, rd: ReportReader, grid: Grid, writer: Report
     if hull is None:
         page.add("Visual hull", "<p class='missing'>No visual hull for this frame in the store.</p>", "hull")
         return
-    fig = viz.hull_figure(hull.astype(bool), grid, title=f"visual hull, store frame {shown}")
+    fig = viz.hull_figure(hull.astype(bool), grid, title=f"visual hull, frame {rd.capture_index(shown)}")
     rel = _figure(writer, "hull.png", fig)
     page.add("Visual hull", html_img(rel, "visual hull",
                                      "The conservative visual hull: a rendering and the fraction of hull voxels "
@@ -264,7 +267,7 @@ def _slices_section(page: ReportPage, rd: ReportReader, grid: Grid, writer: Repo
         if key == "temperature" and r is not None:  # T = T_amb r_amb / r is meaningless for r <= 0
             vol = np.where(r > 0, vol, np.nan)
         fig = viz.orthoslices_figure(vol * factor, grid, index=index, label=label, units=units, cmap=cmap,
-                                     title=f"{label}, store frame {shown}{tstamp}")
+                                     title=f"{label}, frame {rd.capture_index(shown)}{tstamp}")
         rel = _figure(writer, f"slices_{key}.png", fig)
         parts.append(html_img(rel, f"slices of {key}"))
     g = rd.volume("gradient", shown)
@@ -272,7 +275,7 @@ def _slices_section(page: ReportPage, rd: ReportReader, grid: Grid, writer: Repo
         mag = np.sqrt(np.sum(g ** 2, axis=-1))
         fig = viz.orthoslices_figure(mag, grid, index=index, label="|grad n|", units="1/m", cmap="magma",
                                      vectors=g, title=f"reconstructed gradient (arrows: in-plane components), "
-                                                      f"store frame {shown}{tstamp}")
+                                                      f"frame {rd.capture_index(shown)}{tstamp}")
         rel = _figure(writer, "slices_gradient.png", fig)
         parts.append(html_img(rel, "slices of the gradient magnitude"))
     where = "" if index is None else " through the voxel of lowest refractivity (the hottest gas)"
@@ -314,11 +317,12 @@ def _render_section(page: ReportPage, rd: ReportReader, grid: Grid, writer: Repo
         t = times[f] if times is not None and np.isfinite(times[f]) else None
         img = viz.animation_frames([volume(f)], grid, r_ambient=r_amb, transfer=tf, image_size=render_size,
                                    times=None if t is None else [t])[0]
-        writer.image(f"render_{f:05d}.png", img)
+        writer.image(f"render_{rd.capture_index(f):05d}.png", img)
         frames_rgb[f] = img
     done = list(frames_rgb)
     key = shown if shown in frames_rgb else done[len(done) // 2]
-    _figure(writer, "render.png", viz.render_figure(frames_rgb[key], tf, title=f"store frame {key}"))
+    cap = rd.capture_index
+    _figure(writer, "render.png", viz.render_figure(frames_rgb[key], tf, title=f"frame {cap(key)}"))
     # the shown frame from four sides (azimuth 30, 120, 210, 300 degrees)
     size = render_size or viz.fit_image_size(grid, azimuth_deg=30.0, elevation_deg=15.0, long_side=360)
     vol = volume(key)
@@ -331,17 +335,17 @@ def _render_section(page: ReportPage, rd: ReportReader, grid: Grid, writer: Repo
     writer.image("render_strip.png", _side_by_side([frames_rgb[f] for f in pick]))
     fps = ANIMATION_FPS
     writer.animation("render.gif", np.stack([frames_rgb[f] for f in done]), fps=fps)
-    links = " ".join(f'<a href="figures/render_{f:05d}.png">{f}</a>' for f in done)
-    skipped = [f for f in sel if f not in frames_rgb]
+    links = " ".join(f'<a href="figures/render_{cap(f):05d}.png">{cap(f)}</a>' for f in done)
+    skipped = [cap(f) for f in sel if f not in frames_rgb]
     body = (
         "<p>Emission-absorption ray marching of the refractivity (paper Figures 1 and 8): hot, "
         "less dense gas (refractivity below ambient) glows; one transfer function for all frames, "
         f"full signal at a deficit of {scale:.3g}.</p>"
-        + html_img("figures/render.png", "volume rendering", f"Store frame {key}.")
+        + html_img("figures/render.png", "volume rendering", f"Frame {cap(key)}.")
         + html_img("figures/render_views.png", "four views",
-                   f"Store frame {key} seen from azimuth 30, 120, 210 and 300 degrees (elevation 15).")
+                   f"Frame {cap(key)} seen from azimuth 30, 120, 210 and 300 degrees (elevation 15).")
         + html_img("figures/render_strip.png", "rendering over time",
-                   "Frames " + ", ".join(map(str, pick)) + ", left to right.")
+                   "Frames " + ", ".join(str(cap(f)) for f in pick) + ", left to right.")
         + html_img("figures/render.gif", "animation", f"Animation of {len(done)} frame(s) ({fps:g} per second).")
         + f"<p>Per-frame renderings: {links}</p>"
         + (f"<p class='missing'>Not reconstructed yet: frames {', '.join(map(str, skipped))}.</p>"
@@ -421,12 +425,12 @@ def _residual_section(page: ReportPage, rd: ReportReader, grid: Grid | None, cam
             mask = None if mask is None else mask.astype(bool)
             stats[c].append(residual_stats(meas, pred, mask))
             if f == shown and (max_cameras is None or c < max_cameras):
-                fig = viz.residual_figure(meas, pred, mask=mask, title=f"camera {cam.name}, store frame {f}")
+                fig = viz.residual_figure(meas, pred, mask=mask, title=f"camera {cam.name}, frame {rd.capture_index(f)}")
                 rel = _figure(writer, f"residual_{safe_name(cam.name)}.png", fig)
                 parts.append(html_img(rel, f"residual of camera {cam.name}"))
         del geom
     table = []
-    used = sorted(grads)
+    used = [rd.capture_index(f) for f in sorted(grads)]
     for c, cam in enumerate(cameras):
         n = np.array([s.count for s in stats[c]], dtype=np.float64)
 

@@ -4,15 +4,17 @@ Order of events (SPEC sections 1-2):
 
 1. the session is loaded and validated completely (bad input stops here, nothing is
    scheduled and no store is touched);
-2. the store's lease is taken (one writer per store, ``storage/lease.py``), then the store
+2. the preflight checks memory (the model measured by benchmarks/memory.py, times the
+   workers) and disk space;
+3. the store's lease is taken (one writer per store, ``storage/lease.py``), then the store
    is created with every array up front, or reopened when it was made for the same
    session and parameters (a rerun resumes; a different run is refused, never
    overwritten);
-3. the markers are verified (``workers/verify.py``): every chunk a set marker covers must
+4. the markers are verified (``workers/verify.py``): every chunk a set marker covers must
    have a file (``verify=True`` also reads every chunk's checksum); damaged tasks and
    everything downstream of them are unmarked;
-4. the stage table is compiled into tasks, minus those whose completion marker is set;
-5. the tasks run in a plain loop or as Dask futures; failures (I/O errors such as a full
+5. the stage table is compiled into tasks, minus those whose completion marker is set;
+6. the tasks run in a plain loop or as Dask futures; failures (I/O errors such as a full
    disk included) are collected per task and summarised, every completed chunk stays.
 """
 
@@ -21,6 +23,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
@@ -28,11 +31,12 @@ from pathlib import Path
 from typing import Callable
 
 from schlieren.pipeline.geometry import FlowGrid
-from schlieren.pipeline.stages import STAGES, RunConfig, bind_medium, config_to_dict
-from schlieren.storage.errors import StoreError
+from schlieren.pipeline.stages import STAGES, RunConfig, bind_medium, check_config, config_to_dict
 from schlieren.storage.layout import result_layout
 from schlieren.storage.session import Session, load_session
-from schlieren.storage.store import ResultStore
+from schlieren.storage.errors import StoreError
+from schlieren.storage.store import ResultStore, remove_store
+from schlieren.workers.monitoring import log_receipt
 from schlieren.workers.plan import Extents, Plan, make_plan
 
 log = logging.getLogger(__name__)
@@ -67,6 +71,7 @@ class RunSummary:
     stage_cpu_seconds: dict[str, float] = field(default_factory=dict)
     receipts: list[dict] = field(default_factory=list)
     dashboard: str | None = None
+    warnings: list[str] = field(default_factory=list)
     integrity: object = None  # the VerifyReport of the markers checked before planning
     bad_frames: list = field(default_factory=list)  # (camera, capture frame, [reasons]) excluded
 
@@ -103,7 +108,7 @@ def run_layout(session: Session, cfg: RunConfig) -> tuple[list, Extents]:
     layout = result_layout(camera_names=[c.name for c in session.cameras], n_frames=n_frames,
                            flow_shape=fg.shape, grid=session.grid, first_frame=a,
                            n_raw=ext.raw_frame, raw_first=raw_first,
-                           n_summary=cfg.masks.n_quantiles + 1)
+                           n_summary=cfg.masks.n_quantiles + 1, flow_factor=fg.factor)
     return layout, ext
 
 
@@ -176,6 +181,17 @@ def store_lease(out_path, purpose: str = "run"):
     return contextlib.nullcontext()
 
 
+def _done_predicate(done_sets: dict, ext: Extents) -> Callable[[str, object], bool]:
+    """Marker lookup for the plan (the markers verified before planning); the tomography
+    geometry counts as done while no tomography task is left (``schlieren clean`` removes
+    it and clears its marker)."""
+    def done(stage: str, index) -> bool:
+        if tuple(index) in done_sets.get(stage, ()):
+            return True
+        return stage == "geometry" and len(done_sets.get("tomography", ())) == ext.frame
+    return done
+
+
 def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
                 frames: tuple[int, int] | None = None, serial: bool = False,
                 config: RunConfig | None = None, report: str | None = None,
@@ -183,7 +199,7 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
                 on_failure: Callable[[str, str], None] | None = None,
                 on_plan: Callable[[Plan], None] | None = None,
                 progress: bool = False, frames_per_task: int | None = None,
-                verify: bool = False) -> RunSummary:
+                overwrite: bool = False, verify: bool = False) -> RunSummary:
     """Validate ``session_path``, then compute every missing chunk of ``out_path``.
 
     Parameters
@@ -204,6 +220,9 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
         Consecutive frames of one camera per task in the cheap 2D stages (default
         :func:`default_frames_per_task` of the image size; 1 = one task per camera and
         frame). Results, markers and resume do not depend on it.
+    overwrite : bool
+        Replace a store of another configuration at ``out_path`` (only a result store:
+        anything else is still refused). A store of this same run is resumed either way.
     verify : bool
         Read every chunk of the existing store and check its checksum before trusting the
         markers (otherwise only a listing checks that the marked chunks exist). Damaged
@@ -211,31 +230,37 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
     """
     from schlieren.workers.preflight import WorkerSlots, preflight, workers_of_client
 
+    config = check_config(config or RunConfig())  # a bad value stops here, before the store exists
     session = session_path if isinstance(session_path, Session) else load_session(session_path, frames=frames)
-    cfg = bind_medium(config or RunConfig(), session.medium.n_ambient)
-    serial_run = serial or client is None
+    cfg = bind_medium(config, session.medium.n_ambient)
     # memory and disk, with the measured model, before anything is written
     preflight(session, cfg, run_layout(session, cfg)[0], out_path,
-              workers=[WorkerSlots()] if serial_run else workers_of_client(client))
+              workers=[WorkerSlots()] if (serial or client is None) else workers_of_client(client))
     with store_lease(out_path):
         return _run_leased(session, out_path, cfg, client=client, serial=serial, report=report,
                            on_receipt=on_receipt, on_failure=on_failure, on_plan=on_plan,
-                           frames_per_task=frames_per_task, verify=verify)
+                           frames_per_task=frames_per_task, overwrite=overwrite, verify=verify)
 
 
 def _run_leased(session, out_path, cfg, *, client, serial, report, on_receipt, on_failure, on_plan,
-                frames_per_task, verify) -> RunSummary:
+                frames_per_task, overwrite, verify) -> RunSummary:
     from schlieren.workers.verify import verify_store
 
-    store, ext, token = prepare_store(session, out_path, cfg)
+    try:
+        store, ext, token = prepare_store(session, out_path, cfg)
+    except StoreError as exc:
+        if not (overwrite and exc.field == "fingerprint"):
+            raise
+        log.warning("replacing the store %s of another configuration (--overwrite)", out_path)
+        remove_store(out_path)
+        store, ext, token = prepare_store(session, out_path, cfg)
     if frames_per_task is None:
         frames_per_task = default_frames_per_task(session.cameras[0].image_size)
     try:
         check = verify_store(store, full=verify, repair=True, ext=ext)
     except OSError as exc:
         raise StoreError(f"cannot check the store ({exc.strerror or exc})", file=str(out_path)) from None
-    plan = make_plan(ext, token, done=lambda st, idx: tuple(idx) in check.done.get(st, ()),
-                     frames_per_task=int(frames_per_task))
+    plan = make_plan(ext, token, done=_done_predicate(check.done, ext), frames_per_task=int(frames_per_task))
     if on_plan:
         on_plan(plan)
     summary = RunSummary(store=str(out_path), executor="serial" if (serial or client is None) else "dask",
@@ -247,6 +272,8 @@ def _run_leased(session, out_path, cfg, *, client, serial, report, on_receipt, o
     stage_cpu: dict[str, float] = {}
 
     def _receipt(r: dict) -> None:
+        if summary.executor == "dask":  # the serial loop's tasks log their own, in this process
+            log_receipt(r, level=logging.DEBUG if r.get("skipped") else logging.INFO)
         now = time.time()
         s = r["stage"]
         stage_first.setdefault(s, now - r.get("seconds", 0.0))
@@ -266,7 +293,8 @@ def _run_leased(session, out_path, cfg, *, client, serial, report, on_receipt, o
         if report:
             from distributed import performance_report
 
-            with performance_report(filename=str(report)):
+            # inline: BokehJS embedded, so the report opens offline (the default loads it from a CDN)
+            with performance_report(filename=str(report), mode="inline"):
                 receipts, failures = run_graph(client, str(out_path), plan,
                                                on_receipt=_receipt, on_failure=on_failure)
         else:
@@ -290,4 +318,9 @@ def _run_leased(session, out_path, cfg, *, client, serial, report, on_receipt, o
         from schlieren.workers.tasks import _failure_text
 
         summary.failures["store-attributes"] = _failure_text(f"recording stage times in {out_path}", exc)
+    from schlieren.workers.diagnostics import diagnose
+
+    summary.warnings = diagnose(receipts, n_voxels=math.prod(session.grid.shape))
+    for w in summary.warnings:
+        log.warning("%s", w)
     return summary

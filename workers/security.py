@@ -134,18 +134,21 @@ def make_security(files: TLSFiles, role: str = "client", *, require_encryption: 
     return Security(require_encryption=require_encryption, **kwargs)
 
 
-def cluster_security(directory: str | os.PathLike[str], *, require_encryption: bool = True) -> Security:
+def cluster_security(directory: str | os.PathLike[str], *, require_encryption: bool = True,
+                     check: bool = True) -> Security:
     """A ``Security`` holding all three roles from a certificate directory.
 
     This is what an in-process cluster (``LocalCluster`` or a dask-jobqueue cluster, whose
     scheduler runs next to the client) needs: the scheduler, the workers it describes and
-    the client all take their own certificate from the same object.
+    the client all take their own certificate from the same object. ``check=False``
+    skips the existence check (to print a job script before the certificates exist).
     """
     d = Path(directory)
     kwargs: dict[str, str] = {"tls_ca_file": str(d / CA_CERT)}
     for role in ROLES:
         files = TLSFiles.from_dir(d, role)
-        files.check()
+        if check:
+            files.check()
         kwargs[f"tls_{role}_cert"] = str(files.cert)
         kwargs[f"tls_{role}_key"] = str(files.key)
     return Security(require_encryption=require_encryption, **kwargs)

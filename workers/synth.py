@@ -30,7 +30,7 @@ from schlieren.pipeline.synthetic.rig import make_rig
 from schlieren.pipeline.synthetic.tracer import active_box, field_stack
 from schlieren.storage import synthetic_io as sio
 
-__all__ = ["SynthResult", "synthesize", "FIRST_FRAME", "FLASH_FRAME"]
+__all__ = ["SynthResult", "synthesize", "FIRST_FRAME", "FLASH_FRAME", "DISTORTION"]
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +38,8 @@ FLASH_FRAME = 1
 FIRST_FRAME = 4
 TAIL_FRAMES = 2   # raw frames rendered after the processed range (rolling-shutter resampling margin)
 DEFAULT_BOX = ((-0.075, -0.075, 0.0), (0.075, 0.075, 0.3))
+#: Lens distortion of ``distortion=True`` (OpenCV k1 k2 p1 p2 k3).
+DISTORTION = (-0.05, 0.02, 0.0005, -0.0003, 0.0)
 
 
 @dataclass
@@ -93,7 +95,8 @@ def synthesize(out_dir, *, cameras: int = 16, ring: str = "half", phantom: str =
                line_time: float = 1.54e-5, box=DEFAULT_BOX, radius: float = 2.5,
                background_distance: float = 2.5, height_jitter: float = 0.0, supersample: int = 3,
                exposure: float = 1.0 / 120.0, medium: Medium = Medium(), knot_dt: float | None = None,
-               step: float | None = None, name: str | None = None) -> SynthResult:
+               step: float | None = None, name: str | None = None, video_codec: str = "ffv1",
+               video_bits_per_pixel: float = 0.16, reference_frames: int = 0) -> SynthResult:
     """Render a synthetic session and its ground truth into ``out_dir``.
 
     Parameters
@@ -103,7 +106,10 @@ def synthesize(out_dir, *, cameras: int = 16, ring: str = "half", phantom: str =
         ``camNN/reference.png`` and ``truth.zarr``.
     cameras, ring :
         Rig (see :func:`schlieren.pipeline.synthetic.rig.make_rig`).
-    phantom : {"plume", "tealights", "blob"}
+    phantom : {"plume", "tealights", "blob"} or callable
+        A phantom by name, or a factory ``phantom(fine_grid, *, t_start, duration, seed,
+        medium, knot_dt) -> Phantom`` (e.g. a CFD simulation); the truth is stored on the
+        returned phantom's own grid.
     frames : int
         Frames to process (N); ``FIRST_FRAME + N + TAIL_FRAMES`` raw frames are rendered.
     size : (int, int)
@@ -115,7 +121,15 @@ def synthesize(out_dir, *, cameras: int = 16, ring: str = "half", phantom: str =
         Sensor noise (8-bit grey levels).
     bit_depth : {8, 16}
     video : bool
-        Encode each camera as a lossless FFV1 video instead of PNG frames (8-bit only).
+        Encode each camera as a video instead of PNG frames (8-bit only).
+    video_codec : {"ffv1", "h264"}
+        Lossless FFV1 (default) or lossy H.264 at ``video_bits_per_pixel`` bits per pixel
+        and frame (camcorder-like: 0.16, :class:`~schlieren.storage.synthetic_io.VideoSink`).
+    reference_frames : int
+        0: one noise-free reference image per camera. ``N > 0``: ``N`` reference frames
+        (no flow) with the same sensor noise as the capture, as a PNG sequence, or in
+        video mode a video with the capture's codec; the pipeline averages them, as a
+        lab would record its reference.
     strobe : bool
         Flash in raw frame 1 and ``sync.strobe`` in the manifest (offsets hidden); False
         writes each camera's ``time_offset`` instead and renders no flash.
@@ -150,7 +164,7 @@ def synthesize(out_dir, *, cameras: int = 16, ring: str = "half", phantom: str =
     rng = np.random.default_rng(seed)
     grid = Grid(box[0], box[1], recon_voxel)
     fine = Grid(box[0], box[1], voxel_size if voxel_size is not None else recon_voxel / 2.0)
-    dist = [-0.05, 0.02, 0.0005, -0.0003, 0.0] if distortion else None
+    dist = list(DISTORTION) if distortion else None
     rig = make_rig(cameras, ring=ring, grid=grid, radius=radius, image_size=(W, H),
                    background_distance=background_distance, height_jitter=height_jitter, distortion=dist,
                    line_time=line_time, seed=seed)
@@ -165,7 +179,16 @@ def synthesize(out_dir, *, cameras: int = 16, ring: str = "half", phantom: str =
     t_lo = offsets.min() - kdt
     t_hi = offsets.max() + (n_raw - 1) / frame_rate + H * line_time + kdt
     t0 = _time.perf_counter()
-    ph = make_phantom(phantom, fine, t_start=t_lo, duration=t_hi - t_lo, seed=seed, medium=medium, knot_dt=kdt)
+    if callable(phantom):
+        ph = phantom(fine, t_start=t_lo, duration=t_hi - t_lo, seed=seed, medium=medium, knot_dt=kdt)
+        fine = ph.grid
+        if ph.knot_times[0] > t_lo + 1e-9 or ph.knot_times[-1] < t_hi - 1e-9:
+            raise ValueError(f"the phantom's knots [{ph.knot_times[0]:.4f}, {ph.knot_times[-1]:.4f}] s do not "
+                             f"cover the capture [{t_lo:.4f}, {t_hi:.4f}] s")
+        phantom = ph.name
+    else:
+        ph = make_phantom(phantom, fine, t_start=t_lo, duration=t_hi - t_lo, seed=seed, medium=medium,
+                          knot_dt=kdt)
     timings["phantom"] = _time.perf_counter() - t0
     fg = FlowGrid((W, H), flow_factor)
     lattice = R.make_lattice((W, H), flow_factor)
@@ -178,6 +201,8 @@ def synthesize(out_dir, *, cameras: int = 16, ring: str = "half", phantom: str =
              "frame_rate": frame_rate, "line_time": line_time, "image_size": [W, H], "flow_factor": flow_factor,
              "seed": seed, "noise": noise, "bit_depth": bit_depth, "strobe": strobe, "supersample": supersample,
              "exposure": exposure, "knot_dt": kdt, "voxel_size": fine.voxel_size,
+             "video": (video_codec if video else None), "reference_frames": reference_frames,
+             "r_ambient": medium.refractivity_ambient,
              "volume": {"min": list(grid.vmin), "max": list(grid.vmax), "voxel_size": grid.voxel_size},
              "time_note": "time[k] = (A + k)/frame_rate + mean(time_offset) + 0.5*H*line_time; "
                           "the phantom is linear in time between knot_time samples"}
@@ -198,11 +223,23 @@ def synthesize(out_dir, *, cameras: int = 16, ring: str = "half", phantom: str =
         bg = make_background(cam.bg_point, cam.bg_normal, spacing=1.5 * zbg / cam.K[0, 0], tile=tile,
                              seed=seed * 1000 + i + 1)
         ref = R.reference_image(cam, bg, supersample=supersample, stride=flow_factor)
-        rel_ref = sio.write_reference(out, cam.name, R.sensor(ref, noise=0.0, bit_depth=bit_depth, rng=rng))
+        if reference_frames <= 0:
+            rel_ref = sio.write_reference(out, cam.name, R.sensor(ref, noise=0.0, bit_depth=bit_depth, rng=rng))
+        elif video:
+            sink = sio.VideoSink(out, cam.name, frame_rate, (W, H), codec=video_codec,
+                                 bits_per_pixel=video_bits_per_pixel, name="reference")
+            for _ in range(reference_frames):
+                sink.write(R.sensor(ref, noise=noise, bit_depth=bit_depth, rng=rng))
+            sink.close()
+            rel_ref = sink.rel
+        else:
+            rel_ref = sio.write_reference_frames(out, cam.name, (R.sensor(ref, noise=noise, bit_depth=bit_depth,
+                                                                          rng=rng) for _ in range(reference_frames)))
         bgs.append(bg)
         refs.append(ref)
         if video:
-            sinks[cam.name] = sio.VideoSink(out, cam.name, frame_rate, (W, H))
+            sinks[cam.name] = sio.VideoSink(out, cam.name, frame_rate, (W, H), codec=video_codec,
+                                            bits_per_pixel=video_bits_per_pixel)
             files[cam.name] = (sinks[cam.name].rel, rel_ref)
         else:
             files[cam.name] = (sio.frame_pattern(cam.name), rel_ref)

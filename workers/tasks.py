@@ -91,15 +91,17 @@ class RunContext:
             self._small[key] = make()
         return self._small[key]
 
-    def reference(self, c: int) -> np.ndarray:
+    def reference(self, c: int, parity: int | None = None) -> np.ndarray:
+        """Camera ``c``'s reference (for interlaced cameras: that of the fields of ``parity``)."""
         s = self.session.sources[c]
-        return self._once(("reference", c), lambda: read_reference(s, camera_name=s.name))
+        return self._once(("reference", c, parity), lambda: read_reference(s, camera_name=s.name, parity=parity))
 
-    def prepared_reference(self, c: int):
-        """The reference's pyramid and spline coefficients, prepared once per camera per process."""
+    def prepared_reference(self, c: int, parity: int | None = None):
+        """The reference's pyramid and spline coefficients, prepared once per camera (and field
+        parity) per process."""
         params = self.config.flow
-        return self._once(("prepared_reference", c),
-                          lambda: flowmod.prepare_reference(self.reference(c), **params.reference_kwargs()))
+        return self._once(("prepared_reference", c, parity),
+                          lambda: flowmod.prepare_reference(self.reference(c, parity), **params.reference_kwargs()))
 
     def time_offset(self, c: int) -> float:
         return self._once(("time_offset", c), lambda: float(self.store.read("time_offset", (c,))))
@@ -217,14 +219,17 @@ def _clock(ctx: RunContext) -> dict:
 
 def _deflection(ctx: RunContext, c: int, j: int) -> dict:
     f = ctx.raw_first + j
+    src = ctx.frames(c)
     img = ctx.frame(c, f)
-    d = flowmod.deflection_stage(ctx.prepared_reference(c), img, ctx.config.flow)
+    parity = src.parity(f) if hasattr(src, "parity") else None  # interlaced fields
+    d = flowmod.deflection_stage(ctx.prepared_reference(c, parity), img, ctx.config.flow)
     ctx.store.write("flow_raw", (c, j), d.astype(np.float32))
     # dark, saturated or frozen frames: flagged here, excluded by resampling
     src = ctx.frames(c)
     dtype = src.raw_dtype
     full = float(np.iinfo(dtype).max) if np.issubdtype(dtype, np.integer) else None
-    ref_mean = ctx._once(("reference_mean", c), lambda: float(np.mean(ctx.reference(c), dtype=np.float64)))
+    ref_mean = ctx._once(("reference_mean", c, parity),
+                         lambda: float(np.mean(ctx.reference(c, parity), dtype=np.float64)))
     try:
         previous = ctx.frame(c, f - 1) if f > 0 else None
     except SessionError:  # the previous frame is unreadable (its own task reports it): not frozen

@@ -11,8 +11,12 @@ next scan) and removes the damaged files, so the next run recomputes exactly tho
 Tasks are deterministic (the executors already agree bit for bit), so the repaired store
 equals an undisturbed run's.
 
-The tomography geometry (a cache beside the arrays, not a zarr array) is checked the
-same way against the sizes and CRC-32C recorded in its manifest.
+The tomography geometry is a cache beside the store (``<store>.cache``), not a result: a
+missing one (``schlieren clean``, a store copied without it) only clears the ``geometry``
+marker so that a run that still needs it builds it again; a corrupt one (sizes and
+CRC-32C recorded in its manifest) is a problem, removed by the repair with the same
+marker. Nothing downstream is recomputed for it: every tomography task checked the
+geometry's checksums when it mapped it, so the results it made came from intact bytes.
 """
 
 from __future__ import annotations
@@ -95,23 +99,23 @@ def downstream(ext: Extents, roots) -> set[tuple[str, tuple[int, ...]]]:
     return {node[k] for k in seen}
 
 
-def _geometry_problems(store: ResultStore, scan: ScanResult, *, full: bool) -> tuple[list[Problem], list]:
-    """The geometry cache behind a set ``geometry`` marker: present and (``full``) intact."""
+def _geometry_cache(store: ResultStore, scan: ScanResult, *, full: bool) -> tuple[list[Problem], bool]:
+    """``(problems, unmark)`` of the geometry cache behind a set ``geometry`` marker."""
     if () not in scan.done.get("geometry", set()):
-        return [], []
+        return [], False
     try:
         from schlieren.workers.tasks import _geometry_key, context
 
         path = arrays_cache.cache_dir(store.path, "geometry", _geometry_key(context(store.path)))
     except Exception as exc:  # noqa: BLE001 - e.g. the session manifest moved: cannot tell
         log.warning("cannot locate the geometry cache of %s (%s); not checked", store.path, exc)
-        return [], []
+        return [], False
     if not arrays_cache.has_arrays(path):
-        return [Problem("geometry", (), "missing", f"no geometry cache at {path}", "geometry", ())], [path]
+        return [], True  # removed (schlieren clean) or never copied: rebuilt when needed
     bad = arrays_cache.verify_arrays(path, read=full)
     if bad:
-        return [Problem("geometry", (), "corrupt", bad[0], "geometry", ())], [path]
-    return [], []
+        return [Problem("geometry cache", (), "corrupt", bad[0])], True
+    return [], False
 
 
 def verify_store(store: ResultStore, *, full: bool = False, repair: bool = False,
@@ -137,10 +141,10 @@ def verify_store(store: ResultStore, *, full: bool = False, repair: bool = False
         ``done`` holds the marker positions still set after the repair.
     """
     scan = scan_store(store, full=full)
-    geo_problems, geo_paths = _geometry_problems(store, scan, full=full)
+    geo_problems, geo_unmark = _geometry_cache(store, scan, full=full)
     scan.problems += geo_problems
     report = VerifyReport(scan=scan)
-    if not repair or (scan.ok and not scan.partial_files):
+    if not repair or (scan.ok and not scan.partial_files and not geo_unmark):
         return report
     ext = ext or extents_of(store)
     roots = {(p.stage, tuple(p.index)) for p in scan.problems if p.stage is not None}
@@ -153,12 +157,15 @@ def verify_store(store: ResultStore, *, full: bool = False, repair: bool = False
             scan.done.get(stage, set()).discard(idx)
             report.invalidated[stage] = report.invalidated.get(stage, 0) + 1
     for p in scan.problems:
-        if p.kind in ("corrupt", "stray") and p.array != "geometry":
+        if p.kind in ("corrupt", "stray") and p.array != "geometry cache":
             store.remove_chunk(p.array, p.chunk)
             report.removed_files += 1
-    for path in geo_paths:
-        arrays_cache.remove_arrays(path)
-        report.removed_files += 1
+    if geo_unmark:  # a missing or corrupt cache: built again by the next run that needs it
+        store.unmark("geometry")
+        scan.done.get("geometry", set()).discard(())
+        if geo_problems:
+            arrays_cache.remove_cache(store.path)
+            report.removed_files += 1
     import os
 
     for f in scan.partial_files:

@@ -27,7 +27,7 @@ from schlieren.pipeline.geometry import Grid
 from schlieren.pipeline.tomography.geometry import TomoGeometry
 from schlieren.pipeline.tomography.params import RefractivityParams
 from schlieren.pipeline.tomography.rays import rhs_from_flows
-from schlieren.pipeline.tomography.solve import finite_rhs, cgls, difference_operator, prepare_frame
+from schlieren.pipeline.tomography.solve import finite_rhs, cgls, difference_operator, prepare_frame, valid_rays
 
 __all__ = ["RefractivityInfo", "solve_refractivity", "central_gradient_operators"]
 
@@ -110,7 +110,7 @@ def solve_refractivity(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.nd
     t0 = time.perf_counter()
     hull = np.asarray(hull, dtype=bool)
     data = np.asarray(rhs_or_flows)
-    sys_ = prepare_frame(geom, hull, dilation=1)
+    sys_ = prepare_frame(geom, hull, dilation=1, rows=valid_rays(data))
     op = sys_.op
     out = np.full(grid.shape, float(r_ambient))
     n_h = int(hull.sum())

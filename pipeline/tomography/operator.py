@@ -379,7 +379,7 @@ def _scratch(name: str, size: int, dtype) -> np.ndarray:
 
 
 def restrict_with_setup(S: sp.csr_matrix, colmap: np.ndarray, n: int, rhs, x: np.ndarray | None = None,
-                        *, reuse_buffers: bool = False):
+                        *, reuse_buffers: bool = False, rows: np.ndarray | None = None):
     """Restrict ``S`` (all rays, columns by ``colmap``) and run the solver's setup pass with it.
 
     Equivalent to ``RestrictedOperator.from_full(S, arange(M), colmap, n)`` followed by
@@ -401,6 +401,8 @@ def restrict_with_setup(S: sp.csr_matrix, colmap: np.ndarray, n: int, rhs, x: np
         Write the restricted matrix into this thread's scratch buffers instead of fresh
         memory. The returned operator is then only valid until the next call with
         ``reuse_buffers=True`` in the same thread.
+    rows : ndarray of int, optional
+        Candidate rays (default all); e.g. only those with a valid measurement.
 
     Returns
     -------
@@ -410,7 +412,7 @@ def restrict_with_setup(S: sp.csr_matrix, colmap: np.ndarray, n: int, rhs, x: np
     products : tuple
         ``(diag(S^T S), S^T b, S^T S x)`` as from :meth:`RestrictedOperator.setup_products`.
     """
-    rows = np.arange(S.shape[0], dtype=np.int64)
+    rows = np.arange(S.shape[0], dtype=np.int64) if rows is None else np.asarray(rows, dtype=np.int64)
     colmap = np.ascontiguousarray(colmap, dtype=np.int32)
     counts = np.empty(len(rows), np.int64)
     _restrict_count(S.indptr, S.indices, rows, colmap, counts)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from schlieren.pipeline.params import param
+
 __all__ = ["TomoParams", "RefractivityParams"]
 
 
@@ -38,13 +40,13 @@ class TomoParams:
         ``n_ambient * (d_out - d_in)`` (eq. 3 with ``d = n * unit direction``).
     """
 
-    step: float = 0.25
-    hull_dilation: int = 1
-    reg_weight: float = 0.1
-    max_iter: int = 25
-    tol: float = 5e-3
-    discrepancy: float = 0.0
-    n_ambient: float = 1.00029
+    step: float = param(0.25, unit="voxels", gt=0, le=1)
+    hull_dilation: int = param(1, unit="voxels", ge=0, le=10)
+    reg_weight: float = param(0.1, unit="1", ge=0, le=1e6)
+    max_iter: int = param(25, unit="1", ge=1, le=10000)
+    tol: float = param(5e-3, unit="1", gt=0, lt=1)
+    discrepancy: float = param(0.0, unit="1", ge=0, le=100)
+    n_ambient: float = param(1.00029, unit="1", ge=1, le=3, note="Set from the session's medium.n_ambient at run time.")
 
 
 @dataclass(frozen=True)
@@ -64,7 +66,7 @@ class RefractivityParams:
         Refractive index of the surrounding air (right-hand side scaling).
     """
 
-    reg_weight: float = 0.02
-    max_iter: int = 150
-    tol: float = 1e-4
-    n_ambient: float = 1.00029
+    reg_weight: float = param(0.02, unit="1", ge=0, le=1e6)
+    max_iter: int = param(150, unit="1", ge=1, le=100000)
+    tol: float = param(1e-4, unit="1", gt=0, lt=1)
+    n_ambient: float = param(1.00029, unit="1", ge=1, le=3, note="Set from the session's medium.n_ambient at run time.")

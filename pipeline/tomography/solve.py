@@ -37,7 +37,8 @@ from schlieren.pipeline.tomography.params import TomoParams
 from schlieren.pipeline.tomography.rays import rhs_from_d_out, rhs_from_flows
 
 __all__ = ["SolveInfo", "solve_gradient", "solve_gradient_d_out", "basis_set",
-           "difference_operator", "difference_normal", "cgls", "prepare_frame", "FrameSystem", "finite_rhs"]
+           "difference_operator", "difference_normal", "cgls", "prepare_frame", "FrameSystem", "finite_rhs",
+           "valid_rays", "rhs_noise", "RegularisationChoice", "choose_reg_weight"]
 
 log = logging.getLogger(__name__)
 
@@ -299,8 +300,21 @@ class FrameSystem:
         return self._colsumsq
 
 
-def prepare_frame(geom: TomoGeometry, hull: np.ndarray, *, dilation: int) -> FrameSystem:
-    """Restrict the session's projection to a frame's hull (basis functions and rays)."""
+def valid_rays(data: np.ndarray) -> np.ndarray | None:
+    """Flat indices of the rays whose measurement (last axis) is finite, or None if all are.
+
+    The flow stage returns NaN where the images cannot carry a deflection (dead,
+    clipped or textureless regions): those rays are left out of the system rather than
+    read as "no deflection".
+    """
+    ok = np.isfinite(np.asarray(data)).all(axis=-1).ravel()
+    return None if ok.all() else np.flatnonzero(ok)
+
+
+def prepare_frame(geom: TomoGeometry, hull: np.ndarray, *, dilation: int,
+                  rows: np.ndarray | None = None) -> FrameSystem:
+    """Restrict the session's projection to a frame's hull (basis functions and rays;
+    ``rows``: only these rays, e.g. :func:`valid_rays`)."""
     hull = np.asarray(hull, dtype=bool)
     if hull.shape != geom.grid.shape:
         raise ValueError(f"hull shape {hull.shape} does not match the grid {geom.grid.shape}")
@@ -309,12 +323,13 @@ def prepare_frame(geom: TomoGeometry, hull: np.ndarray, *, dilation: int) -> Fra
     colmap = np.full(flat.size, -1, np.int32)
     n = int(flat.sum())
     colmap[flat] = np.arange(n, dtype=np.int32)
-    op = RestrictedOperator.from_full(geom.S, np.arange(geom.S.shape[0]), colmap, n)
+    op = RestrictedOperator.from_full(geom.S, np.arange(geom.S.shape[0]) if rows is None else rows, colmap, n)
     return FrameSystem(op=op, inset=inset, LtL=difference_normal(inset))
 
 
 def finite_rhs(b: np.ndarray) -> np.ndarray:
-    """Zero (and report) non-finite right-hand sides (e.g. NaN deflections from the flow stage)."""
+    """Zero (and report) non-finite right-hand sides that are left (invalid deflections are
+    dropped before, :func:`valid_rays`; this only guards the arithmetic)."""
     bad = ~np.isfinite(b)
     if bad.any():
         log.warning("%d non-finite right-hand-side value(s) replaced by 0", int(bad.sum()))
@@ -384,7 +399,8 @@ def solve_gradient(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarra
         colmap = np.full(flat.size, -1, np.int32)
         colmap[flat] = np.arange(n, dtype=np.int32)
         x_warm = _warm(x0, inset)
-        op, b_k, products = restrict_with_setup(geom.S, colmap, n, rhs, x_warm, reuse_buffers=True)
+        op, b_k, products = restrict_with_setup(geom.S, colmap, n, rhs, x_warm, reuse_buffers=True,
+                                                rows=valid_rays(data))
         sys_ = FrameSystem(op=op, inset=inset, LtL=difference_normal(inset), _colsumsq=products[0])
     op = sys_.op
     if op.n == 0 or op.m == 0:
@@ -544,3 +560,117 @@ def solve_gradient_d_out(geom: TomoGeometry, d_out: np.ndarray, hull: np.ndarray
     """
     rhs = rhs_from_d_out(geom, d_out, n_ambient=params.n_ambient)
     return solve_gradient(geom, rhs, hull, params=params, x0=x0, noise_rms=noise_rms)
+
+
+def rhs_noise(rhs: np.ndarray, quiet: np.ndarray) -> np.ndarray:
+    """Robust RMS noise of each right-hand-side component over rays that see no flow.
+
+    Parameters
+    ----------
+    rhs : ndarray, shape (C, h, w, 3)
+        ``n_amb (d_out - d_in)`` of every ray (e.g. :func:`rhs_from_flows`).
+    quiet : ndarray, shape (C, h, w) bool
+        Rays whose true right-hand side is zero: outside every flow mask (their
+        measurement is pure noise: sensor noise, compression, optical-flow error).
+
+    Returns
+    -------
+    sigma : ndarray, shape (3,)
+        ``1.4826 * MAD`` per world component (x, y, z); NaN where no quiet ray is finite.
+    """
+    b = np.asarray(rhs, dtype=np.float64).reshape(-1, 3)[np.asarray(quiet, bool).ravel()]
+    b = b[np.isfinite(b).all(axis=1)]
+    if b.shape[0] < 10:
+        return np.full(3, np.nan)
+    return 1.4826 * np.median(np.abs(b - np.median(b, axis=0)), axis=0)
+
+
+@dataclass(frozen=True)
+class RegularisationChoice:
+    """Receipt of :func:`choose_reg_weight`.
+
+    Attributes
+    ----------
+    reg_weight : float
+        The chosen weight (the same units as :attr:`TomoParams.reg_weight`).
+    target : float
+        Discrepancy target ``tau^2 m sum_c sigma_c^2`` of the summed squared data residual.
+    path : tuple of (float, float)
+        ``(reg_weight, sum_c ||S x - b_c||^2 / target)`` of every weight tried, largest first.
+    """
+
+    reg_weight: float
+    target: float
+    path: tuple
+
+
+def choose_reg_weight(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarray, noise: np.ndarray, *,
+                      params: TomoParams = TomoParams(), tau: float = 1.0, largest: float = 4.0,
+                      smallest: float = 1e-4, factor: float = 2.0) -> RegularisationChoice:
+    """Choose the regularisation weight of one frame by Morozov's discrepancy principle.
+
+    Solves the frame for decreasing weights ``largest, largest / factor, ...`` (each
+    warm-started from the last, converged to ``tol`` = 1e-3) and returns the largest weight
+    whose data residual has fallen to the noise: ``sum_c ||S x_c - b_c||^2 <= tau^2 m
+    sum_c sigma_c^2`` (``m`` rays, ``sigma_c`` the noise of component ``c``, e.g. from
+    :func:`rhs_noise`), interpolated geometrically between the two weights around the
+    crossing. Less regularisation would fit the noise; more would leave signal in the
+    residual. If even ``smallest`` does not reach the target (model error dominates),
+    ``smallest`` is returned.
+
+    Parameters
+    ----------
+    geom, rhs_or_flows, hull :
+        As for :func:`solve_gradient`.
+    noise : ndarray, shape (3,)
+        RMS noise of each right-hand-side component (dimensionless).
+    params : TomoParams
+        All but ``reg_weight`` / ``tol`` / ``max_iter`` are used.
+    tau : float
+        Safety factor of the discrepancy principle (1 = the noise level exactly).
+
+    Returns
+    -------
+    RegularisationChoice
+    """
+    noise = np.asarray(noise, dtype=np.float64).reshape(3)
+    if not np.all(np.isfinite(noise)) or not noise.any():
+        raise ValueError(f"the noise estimate must be finite and positive, got {noise}")
+    data = np.asarray(rhs_or_flows)
+    rows = valid_rays(data)
+    sys_ = prepare_frame(geom, hull, dilation=params.hull_dilation, rows=rows)
+    op = sys_.op
+    if op.n == 0 or op.m == 0:
+        return RegularisationChoice(reg_weight=float(params.reg_weight), target=0.0, path=())
+    if data.shape[-1] == 2:
+        b = rhs_from_flows(geom, data, n_ambient=params.n_ambient, rays=op.rows)
+    else:
+        b = np.asarray(data, dtype=np.float64).reshape(-1, 3)[op.rows]
+    b = finite_rhs(b)
+    bb = float(np.einsum("ij,ij->", b, b))
+    target = tau ** 2 * op.m * float(np.sum(noise ** 2))
+    path = []
+    x = None
+    mu = float(largest)
+    prev = None
+    while True:
+        p = TomoParams(step=params.step, hull_dilation=params.hull_dilation, reg_weight=mu, max_iter=200, tol=1e-3,
+                       n_ambient=params.n_ambient)
+        xr, _it, _reason, rel, _t = _solve_restricted(sys_, b, p, _scatter(sys_.inset, x) if x is not None else None,
+                                                      None)
+        x = xr
+        res2 = float(np.sum((rel * np.sqrt(np.maximum(np.einsum("ij,ij->j", b, b), 1e-300))) ** 2)) if bb > 0 else 0.0
+        ratio = res2 / target if target > 0 else 0.0
+        path.append((mu, ratio))
+        if ratio <= 1.0:
+            if prev is None:
+                return RegularisationChoice(reg_weight=mu, target=target, path=tuple(path))
+            # geometric interpolation of the crossing between the previous weight and this one
+            (mu0, r0), (mu1, r1) = prev, (mu, ratio)
+            t = np.log(r0) / (np.log(r0) - np.log(r1)) if r0 > 0 and r1 > 0 and r0 != r1 else 1.0
+            chosen = float(np.exp(np.log(mu0) + np.clip(t, 0.0, 1.0) * (np.log(mu1) - np.log(mu0))))
+            return RegularisationChoice(reg_weight=chosen, target=target, path=tuple(path))
+        if mu / factor < smallest * (1 - 1e-9):
+            return RegularisationChoice(reg_weight=mu, target=target, path=tuple(path))
+        prev = (mu, ratio)
+        mu /= factor

@@ -199,7 +199,7 @@ def test_a_full_disk_ends_with_the_failure_summary_and_the_rerun_completes(seria
 # ---------------------------------------------------------------------------------------
 def _chunk_files(store: Path) -> list[Path]:
     return sorted(p for p in store.rglob("*") if p.is_file() and p.name != "zarr.json"
-                  and "_cache" not in p.parts and p.name.isdigit() or (p.is_file() and p.name == "c"))
+                  and (p.name.isdigit() or p.name == "c"))
 
 
 def _damage(store: Path, rng: random.Random, log: list[str]) -> None:
@@ -223,10 +223,11 @@ def _damage(store: Path, rng: random.Random, log: list[str]) -> None:
         m = rng.choice(markers)
         m.unlink()
         log.append(f"delete marker {m.relative_to(store)}")
-    geo = sorted((store / "_cache").rglob("*.npy")) if (store / "_cache").exists() else []
+    cache = Path(f"{store}.cache")
+    geo = sorted(cache.rglob("*.npy")) if cache.exists() else []
     if geo and rng.random() < 0.3:
         _flip(geo[0], rng.random())
-        log.append(f"flip {geo[0].relative_to(store)}")
+        log.append(f"flip {geo[0].relative_to(cache)}")
 
 
 def _markers(store: Path) -> int:

@@ -243,3 +243,94 @@ def test_bad_inputs_are_rejected(reference):
         F.FlowParams(method="nope")
     with pytest.raises(ValueError, match="gradient"):
         F.FlowParams(gradient="central")
+
+
+# ---------------------------------------------------------------------------------------
+# Invalid pixels (dead, clipped, NaN, textureless regions) must not spread garbage
+# ---------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def big_plume_case():
+    rng = np.random.default_rng(21)
+    shape = (300, 420)
+    bg = NoiseBackground(shape, rng=rng, feature_px=1.0)
+    defl = plume_deflection(shape, peak=0.6, width=shape[1] / 5)
+    ref = render(bg, shape, noise=1.0, rng=rng)
+    frm = render(bg, shape, defl, noise=1.0, rng=rng)
+    grid = FlowGrid((shape[1], shape[0]), 3)
+    truth = F.downsample_flow(pixel_truth(defl, shape).astype(np.float32), grid)
+    return ref, frm, truth, grid
+
+
+def _cells_near(grid, r0, r1, c0, c1, margin_px):
+    """Flow-grid cells whose pixels come within ``margin_px`` of the pixel block [r0:r1, c0:c1]."""
+    rows, cols = grid.shape
+    f = grid.factor
+    ri = np.arange(rows) * f
+    ci = np.arange(cols) * f
+    near_r = (ri + f > r0 - margin_px) & (ri < r1 + margin_px)
+    near_c = (ci + f > c0 - margin_px) & (ci < c1 + margin_px)
+    return near_r[:, None] & near_c[None, :]
+
+
+def test_black_block_is_flagged_and_does_not_corrupt_its_surroundings(big_plume_case):
+    """A dead 160x120 block in the frame: NaN there, the truth's accuracy 12 px beyond it."""
+    ref, frm, truth, grid = big_plume_case
+    clean = F.deflection_stage(ref, frm, F.FlowParams())
+    r0, r1, c0, c1 = 90, 210, 130, 290
+    bad = frm.copy()
+    bad[r0:r1, c0:c1] = 0.0
+    out = F.deflection_stage(ref, bad, F.FlowParams())
+    inside = _cells_near(grid, r0 + 8, r1 - 8, c0 + 8, c1 - 8, 0)
+    assert np.isnan(out[inside]).all()
+    far = ~_cells_near(grid, r0, r1, c0, c1, 12)
+    far[:3], far[-3:], far[:, :3], far[:, -3:] = False, False, False, False
+    assert np.isfinite(out[far]).all()
+    err = F.endpoint_error(out[far], truth[far])
+    err_clean = F.endpoint_error(clean[far], truth[far])
+    assert err < 1.3 * err_clean + 0.003, (err, err_clean)
+    # without the check the block corrupts cells far beyond its edge (the old behaviour)
+    raw = F.deflection_stage(ref, bad, F.FlowParams(invalid_check=False))
+    ring = far & _cells_near(grid, r0, r1, c0, c1, 40)
+    assert F.endpoint_error(raw[ring], truth[ring]) > 3 * F.endpoint_error(out[ring], truth[ring])
+
+
+@pytest.mark.parametrize("method", ["lk", "hs"])
+def test_nan_patch_stays_local(big_plume_case, method):
+    """A 10x10 NaN patch (dead pixel map) in the reference and the frame: NaN only nearby."""
+    ref, frm, truth, grid = big_plume_case
+    r = ref.copy()
+    f = frm.copy()
+    r[150:160, 200:210] = np.nan
+    f[40:50, 60:70] = np.nan
+    out = F.deflection_stage(r, f, F.FlowParams(method=method))
+    nan = np.isnan(out[..., 0])
+    assert nan.any()
+    near = _cells_near(grid, 150, 160, 200, 210, 12) | _cells_near(grid, 40, 50, 60, 70, 12)
+    assert not nan[~near].any()
+    assert nan.mean() < 0.02
+
+
+def test_textureless_reference_region_is_invalid(big_plume_case):
+    ref, frm, truth, grid = big_plume_case
+    r = ref.copy()
+    f = frm.copy()
+    r[60:120, 300:400] = 128.0 + np.random.default_rng(0).normal(0, 1.0, (60, 100))  # noise only
+    f[60:120, 300:400] = 128.0 + np.random.default_rng(1).normal(0, 1.0, (60, 100))
+    inv = F.invalid_pixels(r)
+    assert inv[70:110, 310:390].all() and not inv[200:, :200].any()
+    out = F.deflection_stage(r, f, F.FlowParams())
+    assert np.isnan(out[_cells_near(grid, 68, 112, 308, 392, 0)]).all()
+    # an all-black frame carries nothing
+    assert F.invalid_pixels(np.zeros((40, 50), np.float32)).all()
+
+
+def test_correlation_peak_fit_never_returns_nan(big_plume_case):
+    """Anti-correlated / flat windows used to give log(negative) = NaN in the peak fit."""
+    ref, frm, truth, grid = big_plume_case
+    f = frm.copy()
+    f[:64, :64] = 255.0 - f[:64, :64]           # inverted contrast: the peak is negative
+    f[200:264, 300:364] = 100.0                 # flat
+    out = F.deflection_field(ref, f, method="correlation")
+    assert np.isfinite(out).all()
+    staged = F.deflection_stage(ref, f, F.FlowParams(method="correlation"))
+    assert np.isnan(staged[_cells_near(grid, 210, 254, 310, 354, 0)]).all()

@@ -123,3 +123,26 @@ def test_deflection_union_covers_strong_plume_flanks_without_noise_false_positiv
     empty = M.make_mask(np.zeros((1, h, w), np.float32), 0, 1.0, flows=noise,
                         **params.kwargs_for(M.make_mask))
     assert not empty.any()
+
+
+def test_invalid_cells_do_not_poison_the_potential_and_stay_in_the_mask():
+    """NaN flow cells (invalid image regions): the potential elsewhere is unchanged to within
+    the hole's influence, they are left out of the threshold statistics, and the mask keeps
+    them (the camera cannot rule flow out there)."""
+    h, w = 60, 80
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    # a hot plume's outward deflection (gradient of a negative Gaussian potential)
+    P_true = np.exp(-((xx - 40) ** 2 + (yy - 30) ** 2) / (2 * 6.0 ** 2))
+    flow = np.stack([-np.gradient(P_true, axis=1), -np.gradient(P_true, axis=0)], axis=-1).astype(np.float32)
+    holed = flow.copy()
+    holed[5:12, 5:15] = np.nan
+    P = M.flow_potential(holed)
+    assert np.isnan(P[5:12, 5:15]).all() and np.isfinite(P[20:, 20:]).all()
+    P_clean = M.flow_potential(flow)
+    assert np.abs(P[25:35, 35:45] - P_clean[25:35, 35:45]).max() < 0.05 * P_clean.max()
+    s = M.potential_summary(P, n_quantiles=50)
+    assert s[0] == h * w - 70
+    thr = M.threshold_from_summaries([s], percentile=95)
+    m = M.make_mask(P[None], 0, thr, dilation_radius=0)
+    assert m[5:12, 5:15].all() and m[30, 40] and not m[50, 70]
+    assert M.threshold_from_summaries([M.potential_summary(np.full((4, 4), np.nan, np.float32))]) == np.inf

@@ -379,3 +379,56 @@ def test_discrepancy_stop_and_empty_hull(setup):
     assert info_e.stop_reason == "empty" and not g_empty.any()
     with pytest.raises(ValueError):
         solve_gradient(geom, rhs[:, :-1], hull)
+
+
+def test_invalid_rays_are_dropped_not_read_as_zero(setup):
+    """NaN measurements (invalid image regions) leave their rays out of the system."""
+    grid, cams, fg, geom = setup
+    centre, sigma, amp = np.array([0.0, 0.002, 0.04]), 0.008, -8e-5
+    _, grad_true = blob_field(grid, centre, sigma, amp)
+    clean = np.stack([geom.S @ grad_true[..., k].ravel() for k in range(3)], axis=1).reshape(*geom.flow_shape, 3)
+    hull = np.linalg.norm(grid.centres() - centre, axis=-1) < 3 * sigma
+    p = TomoParams(reg_weight=0.01, max_iter=100, tol=1e-6)
+    g_all, info_all = solve_gradient(geom, clean, hull, params=p)
+    holed = clean.copy()
+    h, w = geom.flow_shape[1:]
+    holed[0, h // 3: 2 * h // 3, w // 3: 2 * w // 3] = np.nan   # a dead block in camera 0, over the blob
+    holed[3, :, : w // 2] = np.nan
+    g_drop, info_drop = solve_gradient(geom, holed, hull, params=p)
+    assert info_drop.n_rays < info_all.n_rays
+    zeroed = np.nan_to_num(holed, nan=0.0)
+    g_zero, _ = solve_gradient(geom, zeroed, hull, params=p)
+
+    def err(g):
+        return np.sqrt(np.mean((g - grad_true) ** 2)) / np.abs(grad_true).max()
+
+    # the other seven cameras still determine the blob; zeros would pull it towards nothing
+    assert err(g_drop) < 1.5 * err(g_all) + 0.01
+    assert err(g_zero) > 2 * err(g_drop), (err(g_zero), err(g_drop))
+
+
+@pytest.mark.parametrize("rel_noise", [0.03, 0.1])
+def test_noise_estimate_and_discrepancy_weight_near_the_oracle(setup, rel_noise):
+    """Known noise: the quiet-ray estimate recovers it within 20 %, and the discrepancy
+    principle picks a regularisation weight within 2x of the error-minimising one."""
+    from schlieren.pipeline.tomography.solve import choose_reg_weight, rhs_noise
+
+    grid, cams, fg, geom = setup
+    centre, sigma, amp = np.array([0.001, -0.002, 0.04]), 0.007, -8e-5
+    _, grad_true = blob_field(grid, centre, sigma, amp)
+    clean = np.stack([geom.S @ grad_true[..., k].ravel() for k in range(3)], axis=1).reshape(*geom.flow_shape, 3)
+    sig = rel_noise * np.sqrt(np.mean(clean[np.abs(clean).sum(-1) > 1e-3 * np.abs(clean).max()] ** 2))
+    rng = np.random.default_rng(7)
+    rhs = clean + rng.normal(scale=sig, size=clean.shape)
+    quiet = np.abs(clean).sum(-1) == 0
+    est = rhs_noise(rhs, quiet)
+    np.testing.assert_allclose(est, sig, rtol=0.2)
+    hull = np.linalg.norm(grid.centres() - centre, axis=-1) < 3 * sigma
+    choice = choose_reg_weight(geom, rhs, hull, est, params=TomoParams())
+    weights = 2.0 ** np.arange(-12, 3)
+    errs = []
+    for w in weights:
+        g, _ = solve_gradient(geom, rhs, hull, params=TomoParams(reg_weight=w, max_iter=300, tol=1e-4))
+        errs.append(np.sqrt(np.mean((g - grad_true) ** 2)))
+    oracle = weights[int(np.argmin(errs))]
+    assert oracle / 2 <= choice.reg_weight <= oracle * 2, (choice.reg_weight, oracle, choice.path)

@@ -92,19 +92,20 @@ def test_vti_values_origin_spacing_and_time_collection(store, tmp_path):
 
 
 def test_vti_gradient_is_a_vector_field(store, tmp_path):
-    res = export(store, tmp_path / "g", format="vti", quantity="gradient", frames=(2, 3))
+    res = export(store, tmp_path / "g", format="vti", quantity="gradient", frames=(2, 3))  # capture 2 = store 1
     files = [p for p in res.files if p.suffix == ".vti"]
     assert [p.name for p in files] == ["gradient_00002.vti"]
     sizes, origin, spacing, ncomp, name, values = read_vti(files[0])
     assert ncomp == 3
     g = zarr.open_group(str(store), mode="r")
-    np.testing.assert_array_equal(values.reshape(-1, 3).astype(np.float32), g["gradient"][2].reshape(-1, 3))
+    np.testing.assert_array_equal(values.reshape(-1, 3).astype(np.float32), g["gradient"][1].reshape(-1, 3))
 
 
 def test_nrrd_read_by_pynrrd(store, tmp_path):
     nrrd = pytest.importorskip("nrrd")  # test-only dependency (pynrrd)
-    res = export(store, tmp_path / "n", format="nrrd", quantity="refractivity", frames=(1, 3))
-    assert [p.name for p in res.entry_points] == ["refractivity_00001.nrrd", "refractivity_00002.nrrd"]
+    # capture frames 2 and 3 are store frames 1 and 2 (the fixture's first frame is 1)
+    res = export(store, tmp_path / "n", format="nrrd", quantity="refractivity", frames=(2, 4))
+    assert [p.name for p in res.entry_points] == ["refractivity_00002.nrrd", "refractivity_00003.nrrd"]
     for f, path in zip((1, 2), res.entry_points):
         data, header = nrrd.read(str(path))  # Fortran order: data[x, y, z]
         assert data.shape == (24, 20, 16) and data.dtype == np.float32
@@ -115,14 +116,14 @@ def test_nrrd_read_by_pynrrd(store, tmp_path):
         ix, iy, iz = np.meshgrid(*(np.arange(n) for n in data.shape), indexing="ij")
         pts = origin + np.stack([ix, iy, iz], axis=-1) @ dirs  # row i of dirs = step along axis i
         assert np.abs(data - analytic(pts, f)).max() < 1e-9
-        assert header["frame"] == str(f)  # pynrrd keeps "key:=value" pairs as strings
+        assert header["frame"] == str(f + 1)  # the capture index; pynrrd keeps "key:=value" pairs as strings
         assert float(header["time"]) == pytest.approx((1 + f) / FX.FRAME_RATE)
         assert header["space units"] == ["m", "m", "m"]
 
 
 def test_nrrd_hull_is_uint8(store, tmp_path):
     nrrd = pytest.importorskip("nrrd")
-    res = export(store, tmp_path / "h", format="nrrd", quantity="hull", frames=(0, 1))
+    res = export(store, tmp_path / "h", format="nrrd", quantity="hull", frames=(1, 2))
     data, header = nrrd.read(str(res.entry_points[0]), index_order="C")  # data[z, y, x]
     g = zarr.open_group(str(store), mode="r")
     assert data.dtype == np.uint8
@@ -153,11 +154,11 @@ def test_raw_with_metaimage_header_and_json_sidecar(store, tmp_path):
 def test_unfinished_frames_are_skipped(tmp_path):
     store = FX.make_store(tmp_path, partial="unfinished")  # frame 2 not integrated
     res = export(store, tmp_path / "u", format="vti")
-    assert res.skipped == [2]
+    assert res.skipped == [3]  # capture frame 3 = store frame 2
     sets = ET.parse(res.entry_points[0]).getroot().find("Collection").findall("DataSet")
-    assert [s.get("file") for s in sets] == ["refractivity_00000.vti", "refractivity_00001.vti"]
-    with pytest.raises(StoreError, match="no frame of 'temperature' in 2:3 is complete"):
-        export(store, tmp_path / "v", format="nrrd", quantity="temperature", frames=(2, 3))
+    assert [s.get("file") for s in sets] == ["refractivity_00001.vti", "refractivity_00002.vti"]
+    with pytest.raises(StoreError, match="no frame of 'temperature' in 3:4 is complete"):
+        export(store, tmp_path / "v", format="nrrd", quantity="temperature", frames=(3, 4))
 
 
 def test_store_opens_in_xarray_with_dims(store, tmp_path):
@@ -170,7 +171,7 @@ def test_store_opens_in_xarray_with_dims(store, tmp_path):
     assert ds["gradient"].dims == ("frame", "z", "y", "x", "axis")
     assert ds["flow"].dims == ("camera", "frame", "v", "u", "component")
     np.testing.assert_allclose(ds["x"].values, FX.GRID.axes()[0])
-    res = export(store, tmp_path / "x", format="nrrd", frames=(0, 1))
+    res = export(store, tmp_path / "x", format="nrrd", frames=(1, 2))
     data = np.fromfile(res.entry_points[0], dtype=np.uint8)
     payload = data[-ds["refractivity"][0].size * 4:].view("<f4")
     np.testing.assert_array_equal(payload, ds["refractivity"][0].values.ravel())
@@ -189,7 +190,7 @@ def test_bad_requests_are_one_line_errors(tmp_path):
     with pytest.raises(StoreError, match="cannot export"):
         export(partial, tmp_path / "o", format="vti", quantity="flow")
     with pytest.raises(StoreError, match="frame range"):
-        export(partial, tmp_path / "o", format="raw", frames=(3, 4))
+        export(partial, tmp_path / "o", format="raw", frames=(4, 5))
 
 
 def test_export_command_prints_the_files_to_open(store, tmp_path, capsys):
@@ -198,9 +199,9 @@ def test_export_command_prints_the_files_to_open(store, tmp_path, capsys):
     assert main(["export", str(store), "--format", "vti", "--out", str(tmp_path / "v")]) == 0
     out = capsys.readouterr().out.split()
     assert out == [str(tmp_path / "v" / "refractivity.pvd")]
-    assert main(["export", str(store), "--format", "nrrd", "--quantity", "density", "--frames", "1:2",
+    assert main(["export", str(store), "--format", "nrrd", "--quantity", "density", "--frames", "2:3",
                  "--out", str(tmp_path / "d")]) == 0
-    assert capsys.readouterr().out.split() == [str(tmp_path / "d" / "density_00001.nrrd")]
+    assert capsys.readouterr().out.split() == [str(tmp_path / "d" / "density_00002.nrrd")]
 
 
 def test_report_and_export_modules_do_not_import_dask():

@@ -187,7 +187,7 @@ def test_other_refusals(rig, tmp_path):
     with pytest.raises(SchlierenInputError, match="already exists"):
         scaffold_session(session, videos, calib, **kw)
     scaffold_session(session, videos, calib, overwrite=True, **kw)
-    with pytest.raises(SchlierenInputError, match="no video matches"):
+    with pytest.raises(SchlierenInputError, match="no video, image sequence or multi-page TIFF matches"):
         find_videos([str(tmp_path / "nothing" / "*.mp4")])
 
 

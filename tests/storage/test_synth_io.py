@@ -27,7 +27,7 @@ def _write_session(root, *, strobe, n_frames=3, bit_depth=8):
             sio.write_frame(root, c.name, f, img)
         files[c.name] = (sio.frame_pattern(c.name), ref)
     path = sio.write_manifest(root, name="t", frame_rate=60.0, frames=(1, 3), grid=GRID, medium=Medium(),
-                              cameras=cams, camera_files=files, strobe_search=(0, 1) if strobe else None)
+                              cameras=cams, camera_files=files, strobe_search=(0, 3) if strobe else None)  # >= 3 frames
     return path, cams
 
 

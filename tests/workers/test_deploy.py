@@ -62,9 +62,12 @@ def test_every_yaml_in_deploy_parses():
         "kubernetes/daskcluster.yaml",
         "kubernetes/daskcluster-tls.yaml",
         "kubernetes/helm-values.yaml",
+        "kubernetes/networkpolicy.yaml",
+        "kubernetes/run-job.yaml",
     }
     for f in files:
-        assert isinstance(yaml.safe_load(f.read_text()), dict), f
+        docs = list(yaml.safe_load_all(f.read_text()))
+        assert docs and all(isinstance(d, dict) for d in docs), f
 
 
 def test_bos_yaml_equals_the_settings_the_code_applies():
@@ -79,13 +82,13 @@ def test_bos_yaml_equals_the_settings_the_code_applies():
 
 def test_containerfile_sets_thread_caps_and_a_non_root_user():
     text = (DEPLOY / "Containerfile").read_text()
-    assert re.search(r"^FROM python:3\.11-slim", text, re.M)
+    assert re.search(r"^FROM python:3\.11\.\d+-slim", text, re.M)
     for var, value in THREAD_ENV.items():
         assert re.search(rf"\b{var}={value}\b", text), var
     assert "DASK_CONFIG=/opt/schlieren/deploy/config" in text and "COPY deploy/config" in text
     users = re.findall(r"^USER\s+(\S+)", text, re.M)
     assert users and users[-1] not in ("root", "0")
-    assert re.search(r'pip install "\.\[cluster\]"', text)
+    assert re.search(r'pip install --constraint deploy/constraints\.txt "\.\[cluster\]"', text)
     # everything the image copies exists in the repository
     for src in re.findall(r"^COPY\s+(.+?)\s+\S+$", text, re.M):
         for part in src.split():
@@ -144,7 +147,7 @@ def test_jobqueue_renders_our_job_script(kind, tmp_path):
 
 
 def test_jobqueue_kwargs_respect_user_resources_and_validate():
-    cfg = _jobqueue_config(None, worker_extra_args=["--resources", "TOMO=2"])
+    cfg = _jobqueue_config(None, worker_extra_args=["--resources", "TOMO=2", "--lifetime", "1h"])
     job_kw, cluster_kw = jobqueue_kwargs("slurm", cfg)
     assert job_kw["worker_extra_args"].count("--resources") == 1
     assert cluster_kw["scheduler_options"]["dashboard_address"] == "127.0.0.1:8787"
@@ -166,7 +169,8 @@ def test_jobqueue_kwargs_respect_user_resources_and_validate():
 @pytest.mark.timeout(60)
 def test_jobqueue_cluster_object_renders_the_same_script(tmp_path):
     certs = make_certificates(tmp_path / "tls")
-    cfg = _jobqueue_config(certs.directory, interface="lo", local_directory=str(tmp_path), log_directory=None)
+    cfg = _jobqueue_config(certs.directory, interface="lo", local_directory=str(tmp_path), log_directory=None,
+                           **{"scheduler-options": {"interface": "lo", "dashboard_address": "127.0.0.1:0"}})
     cluster = jobqueue_cluster("slurm", cfg)  # starts the scheduler here; submits nothing
     try:
         assert cluster.scheduler_address.startswith("tls://127.0.0.1:")
@@ -233,7 +237,7 @@ def test_daskcluster_manifest_structure():
     assert sched["service"]["type"] == "ClusterIP"
     ports = {p["name"]: p["port"] for p in sched["service"]["ports"]}
     assert ports == {"tcp-comm": 8786, "http-dashboard": 8787}
-    assert "volumes" not in worker["spec"] and "--tls-cert" not in args
+    assert [v["name"] for v in worker["spec"]["volumes"]] == ["data"] and "--tls-cert" not in args
 
     cfg["kubernetes"]["tls-secret"] = "schlieren-tls"
     t = daskcluster_manifest(cfg)
@@ -244,8 +248,9 @@ def test_daskcluster_manifest_structure():
     assert sc["args"][sc["args"].index("--tls-cert") + 1] == "/etc/schlieren/tls/scheduler.pem"
     assert sc["args"][sc["args"].index("--protocol") + 1] == "tls"
     for pod in (t["spec"]["worker"]["spec"], t["spec"]["scheduler"]["spec"]):
-        assert pod["volumes"] == [{"name": "tls", "secret": {"secretName": "schlieren-tls", "defaultMode": 0o400}}]
+        assert pod["volumes"][0] == {"name": "tls", "secret": {"secretName": "schlieren-tls", "defaultMode": 0o440}}
         assert pod["containers"][0]["volumeMounts"][0]["readOnly"] is True
+        assert pod["securityContext"]["fsGroup"] == 10001  # the secret's group: readable by the pods' user
     with pytest.raises(ValueError, match="cannot talk TLS"):
         make_batch_cluster("kubernetes", cfg)
     with pytest.raises(ValueError, match="image"):
@@ -256,7 +261,7 @@ def test_helm_values_cap_threads_and_advertise_tomo():
     values = yaml.safe_load((DEPLOY / "kubernetes/helm-values.yaml").read_text())
     w = values["worker"]
     args = w["extraArgs"]
-    assert args[args.index("--resources") + 1] == "TOMO=1" and args[args.index("--nthreads") + 1] == "1"
+    assert args[args.index("--resources") + 1] == "TOMO=1" and w["threads_per_worker"] == 1
     env = {e["name"]: e["value"] for e in w["env"]}
     assert env["OPENCV_FOR_THREADS_NUM"] == "1" and env["OMP_NUM_THREADS"] == "1"
     assert w["resources"]["limits"]["memory"] == w["resources"]["requests"]["memory"]

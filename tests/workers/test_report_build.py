@@ -99,7 +99,7 @@ def test_residual_rms_equals_the_known_noise(report):
     for cam, r in res.items():
         assert r["rms"] == pytest.approx(np.sqrt(2) * NOISE_PX, rel=0.08), cam
         assert r["rms_measured"] > 3 * r["rms"]  # the blob's deflections dominate the noise
-        assert r["frames"] == [0, 1, 2]
+        assert r["frames"] == [1, 2, 3]  # capture frames (the fixture's store starts at frame 1)
     html = index.read_text()
     assert re.search(r"<td>cam00</td><td>0\.01\d*</td>", html)
 
@@ -122,7 +122,7 @@ def test_animation_shows_the_blob_rising(report):
     assert gif.shape[0] == N_FRAMES
     rows = []
     for k in range(N_FRAMES):
-        png = iio.imread(index.parent / "figures" / f"render_{k:05d}.png").astype(float)
+        png = iio.imread(index.parent / "figures" / f"render_{k + 1:05d}.png").astype(float)
         w = png.sum(axis=-1)
         w = np.where(w > 0.25 * w.max(), w, 0.0)  # the glow, not the box lines
         rows.append((w.sum(axis=1) * np.arange(w.shape[0])).sum() / w.sum())
@@ -155,15 +155,15 @@ def test_unfinished_run_shows_completed_frames_only(tmp_path):
     index = build_report(store, tmp_path / "out", max_cameras=1)
     html = index.read_text()
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
-    assert summary["shown_frame"] in (0, 1)
+    assert summary["shown_frame"] in (1, 2)  # capture frames
     assert summary["completion"]["integrate"] == "2 of 3" and summary["completion"]["hull"] == "3 of 3"
     assert summary["completion"]["threshold"] == "0 of 1" and summary["completion"]["sync"] == "2 of 2"
-    assert "Not reconstructed yet: frames 2" in html
+    assert "Not reconstructed yet: frames 3" in html
     figs = tmp_path / "out" / "figures"
-    assert (figs / "render_00001.png").exists() and not (figs / "render_00002.png").exists()
+    assert (figs / "render_00002.png").exists() and not (figs / "render_00003.png").exists()
     assert len(iio.imread(figs / "render.gif", index=None)) == 2
     for r in summary["residual_rms_px"].values():
-        assert r["frames"] == [0, 1]
+        assert r["frames"] == [1, 2]
     assert "integrate" not in summary["stage_seconds"]
 
 
@@ -210,12 +210,12 @@ def test_figures_are_the_pipelines_images_written_unchanged(report):
 
     store, index = report
     summary = json.loads((index.parent / "summary.json").read_text())
-    shown = summary["shown_frame"]
-    assert shown == 1  # the middle of 3 complete frames
+    assert summary["shown_frame"] == 2  # the middle of 3 complete frames, as a capture index
+    shown = 1  # its store index
     rd = ReportReader(store)
     grid = rd.grid()
     hull = rd.volume("hull", shown).astype(bool)
-    want = viz.figure_to_rgb(viz.hull_figure(hull, grid, title=f"visual hull, store frame {shown}"))
+    want = viz.figure_to_rgb(viz.hull_figure(hull, grid, title="visual hull, frame 2"))
     np.testing.assert_array_equal(iio.imread(index.parent / "figures" / "hull.png"), want)
     r_amb = rd.medium().refractivity_ambient
     deficit = max(float(np.nanmax(r_amb - rd.volume("refractivity", f))) for f in range(N_FRAMES))

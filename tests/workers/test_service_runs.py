@@ -51,6 +51,7 @@ def test_cli_run_on_an_external_scheduler_matches_serial(external_scheduler, tin
     # the Dask performance report was written and shows our stages
     perf = (tmp_path / "perf.html").read_text()
     assert "deflection" in perf and "tomography" in perf
+    assert "cdn.bokeh.org" not in perf and "Bokeh" in perf  # BokehJS inline: readable offline
     assert_same_store(serial_store, out)
     # the scheduler's dashboard answers and knows our stages by name
     with urllib.request.urlopen(f"{external_scheduler.dashboard_url}/status", timeout=10) as r:

@@ -195,3 +195,29 @@ def test_video_distortion_and_explicit_offsets(tmp_path):
     fg = FlowGrid((96, 72), 3)
     _, rays = s.cameras[0].rays(fg.pixel_centres())
     np.testing.assert_allclose(truth.group["d_in"][0, 0], rays, atol=1e-6)
+
+
+def test_lossy_video_with_recorded_reference_frames(tmp_path):
+    """H.264 capture and a reference recorded as noisy video frames (camcorder-like sessions)."""
+    from schlieren.storage.frames import read_reference
+
+    pytest.importorskip("imageio_ffmpeg")
+    common = dict(cameras=2, phantom="blob", frames=1, size=(192, 144), supersample=1, recon_voxel=0.01,
+                  noise=1.5, strobe=False, seed=5)
+    from schlieren.workers.synth import synthesize
+
+    lossy = synthesize(tmp_path / "h", video=True, video_codec="h264", video_bits_per_pixel=0.16,
+                       reference_frames=8, **common)
+    clean = synthesize(tmp_path / "c", **common)
+    s = load_session(lossy.session)
+    src = s.sources[0]
+    assert str(src.frames).endswith("capture.mp4") and str(src.reference).endswith("reference.mp4")
+    truth = sio.read_truth(lossy.truth)
+    assert truth.attrs["video"] == "h264" and truth.attrs["reference_frames"] == 8
+    ref = read_reference(src)
+    ref_clean = read_reference(load_session(clean.session).sources[0])
+    err = np.abs(ref.astype(np.float64) - ref_clean.astype(np.float64))
+    # the average of 8 noisy, lossy frames is the clean reference up to coding loss
+    assert 0.05 < float(err.mean()) < 10.0
+    # and it is far closer than an unrelated texture
+    assert float(err.mean()) < 0.3 * float(np.abs(ref_clean - ref_clean.mean()).mean())

@@ -1,7 +1,10 @@
-"""``schlieren bench table1 [--quick] [--out DIR] [--rigs half:8,...] [--size WxH] [--frames N]``.
+"""``schlieren bench table1|realistic [...]``.
 
-Reproduces the paper's Table 1 (sec. 6) on the project's synthetic plume and writes
-``benchmarks/results/table1.md`` and ``table1.json`` (see :mod:`schlieren.workers.bench`).
+``table1`` reproduces the paper's Table 1 (sec. 6) on the project's synthetic plume and
+writes ``benchmarks/results/table1.md`` and ``table1.json`` (see
+:mod:`schlieren.workers.bench`). ``realistic`` runs the realistic capture family (CFD
+flows, weak deflections, lossy video; :mod:`schlieren.workers.realistic`) and writes
+``benchmarks/results/realistic[_LABEL].md`` / ``.json``.
 """
 
 from __future__ import annotations
@@ -20,7 +23,9 @@ _size = image_size(32)
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("bench", help="reproduce the paper's benchmark tables on synthetic data",
                               description="Reproduce a table of the paper on the project's synthetic plume.")
-    p.add_argument("table", choices=["table1"], help="table1: reconstruction errors per rig (paper sec. 6)")
+    p.add_argument("table", choices=["table1", "realistic"],
+                   help="table1: reconstruction errors per rig (paper sec. 6); realistic: the realistic capture "
+                        "family (CFD plumes and jets, weak deflections, lossy video; needs the 'bench' extra)")
     p.add_argument("--quick", action="store_true",
                    help=f"a small subset: one half ring of 3 cameras, {QUICK_SIZE[0]}x{QUICK_SIZE[1]} images, "
                         f"1 frame, {QUICK_VOXEL * 1000:.0f} mm voxels (for tests)")
@@ -36,6 +41,13 @@ def add_parser(subparsers) -> None:
     p.add_argument("--workers", type=int, default=None,
                    help="local Dask workers for the pipeline runs; 0 = serial (default 2, quick: 0)")
     p.add_argument("--seed", type=int, default=0)
+    r = p.add_argument_group("realistic")
+    r.add_argument("--cases", default=None, help="comma-separated case names or prefixes (default: all)")
+    r.add_argument("--role", choices=["tune", "report"], default=None, help="only the tune or the report cases")
+    r.add_argument("--params", metavar="FILE", default=None, help="run parameters (YAML) instead of the defaults")
+    r.add_argument("--label", default="", help="results go to realistic_LABEL.md/.json (default: realistic.md)")
+    r.add_argument("--no-truth-rows", action="store_true",
+                   help="skip the reconstruction from the truth's deflections (faster)")
     p.set_defaults(func=handler)
 
 
@@ -79,7 +91,75 @@ def _machine() -> str:
     return f"{os.cpu_count()} cores ({platform.machine()}), shared with other jobs (1-min load {load:.1f} at the end)"
 
 
+def _realistic(args) -> int:
+    import contextlib
+    import re
+    import time
+    from pathlib import Path
+
+    from rich.console import Console
+
+    from schlieren.pipeline.stages import config_from_dict
+    from schlieren.storage import bench_io
+    from schlieren.workers import realistic as rb
+
+    console = Console(stderr=True)
+    if args.label and not re.fullmatch(r"[A-Za-z0-9_.-]+", args.label):
+        raise CLIError("--label may hold letters, digits, '_', '.' and '-' only")
+    try:
+        cases = rb.QUICK_CASES if args.quick else rb.select_cases(args.cases, role=args.role)
+    except ValueError as exc:
+        raise CLIError(f"--cases: {exc}") from None
+    if not cases:
+        raise CLIError("no case selected")
+    config = None
+    if args.params:
+        from schlieren.storage.params_io import read_params
+
+        try:
+            config = config_from_dict(read_params(args.params))
+        except (TypeError, ValueError) as exc:
+            raise CLIError(f"--params {args.params}: {exc}") from None
+    if not args.quick and not _has_bench_extra():
+        raise CLIError("the realistic family needs PhiFlow and imageio-ffmpeg: pip install 'schlieren[bench]' "
+                       "(python3 dev.py installs them)")
+    workers = args.workers if args.workers is not None else (0 if args.quick else 2)
+    if workers < 0:
+        raise CLIError("--workers must be >= 0")
+    work = Path(args.out or "realistic-out")
+    t0 = time.perf_counter()
+    with contextlib.ExitStack() as stack:
+        client = None
+        if workers > 0:
+            from schlieren.workers.cluster import ClusterOptions, open_client
+
+            client, _info = stack.enter_context(open_client(ClusterOptions(workers=workers, dashboard_address=":0")))
+        result = rb.run_family(work, cases, config=config, client=client, label=args.label,
+                               truth_rows=not args.no_truth_rows, progress=lambda m: console.print(m))
+    result["wall_seconds"] = time.perf_counter() - t0
+    machine = _machine()
+    result["machine"] = machine
+    name = "realistic" + (f"_{args.label}" if args.label else "")
+    out = Path(args.results)
+    bench_io.write_text(out / f"{name}.md", rb.family_markdown(result, machine=machine))
+    bench_io.write_json(out / f"{name}.json", result)
+    console.print(f"wrote {out / (name + '.md')} and {out / (name + '.json')} ({result['wall_seconds']:.0f} s)")
+    failed = [c["case"] for c in result["cases"] if c.get("failures")]
+    if failed:
+        console.print(f"pipeline failures: {', '.join(failed)}")
+        return 1
+    return 0
+
+
+def _has_bench_extra() -> bool:
+    import importlib.util
+
+    return all(importlib.util.find_spec(m) is not None for m in ("phi", "imageio_ffmpeg"))
+
+
 def handler(args) -> int:
+    if args.table == "realistic":
+        return _realistic(args)
     import contextlib
     import tempfile
     import time

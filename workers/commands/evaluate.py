@@ -5,7 +5,9 @@ from __future__ import annotations
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("evaluate", help="accuracy of a store against synthetic ground truth",
-                              description="Relative RMS and PSNR of the refractivity per frame and overall.")
+                              description="Relative RMS and PSNR of the refractivity per frame and overall, over "
+                                          "the whole box and in the plume (voxels where the truth departs "
+                                          "from ambient by more than 1 % of its range).")
     p.add_argument("store", metavar="STORE")
     p.add_argument("--truth", required=True, metavar="TRUTH", help="truth.zarr written by `schlieren synth`")
     p.add_argument("--json", metavar="FILE", default=None, help="also write the figures as JSON")
@@ -25,14 +27,16 @@ def handler(args) -> int:
 
     res = evaluate(args.store, args.truth)
     table = Table(title=f"accuracy of {args.store}")
-    for col in ("frame", "time (s)", "RMS (%)", "PSNR (dB)", "truth"):
+    for col in ("frame", "time (s)", "RMS (%)", "PSNR (dB)", "in-plume RMS (%)", "in-plume PSNR (dB)",
+                "peak ratio", "truth"):
         table.add_column(col, justify="right")
     for r in res["frames"]:
         table.add_row(str(r["frame"]), f"{r['time']:.6f}", _fmt(100 * r["rms"], ".3f"), _fmt(r["psnr"], ".2f"),
+                      _fmt(100 * r["rms_plume"], ".3f"), _fmt(r["psnr_plume"], ".2f"), _fmt(r["peak_ratio"], ".3f"),
                       r["truth_from"])
-    o = res["overall"]
-    table.add_row("all", "", _fmt(100 * o["rms"], ".3f"), _fmt(o["psnr"], ".2f"), f"{o['frames']} frames",
-                  style="bold")
+    o, p = res["overall"], res["plume"]
+    table.add_row("all", "", _fmt(100 * o["rms"], ".3f"), _fmt(o["psnr"], ".2f"), _fmt(100 * p["rms"], ".3f"),
+                  _fmt(p["psnr"], ".2f"), "", f"{o['frames']} frames", style="bold")
     Console().print(table)
     if args.json:
         write_json(args.json, res)

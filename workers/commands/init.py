@@ -1,14 +1,15 @@
 """``schlieren init SESSION_DIR --videos 'cams/*.mp4' --calibration calibration.yaml ...``.
 
-Writes ``SESSION_DIR/session.yaml`` (SPEC ``schlieren-session/1``) from a folder of camera
-videos and a calibration file written by ``schlieren calibrate``, after checking every
-video's frame count, size and frame rate (they must agree with each other and with the
-calibration). Each camera's reference (no-flow background) is frames A:B of its own
-video (``--reference-frames``), extracted losslessly into ``<camera>/reference/`` and
-averaged by ``schlieren run``. Cameras are matched by name: a video's file stem (or
-``NAME=PATH``) must be a camera name of the calibration. The session is loaded back
-with the session reader before the command returns, so ``schlieren run SESSION_DIR``
-accepts it.
+Writes ``SESSION_DIR/session.yaml`` (docs/session.md) from the cameras' videos or image
+sequences and a calibration (from ``schlieren calibrate``, or imported: OpenCV
+FileStorage YAML/XML, Kalibr camchain.yaml, the documented JSON; docs/calibration.md),
+after checking every camera's frame count, size and frame rate (they must agree with
+each other and with the calibration). Each camera's reference (no-flow background) is
+frames A:B of its own frames (``--reference-frames``), extracted losslessly into
+``<camera>/reference/`` and averaged by ``schlieren run``. Cameras are matched by name: a
+video's file stem, an image sequence's folder (``cam00/frames/%05d.png`` -> cam00) or
+``NAME=PATH`` must be a camera name of the calibration. The session is loaded back with
+the session reader before it is written, and a failed init leaves nothing behind.
 """
 
 from __future__ import annotations
@@ -58,15 +59,31 @@ def _per_camera(items, flag: str, names):
     return out
 
 
+def _per_camera_text(items, flag: str, names):
+    """``["top_first"]`` -> for every camera; ``["cam0=bottom_first"]`` -> ``{name: value}``."""
+    out = {}
+    for item in items or []:
+        name, _, value = item.rpartition("=")
+        for n in ([name] if name else names):
+            out[n] = value
+    return out or None
+
+
 def add_parser(sub) -> None:
     p = sub.add_parser("init", help="write a session.yaml from camera videos and a calibration file",
                        description=__doc__.split("\n", 1)[1].strip().replace("``", ""),
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("session_dir", metavar="SESSION_DIR", help="session folder (created if missing)")
-    p.add_argument("--videos", nargs="+", required=True, metavar="[NAME=]PATH",
-                   help="camera videos: files or quoted glob patterns (camera name = file stem)")
-    p.add_argument("--calibration", required=True, metavar="FILE",
-                   help="calibration.yaml from schlieren calibrate")
+    p.add_argument("--videos", "--images", nargs="+", required=True, metavar="[NAME=]PATH", dest="videos",
+                   help="each camera's frames: a video (or a quoted glob of videos, camera = file stem), an "
+                        "image sequence as a printf pattern (cam00/frames/%%05d.png), a quoted glob "
+                        "('cam00/*.tif') or a folder (camera = the folder's name), or a multi-page TIFF")
+    p.add_argument("--calibration", nargs="+", required=True, metavar="[NAME=]FILE",
+                   help="calibration.yaml from schlieren calibrate, a JSON file of the same form, Kalibr "
+                        "camchain.yaml, or one OpenCV FileStorage YAML/XML per camera (camera = file stem)")
+    p.add_argument("--interlaced", action="append", default=[], metavar="[NAME=]ORDER",
+                   help="interlaced video (top_first or bottom_first): each field is processed as a frame "
+                        "of its own at twice the frame rate, with its own row timing")
     p.add_argument("--reference-frames", required=True, metavar="A:B",
                    help="frames without flow, averaged into each camera's reference")
     p.add_argument("--volume", required=True, metavar="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX",
@@ -94,17 +111,19 @@ def add_parser(sub) -> None:
 
 
 def handler(args) -> int:
-    from schlieren.storage.scaffold import find_videos, scaffold_session
+    from schlieren.storage.calibration_io import import_calibration
+    from schlieren.storage.scaffold import find_sources, scaffold_session
     from schlieren.storage.session import load_session
     from schlieren.workers.cli import CLIError
 
     vol = _floats(args.volume, 6, "--volume")
     if args.voxel_size <= 0:
         raise CLIError("--voxel-size must be positive (metres)")
-    videos = find_videos(args.videos, base=args.session_dir)
+    videos = find_sources(args.videos, base=args.session_dir)
     names = list(videos)
+    fields = _per_camera_text(args.interlaced, "--interlaced", names)
     path = scaffold_session(
-        args.session_dir, videos, args.calibration,
+        args.session_dir, videos, import_calibration(args.calibration), interlaced=fields,
         reference_frames=frame_range(args.reference_frames, "--reference-frames"),
         volume_min=vol[:3], volume_max=vol[3:], voxel_size=args.voxel_size,
         frame_rate=args.frame_rate,

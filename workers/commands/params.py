@@ -1,4 +1,9 @@
-"""``schlieren params``: print every run parameter with its default, as a YAML file for ``--params``."""
+"""``schlieren params``: every run parameter with its meaning, unit, default and valid values.
+
+The default output is a commented YAML file that ``schlieren run --params`` accepts;
+``--format markdown`` prints docs/parameters.md. Both come from the parameter schema
+(:mod:`schlieren.pipeline.params`), which also validates ``--params``.
+"""
 
 from __future__ import annotations
 
@@ -6,21 +11,22 @@ import sys
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser("params", help="print the default run parameters (YAML for --params)",
-                       description="Prints every parameter of every stage with its default value. "
-                                   "Save it, edit what you need and pass it to `schlieren run --params FILE`; "
-                                   "unknown names are refused.")
+    p = sub.add_parser("params", help="print every run parameter: meaning, unit, default, valid values",
+                       description="Prints every parameter of every stage with its meaning, unit, default and "
+                                   "valid values, as a commented YAML file. Save it, keep what you change and "
+                                   "pass it to `schlieren run --params FILE`; unknown names, wrong types and "
+                                   "values out of range are refused before any work.")
     p.add_argument("--out", default=None, help="write to this file instead of standard output")
+    p.add_argument("--format", default="yaml", choices=["yaml", "markdown"],
+                   help="yaml (for --params, default) or markdown (docs/parameters.md)")
     p.set_defaults(func=handler)
 
 
 def handler(args) -> int:
-    import yaml
+    from schlieren.pipeline.params import params_markdown, params_yaml
+    from schlieren.pipeline.stages import RunConfig
 
-    from schlieren.pipeline.stages import RunConfig, config_to_dict
-
-    text = ("# schlieren run parameters (defaults); pass with: schlieren run SESSION --out STORE --params FILE\n"
-            + yaml.safe_dump(config_to_dict(RunConfig()), sort_keys=False, default_flow_style=None))
+    text = params_markdown(RunConfig) if args.format == "markdown" else params_yaml(RunConfig)
     if args.out:
         from schlieren.storage.params_io import write_params_text
 

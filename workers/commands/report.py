@@ -1,4 +1,4 @@
-"""``schlieren report STORE [--out DIR] [--frames A:B] [--cameras N]``: figures and an HTML page."""
+"""``schlieren report STORE [--out DIR] [--frames A:B] [--cameras N] [--truth TRUTH]``: figures and an HTML page."""
 
 from __future__ import annotations
 
@@ -12,6 +12,8 @@ def add_parser(sub) -> None:
     p.add_argument("--frames", default=None, metavar="A:B", help="half-open range of store frames to show")
     p.add_argument("--cameras", type=int, default=None, metavar="N",
                    help="per-camera figures for the first N cameras only (the residual table lists all)")
+    p.add_argument("--truth", default=None, metavar="TRUTH",
+                   help="truth.zarr of a synthetic session (`schlieren synth`): adds the accuracy table")
     p.set_defaults(func=handler)
 
 
@@ -19,6 +21,12 @@ def handler(args) -> int:
     from schlieren.workers.commands.run import parse_frames
     from schlieren.workers.report import make_report
 
-    index = make_report(args.store, args.out, frames=parse_frames(args.frames), max_cameras=args.cameras)
+    evaluation = None
+    if args.truth:
+        from schlieren.workers.evaluate import evaluate
+
+        evaluation = evaluate(args.store, args.truth)
+    index = make_report(args.store, args.out, frames=parse_frames(args.frames), max_cameras=args.cameras,
+                        evaluation=evaluation)
     print(index)
     return 0

@@ -34,6 +34,9 @@ def add_common_run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--params", default=None, metavar="FILE",
                    help="YAML file of run parameters (`schlieren params` prints them all with defaults)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace a result store of another session or configuration at --out (a store of "
+                        "this same run is resumed either way)")
     p.add_argument("--frames-per-task", type=positive_int, default=None, metavar="N",
                    help="frames of one camera per task in the cheap 2D stages (default: about 1.4 "
                         "megapixels per task, 8 frames at 480x360; results and resume do not depend on it)")
@@ -75,11 +78,14 @@ def load_params(path: str | None):
 
     if path is None:
         return RunConfig()
+    from schlieren.pipeline.params import ParamsError
+
     data = read_params(path)
     try:
         return config_from_dict(data)
-    except (TypeError, ValueError) as exc:
-        raise CLIError(f"file {path}: {exc}") from None
+    except ParamsError as exc:
+        where = f", field {exc.field}" if exc.field else ""
+        raise CLIError(f"file {path}{where}: {exc.message}") from None
 
 
 @contextlib.contextmanager
@@ -124,6 +130,7 @@ def execute(session: str, out: str, frames, args, *, console=None):
                                   on_receipt=fan_out(prog.receipt, run_log.receipt),
                                   on_failure=fan_out(prog.failure, run_log.failure),
                                   on_plan=prog.plan, frames_per_task=args.frames_per_task,
+                                  overwrite=getattr(args, "overwrite", False),
                                   verify=bool(getattr(args, "verify", False)))
             log_finished(run_log, summary)
         summary.dashboard = link

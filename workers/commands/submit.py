@@ -54,7 +54,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def load_submit_config(path: str | Path, *, scale: int | None = None) -> dict[str, Any]:
     """Read a submit config with ``yaml.safe_load`` (no tags, nothing executed).
 
-    ``scale`` overrides ``schlieren.scale``. Raises ``CLIError`` with one line on any
+    ``scale`` overrides ``schlieren.scale`` (and drops ``schlieren.adapt``). Raises ``CLIError`` with one line on any
     problem (missing file, YAML error, not a mapping).
     """
     import yaml
@@ -80,19 +80,38 @@ def load_submit_config(path: str | Path, *, scale: int | None = None) -> dict[st
         sec = data.get("schlieren") or {}
         if not isinstance(sec, dict):
             raise CLIError(f"config {p}: the 'schlieren' section must be a mapping")
-        data["schlieren"] = {**sec, "scale": scale}
+        # a fixed number of jobs / pods: drop any adaptive range of the config
+        data["schlieren"] = {**{k: v for k, v in sec.items() if k != "adapt"}, "scale": scale}
     return data
 
 
 def render(kind: str, config: dict[str, Any]) -> str:
-    """What ``--dry-run`` prints: the worker job script or the DaskCluster manifest (YAML)."""
+    """What ``--dry-run`` prints: the worker job script or the DaskCluster manifest (YAML).
+
+    Certificates need not exist yet: the script names their paths (a note on stderr says
+    which are missing)."""
     from schlieren.workers.cluster import daskcluster_manifest, job_script
 
     if kind == "kubernetes":
         import yaml
 
         return yaml.safe_dump(daskcluster_manifest(config), sort_keys=False)
-    return job_script(kind, config)
+    _note_missing_certificates(config)
+    return job_script(kind, config, check_files=False)
+
+
+def _note_missing_certificates(config: dict[str, Any]) -> None:
+    from schlieren.workers.cluster import schlieren_section
+    from schlieren.workers.security import ROLES, tls_files_from_config
+
+    tls = schlieren_section(config).get("tls")
+    if not tls:
+        return
+    missing = sorted({str(p) for role in ROLES for p in vars(tls_files_from_config(tls, role)).values()
+                      if not Path(p).is_file()})
+    if missing:
+        print(f"note: TLS certificates not found yet ({', '.join(missing)}); make them with "
+              "`schlieren tls init DIR` before submitting", file=sys.stderr)
 
 
 def handler(args: argparse.Namespace) -> int:
@@ -143,6 +162,7 @@ def handler(args: argparse.Namespace) -> int:
                     on_failure=fan_out(prog.failure, run_log.failure),
                     on_plan=prog.plan,
                     frames_per_task=args.frames_per_task,
+                    overwrite=getattr(args, "overwrite", False),
                 )
             log_finished(run_log, summary)
             summary.dashboard = info.dashboard_link

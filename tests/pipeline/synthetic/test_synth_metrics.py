@@ -45,3 +45,23 @@ def test_summary():
     assert s["frames"] == 2
     assert s["rms"] == pytest.approx(np.sqrt((0.01**2 + 0.03**2) / 2))
     assert s["psnr"] == pytest.approx(metrics.psnr(s["rms"]))
+
+
+def test_in_plume_rms_closed_form():
+    """In-plume RMS: over |truth - ambient| > 1 % of the range, normalised by the whole-box range."""
+    amb = 2.9e-4
+    t = np.full((10, 10, 10), amb)
+    t[2:4, 2:4, 2:4] = amb - 1e-4          # 8 plume voxels, range 1e-4
+    t[5, 5, 5] = amb - 0.5e-6              # 0.5 % of the range: not plume
+    e = t.copy()
+    e[2:4, 2:4, 2:4] += 2e-6               # plume error 2 % of the range
+    e[9, 9, 9] += 5e-6                     # an ambient voxel's error does not count in the plume
+    m = metrics.plume_mask(t, amb)
+    assert m.sum() == 8
+    assert metrics.plume_rms(e, t, amb) == pytest.approx(0.02)
+    whole = np.sqrt((8 * 2e-6 ** 2 + 5e-6 ** 2) / 1000) / 1e-4
+    assert metrics.relative_rms(e, t) == pytest.approx(whole)
+    assert metrics.plume_rms(e, np.full_like(t, amb), amb) != metrics.plume_rms(e, np.full_like(t, amb), amb)
+    # a reconstruction at 80 % of the plume's depth has a peak ratio of 0.8
+    low = amb + 0.8 * (t - amb)
+    assert metrics.peak_ratio(low, t, amb) == pytest.approx(0.8)

@@ -1,0 +1,120 @@
+"""Diagnostics: -v lines naming stage/camera/frame, warnings with a likely cause, Ctrl-C."""
+
+from __future__ import annotations
+
+import shutil
+
+import cv2
+import numpy as np
+
+from schlieren.workers.diagnostics import diagnose
+
+
+def test_warnings_name_camera_frames_and_a_likely_cause():
+    receipts = ([{"stage": "hull", "frame": f, "voxels": 95} for f in (10, 11)]
+                + [{"stage": "hull", "frame": 12, "voxels": 0}, {"stage": "hull", "frame": 13, "voxels": 40}]
+                + [{"stage": "mask", "camera": "cam02", "frame": f, "fraction": 0.8} for f in range(20, 31)]
+                + [{"stage": "mask", "camera": "cam01", "frame": 20, "fraction": 0.1}]
+                + [{"stage": "deflection", "camera": "cam03", "frame": 7, "max_px": 9.5},
+                   {"stage": "deflection", "camera": "cam03", "frame": 8, "max_px": 0.4},
+                   {"stage": "hull", "frame": 14, "voxels": 100, "skipped": True}])
+    w = diagnose(receipts, n_voxels=100)
+    assert len(w) == 4, w
+    assert w[0].startswith("frames 10, 11: the visual hull fills") and "camera moved" in w[0]
+    assert w[1].startswith("frame 12: the visual hull is empty")
+    assert w[2].startswith("camera cam02, frames 20, 21, 22, 23, 24, 25, 26, 27 (and 3 more): the flow mask")
+    assert w[3].startswith("camera cam03, frame 7: deflections up to 9.5 px") and "bumped" in w[3]
+    assert diagnose([{"stage": "hull", "frame": 1, "voxels": 40}], n_voxels=100) == []
+
+
+def test_a_moved_camera_is_named_in_a_warning(tiny_session, tmp_path):
+    """cam01's reference shifted by 8 pixels (the camera was bumped after recording it)."""
+    from schlieren.workers.run import run_session
+
+    sess = tmp_path / "session"
+    shutil.copytree(tiny_session.session.parent, sess, ignore=shutil.ignore_patterns("truth.zarr"))
+    ref = sess / "cam01" / "reference.png"
+    img = cv2.imread(str(ref), cv2.IMREAD_UNCHANGED)
+    cv2.imwrite(str(ref), np.roll(img, 8, axis=1))
+    summary = run_session(sess, tmp_path / "out.zarr", serial=True)
+    assert summary.ok
+    named = [w for w in summary.warnings if w.startswith("camera cam01")]
+    assert named and any("bumped" in w or "moved" in w for w in named), summary.warnings
+    assert not any(w.startswith("camera cam00") for w in summary.warnings)
+
+
+def test_verbose_lines_say_which_stage_camera_and_frame(tiny_session, serial_store, tmp_path, capsys):
+    from schlieren.storage.store import ResultStore
+    from schlieren.workers.cli import main
+
+    store = tmp_path / "s.zarr"
+    shutil.copytree(serial_store, store)
+    st = ResultStore.open(store)
+    frames = [int(v) for v in st.read("frame")]
+    for k in range(len(frames)):
+        st.unmark("integrate", k)
+    assert main(["-v", "run", str(tiny_session.session), "--out", str(store), "--serial", "--no-progress"]) == 0
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if "schlieren.receipts" in ln]
+    assert len(lines) == len(frames)
+    for f, ln in zip(frames, lines):
+        assert ln.startswith("INFO schlieren.receipts: task receipt: stage integrate, frame ") and f"frame {f}," in ln
+
+
+def test_ctrl_c_on_a_local_cluster_prints_one_line_and_keeps_the_chunks(tiny_session, serial_store, tmp_path):
+    """SIGINT to the whole process group (what a terminal's Ctrl-C does): no worker
+    tracebacks, the one-line message, exit 130, and the rerun completes the same store."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from store_compare import assert_same_store
+
+    out = tmp_path / "run.zarr"
+    p = subprocess.Popen([sys.executable, "-m", "schlieren.workers.cli", "run", str(tiny_session.session),
+                          "--out", str(out), "--workers", "2", "--no-progress"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        deadline = time.time() + 120
+        while time.time() < deadline and not list((out / "status" / "frames").glob("c/*/*")):
+            time.sleep(0.05)
+        os.killpg(p.pid, signal.SIGINT)
+        _, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+    assert p.returncode == 130, err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+    assert [ln for ln in err.splitlines() if ln.strip() and not ln.startswith("dashboard:")] == \
+        ["schlieren run: interrupted; completed chunks are kept"]
+    from schlieren.workers.run import run_session
+
+    assert run_session(tiny_session.session, out, serial=True).ok
+    assert_same_store(serial_store, out)
+
+
+def test_submit_dry_run_needs_no_certificates(tmp_path, capsys):
+    from pathlib import Path
+
+    import yaml
+
+    from schlieren.workers.cli import main
+
+    repo = Path(__file__).resolve().parents[2]
+    cfg = yaml.safe_load((repo / "deploy" / "slurm" / "jobqueue.yaml").read_text())
+    cfg["schlieren"]["tls"] = {"dir": str(tmp_path / "no-certs-yet")}
+    (tmp_path / "c.yaml").write_text(yaml.safe_dump(cfg))
+    assert main(["submit", str(tmp_path / "s"), "--out", str(tmp_path / "o.zarr"), "--cluster", "slurm",
+                 "--config", str(tmp_path / "c.yaml"), "--dry-run"]) == 0
+    captured = capsys.readouterr()
+    assert f"--tls-ca-file {tmp_path / 'no-certs-yet' / 'ca.pem'}" in captured.out
+    assert "not found yet" in captured.err and "schlieren tls init" in captured.err
+
+
+def test_cryptography_is_a_main_dependency():
+    from importlib.metadata import requires
+
+    reqs = [r for r in requires("schlieren") if r.startswith("cryptography")]
+    assert reqs and not any("extra ==" in r for r in reqs)

@@ -1,0 +1,72 @@
+"""Warnings after a run: what the task receipts say looks wrong, by camera and frame, with
+the likely cause (issue 15, item 6).
+
+Each check reads the small receipts the tasks return (no store access) and produces at
+most one line per problem and camera, listing the frames (capture indices) concerned.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+
+__all__ = ["diagnose", "HULL_FULL", "MASK_FULL", "DEFLECTION_LARGE_PX"]
+
+#: Fraction of the box above which a visual hull carves nothing useful.
+HULL_FULL = 0.9
+#: Fraction of the image above which a flow mask is suspicious (a plume fills less).
+MASK_FULL = 0.6
+#: Deflections (image pixels) beyond which BOS (sub-pixel to ~1 px) is unlikely the cause.
+DEFLECTION_LARGE_PX = 5.0
+
+
+def _frames(frames: list[int], limit: int = 8) -> str:
+    frames = sorted(set(int(f) for f in frames))
+    text = ", ".join(map(str, frames[:limit]))
+    more = len(frames) - limit
+    return f"frame{'s' if len(frames) > 1 else ''} {text}" + (f" (and {more} more)" if more > 0 else "")
+
+
+def diagnose(receipts, *, n_voxels: int) -> list[str]:
+    """One-line warnings naming camera and frames, with a likely cause.
+
+    Parameters
+    ----------
+    receipts : iterable of dict
+        Task receipts of a run (``stage``, ``camera``, ``frame`` and the stage's fields:
+        hull ``voxels``, mask ``fraction``, deflection ``max_px``).
+    n_voxels : int
+        Voxels in the reconstruction box.
+    """
+    full, empty = [], []
+    masks: dict[str, list[int]] = defaultdict(list)
+    large: dict[str, list[tuple[int, float]]] = defaultdict(list)
+    for r in receipts:
+        if r.get("skipped"):
+            continue
+        stage, frame = r.get("stage"), r.get("frame")
+        if stage == "hull" and "voxels" in r and n_voxels:
+            frac = r["voxels"] / n_voxels
+            if frac > HULL_FULL:
+                full.append(frame)
+            elif r["voxels"] == 0:
+                empty.append(frame)
+        elif stage == "mask" and r.get("fraction", 0.0) > MASK_FULL:
+            masks[r.get("camera", "?")].append(frame)
+        elif stage == "deflection" and r.get("max_px", 0.0) > DEFLECTION_LARGE_PX:
+            large[r.get("camera", "?")].append((frame, float(r["max_px"])))
+    out = []
+    if full:
+        out.append(f"{_frames(full)}: the visual hull fills more than {HULL_FULL:.0%} of the box: a camera moved "
+                   "since its reference was recorded, or the mask threshold is too low (raise masks.percentile)?")
+    if empty:
+        out.append(f"{_frames(empty)}: the visual hull is empty: no camera's mask covers the plume there "
+                   "(flow too weak for masks.percentile, or a camera that misses the volume)?")
+    for cam, frames in sorted(masks.items()):
+        out.append(f"camera {cam}, {_frames(frames)}: the flow mask covers more than {MASK_FULL:.0%} of the image: "
+                   "the camera or the background moved, or the lighting changed since the reference?")
+    for cam, items in sorted(large.items()):
+        worst = max(v for _, v in items)
+        out.append(f"camera {cam}, {_frames([f for f, _ in items])}: deflections up to {worst:.3g} px (BOS "
+                   "deflections are sub-pixel to about 1 px): the camera was bumped, or the frame does not "
+                   "match the reference (focus, exposure)?")
+    return out
