@@ -11,12 +11,12 @@ next scan) and removes the damaged files, so the next run recomputes exactly tho
 Tasks are deterministic (the executors already agree bit for bit), so the repaired store
 equals an undisturbed run's.
 
-The tomography geometry is a cache beside the store (``<store>.cache``), not a result: a
-missing one (``schlieren clean``, a store copied without it) only clears the ``geometry``
-marker so that a run that still needs it builds it again; a corrupt one (sizes and
-CRC-32C recorded in its manifest) is a problem, removed by the repair with the same
-marker. Nothing downstream is recomputed for it: every tomography task checked the
-geometry's checksums when it mapped it, so the results it made came from intact bytes.
+The tomography geometry is a cache beside the store (``<store>.cache``), not a result. A
+corrupt one (sizes and CRC-32C recorded in its manifest) is a problem, removed by the
+repair; a missing one (a store copied without it) is not. Either way, if tomography work
+remains the ``geometry`` marker is cleared so that the run builds it again. Nothing
+downstream is recomputed for it: every tomography task checked the geometry's checksums
+when it mapped it, so the results it made came from intact bytes.
 """
 
 from __future__ import annotations
@@ -100,7 +100,7 @@ def downstream(ext: Extents, roots) -> set[tuple[str, tuple[int, ...]]]:
 
 
 def _geometry_cache(store: ResultStore, scan: ScanResult, *, full: bool) -> tuple[list[Problem], bool]:
-    """``(problems, unmark)`` of the geometry cache behind a set ``geometry`` marker."""
+    """``(problems, unusable)`` of the geometry cache behind a set ``geometry`` marker."""
     if () not in scan.done.get("geometry", set()):
         return [], False
     try:
@@ -141,10 +141,10 @@ def verify_store(store: ResultStore, *, full: bool = False, repair: bool = False
         ``done`` holds the marker positions still set after the repair.
     """
     scan = scan_store(store, full=full)
-    geo_problems, geo_unmark = _geometry_cache(store, scan, full=full)
+    geo_problems, geo_unusable = _geometry_cache(store, scan, full=full)
     scan.problems += geo_problems
     report = VerifyReport(scan=scan)
-    if not repair or (scan.ok and not scan.partial_files and not geo_unmark):
+    if not repair or (scan.ok and not scan.partial_files and not geo_unusable):
         return report
     ext = ext or extents_of(store)
     roots = {(p.stage, tuple(p.index)) for p in scan.problems if p.stage is not None}
@@ -160,12 +160,13 @@ def verify_store(store: ResultStore, *, full: bool = False, repair: bool = False
         if p.kind in ("corrupt", "stray") and p.array != "geometry cache":
             store.remove_chunk(p.array, p.chunk)
             report.removed_files += 1
-    if geo_unmark:  # a missing or corrupt cache: built again by the next run that needs it
-        store.unmark("geometry")
+    if geo_problems:
+        arrays_cache.remove_cache(store.path)
+        report.removed_files += 1
+    if geo_unusable and len(scan.done.get("tomography", ())) < ext.frame:
+        store.unmark("geometry")  # tomography remains: the run builds the geometry again
         scan.done.get("geometry", set()).discard(())
-        if geo_problems:
-            arrays_cache.remove_cache(store.path)
-            report.removed_files += 1
+        report.invalidated["geometry"] = report.invalidated.get("geometry", 0) + 1
     import os
 
     for f in scan.partial_files:

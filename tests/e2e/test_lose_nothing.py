@@ -239,9 +239,9 @@ def test_chaos_kills_and_damage_end_in_the_undisturbed_store(serial_store, tiny_
     out = tmp_path / "chaos.zarr"
     log: list[str] = []
     cmd = CLI + ["run", str(tiny_session.session), "--out", str(out), "--serial", "--no-progress"]
-    for round_ in range(6):
+    for round_ in range(8):
         # kill once the run has made some random progress (machine load does not matter)
-        start, more = _markers(out), rng.randint(1, 40)
+        start, more = _markers(out), rng.randint(1, 25)
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         try:
             deadline = time.time() + 300
