@@ -100,7 +100,9 @@ def measure_config(cams: int, size, voxel: float, work: Path) -> dict:
     crossings, rays = ray_crossings(session.cameras, session.grid, fg)
     import zarr
 
-    attrs = zarr.open_group(store, mode="r").attrs
+    from schlieren.storage.store import decode_attrs
+
+    attrs = decode_attrs(zarr.open_group(store, mode="r").attrs)
     ext = {"raw_offset": int(attrs["run"]["frames"][0]) - int(attrs["run"]["raw_first"])}
     row = {"cameras": cams, "image": list(size), "voxel_size": voxel, "pixels": size[0] * size[1],
            "voxels": int(np.prod(session.grid.shape)), "grid_zyx": list(session.grid.shape), "rays": int(rays),

@@ -8,6 +8,11 @@ The directory is written under a temporary name and renamed when complete, so a 
 never leaves a half-written cache that looks valid; its manifest records each file's size
 and CRC-32C, which :func:`verify_arrays` checks (``schlieren verify``, and every worker
 when it first maps the geometry).
+
+A store on object storage (an fsspec URL) has no files to map: the folder's files are
+uploaded there with ``manifest.json`` last (its presence means complete), and each
+machine that loads them stages one local copy (:func:`schlieren.storage.location.stage_folder`,
+keyed by the URL and the manifest's version) and maps that.
 """
 
 from __future__ import annotations
@@ -20,22 +25,32 @@ from pathlib import Path
 
 import numpy as np
 
+from schlieren.storage import location
+
 __all__ = ["cache_root", "cache_dir", "save_arrays", "load_arrays", "has_arrays", "remove_cache", "verify_arrays"]
 
 
-def cache_root(store_path: str | os.PathLike) -> Path:
-    """The cache folder of a store: ``<store>.cache`` beside it (``run.zarr.cache``)."""
-    p = Path(os.fspath(store_path).rstrip("/\\"))
+def cache_root(store_path: str | os.PathLike) -> Path | str:
+    """The cache folder of a store: ``<store>.cache`` beside it (``run.zarr.cache``; a URL
+    beside a store on object storage)."""
+    loc = location.normalize(store_path)
+    if location.is_url(loc):
+        return loc + ".cache"
+    p = Path(loc.rstrip("/\\"))
     return p.with_name(p.name + ".cache")
 
 
-def cache_dir(store_path: str | os.PathLike, name: str, key: str) -> Path:
+def cache_dir(store_path: str | os.PathLike, name: str, key: str) -> Path | str:
     """Folder for a cached set of arrays: ``<store>.cache/<name>-<key>``."""
-    return cache_root(store_path) / f"{name}-{key}"
+    root = cache_root(store_path)
+    return location.join(root, f"{name}-{key}") if isinstance(root, str) else root / f"{name}-{key}"
 
 
 def remove_cache(store_path: str | os.PathLike) -> int:
     """Delete the store's cache folder (and a pre-0.2 ``<store>/_cache``); returns the bytes freed."""
+    loc = location.normalize(store_path)
+    if location.is_url(loc):
+        return location.remove_tree(cache_root(loc)) + location.remove_tree(location.join(loc, "_cache"))
     freed = 0
     for root in (cache_root(store_path), Path(store_path) / "_cache"):
         if root.is_dir():
@@ -45,11 +60,15 @@ def remove_cache(store_path: str | os.PathLike) -> int:
 
 
 def has_arrays(path: str | os.PathLike) -> bool:
+    if location.is_url(location.normalize(path)):
+        return location.isfile(location.join(path, "manifest.json"))
     return (Path(path) / "manifest.json").is_file()
 
 
-def save_arrays(path: str | os.PathLike, arrays: dict) -> Path:
+def save_arrays(path: str | os.PathLike, arrays: dict) -> Path | str:
     """Write a dict of arrays (and JSON-able scalars) atomically as ``.npy`` files."""
+    if location.is_url(location.normalize(path)):
+        return _upload_arrays(location.normalize(path), arrays)
     path = Path(path)
     if has_arrays(path):
         return path
@@ -72,9 +91,28 @@ def save_arrays(path: str | os.PathLike, arrays: dict) -> Path:
     return path
 
 
+def _upload_arrays(url: str, arrays: dict) -> str:
+    """:func:`save_arrays` to an object store: written locally, uploaded, ``manifest.json`` last."""
+    if has_arrays(url):
+        return url
+    local = location.local_cache_dir("upload") / f"{location.basename(url)}.{uuid.uuid4().hex}"
+    try:
+        save_arrays(local, arrays)
+        files = {location.join(url, f.name): f.read_bytes() for f in local.iterdir() if f.name != "manifest.json"}
+        location.write_many(files)
+        location.write_bytes(location.join(url, "manifest.json"), (local / "manifest.json").read_bytes())
+        location.adopt_staged_folder(url, local, complete_marker="manifest.json")
+    finally:
+        shutil.rmtree(local, ignore_errors=True)
+    return url
+
+
 def load_arrays(path: str | os.PathLike, *, mmap: bool = True) -> dict:
-    """Read arrays saved by :func:`save_arrays` (memory-mapped read-only by default)."""
-    path = Path(path)
+    """Read arrays saved by :func:`save_arrays` (memory-mapped read-only by default).
+
+    From an object store the folder is first staged once per machine (see the module doc).
+    """
+    path = Path(location.stage_folder(path, complete_marker="manifest.json"))
     meta = json.loads((path / "manifest.json").read_text())
     out = dict(meta["scalars"])
     for k in meta["arrays"]:
@@ -100,6 +138,11 @@ def verify_arrays(path: str | os.PathLike, *, read: bool = True) -> list[str]:
     Checks that every file listed in the manifest exists with its size and, with
     ``read``, its CRC-32C (sets saved before checksums were recorded: existence only).
     """
+    if location.is_url(location.normalize(path)):  # an object store: check the staged copy
+        try:
+            path = location.stage_folder(path, complete_marker="manifest.json")
+        except (OSError, ValueError) as exc:
+            return [f"{path}: cannot be fetched ({exc})"]
     path = Path(path)
     try:
         meta = json.loads((path / "manifest.json").read_text())

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["ChunkLayout", "CorruptChunk", "chunk_layout", "add_checksum", "strip_checksum"]
+__all__ = ["ChunkLayout", "CorruptChunk", "chunk_layout", "chunk_of", "add_checksum", "strip_checksum"]
 
 
 class CorruptChunk(ValueError):
@@ -84,15 +84,7 @@ class ChunkLayout:
 
     def chunk_of(self, region: tuple[slice, ...]) -> tuple[int, ...] | None:
         """Grid coordinates of the single whole chunk ``region`` covers, or None."""
-        if len(region) != len(self.chunks):
-            return None
-        out = []
-        for sl, c, n in zip(region, self.chunks, self.shape):
-            start, stop = sl.start, sl.stop
-            if start % c or stop - start != min(c, n - start):
-                return None
-            out.append(start // c)
-        return tuple(out)
+        return chunk_of(region, self.chunks, self.shape)
 
     def path(self, coords: tuple[int, ...]) -> str:
         if not coords:  # a 0-d array has the single chunk "c"
@@ -173,6 +165,19 @@ class ChunkLayout:
             except OSError:
                 pass
             raise
+
+
+def chunk_of(region: tuple[slice, ...], chunks: tuple[int, ...], shape: tuple[int, ...]) -> tuple[int, ...] | None:
+    """Grid coordinates of the single whole chunk ``region`` covers (any store), or None."""
+    if len(region) != len(chunks):
+        return None
+    out = []
+    for sl, c, n in zip(region, chunks, shape):
+        start, stop = sl.start, sl.stop
+        if start % c or stop - start != min(c, n - start):
+            return None
+        out.append(start // c)
+    return tuple(out)
 
 
 def _all_fill(a: np.ndarray, fill) -> bool:

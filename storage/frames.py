@@ -11,20 +11,29 @@ deflections are sub-pixel).
 Readers open their files lazily and drop open handles when pickled, so a
 :class:`FrameSource` can be built on the coordinator and shipped to a worker.
 
+Paths may be fsspec URLs (``s3://bucket/capture/cam00/frames/%05d.png``): image files
+are then fetched and decoded from memory (one request per frame, the same decoder as
+for files), and a video is staged once per machine into a local file that OpenCV reads
+(:func:`schlieren.storage.location.stage`).
+
 Errors are :class:`~schlieren.storage.errors.SessionError` naming the file, the camera
 and the frame index (as ``frames[i]``, 0-based within the source).
 """
 
 from __future__ import annotations
 
+import io
 import logging
 import os
+import posixpath
 import re
+from collections import OrderedDict
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from schlieren.storage import location
 from schlieren.storage.errors import SessionError
 
 __all__ = [
@@ -43,6 +52,8 @@ __all__ = [
     "is_video",
     "image_header",
     "image_incomplete",
+    "images_incomplete",
+    "image_headers",
     "VIDEO_EXTENSIONS",
     "IMAGE_EXTENSIONS",
 ]
@@ -88,7 +99,7 @@ def frames_kind(spec: str | os.PathLike) -> str | None:
         return "sequence"
     if is_glob(text):
         return "glob"
-    if text.endswith(("/", os.sep)) or os.path.isdir(text):
+    if text.endswith(("/", os.sep)) or os.path.isdir(text) or _is_remote_folder(text):
         return "folder"
     suffix = Path(text).suffix.lower()
     if suffix in VIDEO_EXTENSIONS:
@@ -98,6 +109,12 @@ def frames_kind(spec: str | os.PathLike) -> str | None:
     if suffix in IMAGE_EXTENSIONS:
         return "image"
     return None
+
+
+def _is_remote_folder(text: str) -> bool:
+    """A URL without a file suffix under which objects exist (a folder on object storage)."""
+    return location.is_url(text) and not Path(text).suffix and location.exists(text) \
+        and not location.isfile(text)
 
 
 def _natural_key(path: str):
@@ -134,7 +151,7 @@ def _grey_of_raw(img: np.ndarray, *, file: str, camera: str | None, field: str |
 
 
 def read_image(path: str | os.PathLike, *, camera_name: str | None = None,
-               field: str | None = None) -> tuple[np.ndarray, np.dtype]:
+               field: str | None = None, fetch=None) -> tuple[np.ndarray, np.dtype]:
     """Read one image file as float32 grey levels.
 
     Parameters
@@ -143,6 +160,8 @@ def read_image(path: str | os.PathLike, *, camera_name: str | None = None,
         PNG/TIFF (8 or 16 bit, grey or colour) or any format OpenCV reads.
     camera_name, field : str, optional
         Named in the error message if the file is missing or cannot be decoded.
+    fetch : callable, optional
+        ``fetch(url) -> bytes`` for a URL (default :func:`schlieren.storage.location.read_bytes`).
 
     Returns
     -------
@@ -152,16 +171,25 @@ def read_image(path: str | os.PathLike, *, camera_name: str | None = None,
         The file's sample type (uint8, uint16, float32, ...).
     """
     p = os.fspath(path)
-    if not os.path.isfile(p):
+    if location.is_url(p):
+        try:
+            blob = (fetch or location.read_bytes)(p)
+        except (FileNotFoundError, IsADirectoryError):
+            raise SessionError("file not found", file=p, camera=camera_name, field=field) from None
+        except OSError as exc:
+            raise SessionError(f"cannot read the file ({exc})", file=p, camera=camera_name, field=field) from None
+        img = cv2.imdecode(np.frombuffer(blob, dtype=np.uint8), cv2.IMREAD_UNCHANGED) if blob else None
+    elif not os.path.isfile(p):
         raise SessionError("file not found", file=p, camera=camera_name, field=field)
-    img = cv2.imread(p, cv2.IMREAD_UNCHANGED)  # any depth, any channels, as stored
+    else:
+        img = cv2.imread(p, cv2.IMREAD_UNCHANGED)  # any depth, any channels, as stored
     if img is None or img.size == 0:
         raise SessionError("cannot decode the image (corrupt or unsupported format)", file=p,
                            camera=camera_name, field=field)
     return _grey_of_raw(img, file=p, camera=camera_name, field=field), img.dtype
 
 
-def image_header(path: str | os.PathLike) -> tuple[int, int] | None:
+def image_header(path: str | os.PathLike, head: bytes | None = None) -> tuple[int, int] | None:
     """``(width, height)`` from an image file's header without decoding it, or None.
 
     Uses Pillow's lazy opener (reads a few bytes). None means the file is not an image
@@ -172,14 +200,34 @@ def image_header(path: str | os.PathLike) -> tuple[int, int] | None:
         from PIL import Image, UnidentifiedImageError
     except ImportError:  # pragma: no cover - Pillow comes with matplotlib
         return None
+    p = os.fspath(path)
     try:
-        with Image.open(os.fspath(path)) as im:
+        # an object store: the first 64 KiB in one ranged request hold any usual header
+        # (``head``: those bytes, already fetched with others'; see :func:`image_headers`)
+        if head is None and location.is_url(p):
+            head = location.read_bytes(p, 0, HEADER_BYTES)
+        src = io.BytesIO(head) if head is not None else p
+        with Image.open(src) as im:
             return int(im.size[0]), int(im.size[1])
     except (OSError, UnidentifiedImageError, ValueError, SyntaxError):
         return None
 
 
 _PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"
+
+
+def _incomplete(head: bytes, tail: bytes, size: int, tiff_tags=None) -> str | None:
+    if head.startswith(b"\x89PNG\r\n\x1a\n"):
+        return None if tail.endswith(_PNG_END) else "the PNG ends before its IEND chunk"
+    if head.startswith(b"\xff\xd8"):
+        return None if b"\xff\xd9" in tail else "the JPEG has no end-of-image marker"
+    if head[:4] in (b"II*\x00", b"MM\x00*") and tiff_tags is not None:
+        offsets, counts = tiff_tags
+        if offsets and counts:
+            end = max(int(o) + int(c) for o, c in zip(offsets, counts))
+            if end > size:
+                return f"the TIFF's image data ends at byte {end}, past the file's {size} bytes"
+    return None
 
 
 def image_incomplete(path: str | os.PathLike) -> str | None:
@@ -198,25 +246,45 @@ def image_incomplete(path: str | os.PathLike) -> str | None:
             tail = f.read()
     except OSError as exc:
         return f"cannot read it ({exc.strerror or exc})"
-    if head.startswith(b"\x89PNG\r\n\x1a\n"):
-        return None if tail.endswith(_PNG_END) else "the PNG ends before its IEND chunk"
-    if head.startswith(b"\xff\xd8"):
-        return None if b"\xff\xd9" in tail else "the JPEG has no end-of-image marker"
+    tags = None
     if head[:4] in (b"II*\x00", b"MM\x00*"):
         try:
             from PIL import Image
 
             with Image.open(p) as im:
-                tags = im.tag_v2
-                offsets = tags.get(273) or tags.get(324)
-                counts = tags.get(279) or tags.get(325)
+                t = im.tag_v2
+                tags = (t.get(273) or t.get(324), t.get(279) or t.get(325))
         except Exception as exc:  # noqa: BLE001 - Pillow raises many types for broken files
             return f"the TIFF header does not parse ({type(exc).__name__})"
-        if offsets and counts:
-            end = max(int(o) + int(c) for o, c in zip(offsets, counts))
-            if end > size:
-                return f"the TIFF's image data ends at byte {end}, past the file's {size} bytes"
-    return None
+    return _incomplete(head, tail, size, tags)
+
+
+def images_incomplete(paths: list[str]) -> list[str | None]:
+    """:func:`image_incomplete` of each file; on an object store the PNG and JPEG ends are
+    fetched in two concurrent batches (TIFF strips are not checked there)."""
+    if not paths or not location.is_url(os.fspath(paths[0])):
+        return [image_incomplete(p) for p in paths]
+    try:
+        fs, _ = location.filesystem(os.fspath(paths[0]))
+        sizes = [int(fs.size(location.filesystem(os.fspath(p))[1])) for p in paths]
+        heads = location.read_many([os.fspath(p) for p in paths], 0, 8)
+        tails = [location.read_bytes(os.fspath(p), max(0, n - 64), n) for p, n in zip(paths, sizes)]
+    except Exception as exc:  # noqa: BLE001 - a store that cannot answer: decoding will tell
+        log.debug("completeness of %d remote frames not checked: %s", len(paths), exc)
+        return [None] * len(paths)
+    return [_incomplete(h or b"", t or b"", n) for h, t, n in zip(heads, tails, sizes)]
+
+
+#: Leading bytes of an image file fetched from an object store to read its header.
+HEADER_BYTES = 1 << 16
+
+
+def image_headers(paths: list[str]) -> list[tuple[int, int] | None]:
+    """:func:`image_header` of each file; from an object store in one concurrent batch."""
+    if not paths or not location.is_url(os.fspath(paths[0])):
+        return [image_header(p) for p in paths]
+    heads = location.read_many([os.fspath(p) for p in paths], 0, HEADER_BYTES)
+    return [image_header(p, h) if h is not None else None for p, h in zip(paths, heads)]
 
 
 class FrameSource:
@@ -242,6 +310,9 @@ class FrameSource:
     def file_of(self, i: int) -> str:
         """The file holding frame ``i`` (the video file for videos)."""
         return self.path
+
+    def prefetch(self, indices) -> None:
+        """Frames about to be read (a hint: image files at a URL are fetched together)."""
 
     @property
     def size(self) -> tuple[int, int]:
@@ -290,14 +361,49 @@ class ImageSequence(FrameSource):
         self.first, self._count = self._scan()
         self._size = None
         self._raw_dtype = None
+        self._blobs: OrderedDict[str, bytes] = OrderedDict()  # frames fetched from a URL
+
+    #: Bytes of encoded frames a reader at a URL keeps: stages read the same frames
+    #: (statistics, strobe search, deflection), and each fetch is a request.
+    BLOB_CACHE_BYTES = 32 * 2 ** 20
+
+    def _fetch(self, url: str) -> bytes:
+        blob = self._blobs.get(url)
+        if blob is None:
+            blob = location.read_bytes(url)
+            self._keep(url, blob)
+        else:
+            self._blobs.move_to_end(url)
+        return blob
+
+    def _keep(self, url: str, blob: bytes) -> None:
+        self._blobs[url] = blob
+        while sum(len(b) for b in self._blobs.values()) > self.BLOB_CACHE_BYTES and len(self._blobs) > 1:
+            self._blobs.popitem(last=False)
+
+    def prefetch(self, indices) -> None:
+        """Fetch the files of frames ``indices`` from a URL in one concurrent batch (kept
+        for the reads that follow, within :attr:`BLOB_CACHE_BYTES`); nothing for folders."""
+        if not location.is_url(self.path):
+            return
+        urls = [self.file_of(k) for k in sorted(set(int(k) for k in indices)) if 0 <= k < self._count]
+        urls = [u for u in urls if u not in self._blobs]
+        for url, blob in zip(urls, location.read_many(urls)):
+            if blob is not None:  # a missing file is reported by the read itself
+                self._keep(url, blob)
+
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        state["_blobs"] = OrderedDict()
+        return state
 
     def _scan(self) -> tuple[int, int]:
-        directory, base = os.path.split(self.path)
+        directory, base = (posixpath if location.is_url(self.path) else os.path).split(self.path)
         directory = directory or "."
         if _DIRECTIVE.search(directory):
             return self._scan_by_stat()
         try:
-            names = os.listdir(directory)
+            names = location.listdir(directory)
         except OSError:
             raise SessionError("the frame folder does not exist or cannot be listed",
                                file=self.path, camera=self.camera_name) from None
@@ -330,16 +436,16 @@ class ImageSequence(FrameSource):
         return first, n
 
     def _scan_by_stat(self) -> tuple[int, int]:
-        if os.path.isfile(self.path % 0):
+        if location.isfile(self.path % 0):
             first = 0
-        elif os.path.isfile(self.path % 1):
+        elif location.isfile(self.path % 1):
             first = 1
         else:
             raise SessionError(
                 f"no frame file found: neither {self.path % 0} nor {self.path % 1} exists",
                 file=self.path, camera=self.camera_name, field="frames[0]")
         n = 0
-        while os.path.isfile(self.path % (first + n)):
+        while location.isfile(self.path % (first + n)):
             n += 1
         return first, n
 
@@ -351,7 +457,8 @@ class ImageSequence(FrameSource):
 
     def read(self, i: int) -> np.ndarray:
         i = self._check_index(i)
-        img, raw = read_image(self.file_of(i), camera_name=self.camera_name, field=f"frames[{i}]")
+        img, raw = read_image(self.file_of(i), camera_name=self.camera_name, field=f"frames[{i}]",
+                              fetch=self._fetch)
         self._remember(img, raw, i)
         return img
 
@@ -390,7 +497,18 @@ class ImageFiles(ImageSequence):
 
         self.path = os.fspath(spec)
         self.camera_name = camera_name
-        if is_glob(self.path):
+        self._blobs = OrderedDict()
+        if location.is_url(self.path):  # a glob or a folder on object storage: one listing
+            fs, path = location.filesystem(self.path)
+            scheme = self.path.split("://", 1)[0] + "://"
+            try:
+                names = [scheme + f for f in fs.glob(path)] if is_glob(self.path) else \
+                    [location.join(self.path, f) for f in location.listdir(self.path)]
+            except OSError:
+                names = []
+            files = [f for f in names if Path(f).suffix.lower() in IMAGE_EXTENSIONS]
+            what = "the pattern or folder matches no image files"
+        elif is_glob(self.path):
             files = [f for f in glob.glob(self.path) if os.path.isfile(f)
                      and Path(f).suffix.lower() in IMAGE_EXTENSIONS]
             what = "the pattern matches no image files"
@@ -420,14 +538,15 @@ class MultiPageTiff(FrameSource):
     def __init__(self, path: str | os.PathLike, *, camera_name: str | None = None):
         self.path = os.fspath(path)
         self.camera_name = camera_name
-        if not os.path.isfile(self.path):
+        if not location.isfile(self.path):
             raise SessionError("TIFF file not found", file=self.path, camera=camera_name)
+        self._file = location.stage(self.path)  # a local copy of a TIFF at a URL, once per machine
         self._size = None
         self._raw_dtype = None
         try:
             from PIL import Image
 
-            with Image.open(self.path) as im:
+            with Image.open(self._file) as im:
                 self._count = int(getattr(im, "n_frames", 1))
         except (OSError, ValueError, SyntaxError) as exc:
             raise SessionError(f"cannot read the TIFF file ({exc})", file=self.path,
@@ -441,8 +560,10 @@ class MultiPageTiff(FrameSource):
         from PIL import Image
 
         i = self._check_index(i)
+        if not os.path.isfile(self._file):  # unpickled on another machine
+            self._file = location.stage(self.path)
         try:
-            with Image.open(self.path) as im:
+            with Image.open(self._file) as im:
                 im.seek(i)
                 page = np.array(im)
         except (OSError, ValueError, EOFError, SyntaxError) as exc:
@@ -542,13 +663,15 @@ class VideoFrames(FrameSource):
     jumps ahead, up to ``FORWARD_GRAB_LIMIT`` frames) reuse the open decoder. If a seek is
     refused or lands elsewhere, the reader reopens the file and decodes sequentially up to
     the frame. A frame that cannot be decoded raises
-    :class:`SessionError` naming the file, the camera and the frame index.
+    :class:`SessionError` naming the file, the camera and the frame index. A video at a
+    URL is decoded from a local copy staged once per machine.
     """
 
     def __init__(self, path: str | os.PathLike, *, camera_name: str | None = None):
         self.path = os.fspath(path)
         self.camera_name = camera_name
-        if not os.path.isfile(self.path):
+        self._file = None  # the local file OpenCV reads (a staged copy for a URL)
+        if not location.isfile(self.path):
             raise SessionError("video file not found", file=self.path, camera=camera_name)
         self._cap = None
         self._next = 0  # index of the frame the open decoder returns next
@@ -561,9 +684,18 @@ class VideoFrames(FrameSource):
         self._count = n
 
     # -- handle management ------------------------------------------------------
+    def _local(self) -> str:
+        if self._file is None or not os.path.isfile(self._file):  # unpickled on another machine
+            try:
+                self._file = location.stage(self.path)
+            except OSError as exc:
+                raise SessionError(f"cannot fetch the video ({exc})", file=self.path,
+                                   camera=self.camera_name) from None
+        return self._file
+
     def _open(self) -> cv2.VideoCapture:
         if self._cap is None:
-            cap = cv2.VideoCapture(self.path)
+            cap = cv2.VideoCapture(self._local())
             if not cap.isOpened():
                 raise SessionError("cannot open the video (corrupt or unsupported codec)",
                                    file=self.path, camera=self.camera_name)

@@ -263,10 +263,10 @@ def checked(path_or_store, *, read_only: bool, location: str | None = None) -> C
     if isinstance(path_or_store, CheckedStore):
         return path_or_store
     if isinstance(path_or_store, (str, os.PathLike)):
-        from zarr.storage import LocalStore
+        from schlieren.storage import location as loc_mod
 
-        return CheckedStore(LocalStore(os.fspath(path_or_store), read_only=read_only),
-                            location if location is not None else os.fspath(path_or_store))
+        loc = loc_mod.normalize(path_or_store)  # a folder (LocalStore) or a URL (FsspecStore)
+        return CheckedStore(loc_mod.zarr_store(loc, read_only=read_only), location if location is not None else loc)
     return CheckedStore(path_or_store, location)
 
 
@@ -280,8 +280,7 @@ def open_dataset(path, **kwargs):
     import xarray as xr
 
     kwargs.setdefault("consolidated", False)
-    return xr.open_zarr(checked(path, read_only=True, location=os.fspath(path)
-                                if isinstance(path, (str, os.PathLike)) else None), **kwargs)
+    return xr.open_zarr(checked(path, read_only=True), **kwargs)
 
 
 # --------------------------------------------------------------------------------------

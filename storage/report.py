@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from schlieren.pipeline.geometry import Camera, Grid, Medium, rodrigues
+from schlieren.storage import location
 from schlieren.storage.errors import SchlierenInputError, StoreError
 from schlieren.storage.layout import STORE_FORMAT
 from schlieren.storage.store import decode_attrs
@@ -67,18 +68,18 @@ def open_result(store_path: str | os.PathLike):
     """
     import zarr
 
-    path = Path(store_path)
-    if not path.exists():
-        raise StoreError("result store not found", file=str(path))
     from schlieren.storage.integrity import checked
 
+    path = location.normalize(store_path)
+    if not location.exists(path):
+        raise StoreError("result store not found", file=path)
     try:  # reads are checked: a corrupt chunk, or one lost under a set marker, raises ChunkError
-        group = zarr.open_group(checked(str(path), read_only=True), mode="r")
+        group = zarr.open_group(checked(path, read_only=True), mode="r")
     except Exception as exc:  # zarr raises several types for "not a group"
-        raise StoreError(f"not a Zarr group ({type(exc).__name__}: {exc})", file=str(path)) from None
+        raise StoreError(f"not a Zarr group ({type(exc).__name__}: {exc})", file=path) from None
     fmt = group.attrs.get("format")
     if fmt is not None and fmt != STORE_FORMAT:
-        raise StoreError(f"unknown store format {fmt!r} (expected {STORE_FORMAT})", file=str(path),
+        raise StoreError(f"unknown store format {fmt!r} (expected {STORE_FORMAT})", file=path,
                          field="format")
     return group
 
@@ -231,12 +232,14 @@ def cameras_from_session(session: dict, time_offsets=None) -> list[Camera]:
     return out
 
 
-def _session_root(attrs: dict) -> Path | None:
+def _session_root(attrs: dict) -> str | None:
     p = attrs.get("session_path")
     if not p:
         return None
+    if location.is_url(p):
+        return location.parent(p) if p.lower().endswith((".yaml", ".yml", ".json")) else p
     p = Path(p)
-    return p.parent if p.suffix.lower() in (".yaml", ".yml", ".json") or p.is_file() else p
+    return str(p.parent if p.suffix.lower() in (".yaml", ".yml", ".json") or p.is_file() else p)
 
 
 def _first_session_frame(attrs: dict) -> int:
@@ -274,7 +277,7 @@ class ReportReader:
                 "temperature": "integrate"}
 
     def __init__(self, store_path: str | os.PathLike):
-        self.path = Path(store_path)
+        self.path = location.normalize(store_path)
         self._group = open_result(store_path)
         #: root attributes of the store (``session``, ``params``, ``stage_times``, ``run``, ...)
         self.attrs: dict = decode_attrs(self._group.attrs)
@@ -312,7 +315,7 @@ class ReportReader:
     @property
     def name(self) -> str:
         """Session name, else the store's file name."""
-        return str(self.attrs.get("session_name") or _get(self.session, "name") or self.path.name)
+        return str(self.attrs.get("session_name") or _get(self.session, "name") or location.basename(self.path))
 
     @property
     def n_frames(self) -> int:
@@ -457,11 +460,11 @@ class ReportReader:
         cams = _get(self.session, "cameras") or []
         if root is None or cam_index >= len(cams) or not cams[cam_index].get("frames"):
             return None, "the store does not name the session's frames"
-        spec = root / str(cams[cam_index]["frames"])
+        spec = location.join(root, str(cams[cam_index]["frames"]))
         try:
             src = open_frames(spec, camera_name=cams[cam_index].get("name"))
             idx = min(max(capture_index, 0), len(src) - 1)
-            return src.read(idx), f"{spec.name}, capture frame {idx}"
+            return src.read(idx), f"{location.basename(spec)}, capture frame {idx}"
         except (SchlierenInputError, OSError, ValueError) as exc:
             return None, f"camera frame not readable: {exc}"
 

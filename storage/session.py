@@ -32,6 +32,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from schlieren.pipeline import resources as _resources
 from schlieren.pipeline.geometry import Camera, Grid, Medium, rodrigues
+from schlieren.storage import location
 from schlieren.storage.errors import SessionError
 from schlieren.storage.frames import (
     FrameSource,
@@ -41,7 +42,8 @@ from schlieren.storage.frames import (
     VideoFrames,
     frames_kind,
     image_header,
-    image_incomplete,
+    image_headers,
+    images_incomplete,
     open_frames,
     read_image,
 )
@@ -100,9 +102,9 @@ def _construct_mapping(loader, node, deep=False):
 _ManifestLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
 
 
-def _read_yaml(path: Path) -> Any:
+def _read_yaml(path: Path | str) -> Any:
     try:
-        text = path.read_text(encoding="utf-8")
+        text = location.read_bytes(path).decode("utf-8")
     except UnicodeDecodeError:
         raise SessionError("the manifest is not UTF-8 text", file=str(path)) from None
     except OSError as exc:
@@ -464,8 +466,9 @@ class Session:
     Attributes
     ----------
     name : str
-    root : Path
-        The session folder (absolute); manifest paths are relative to it.
+    root : Path or str
+        The session folder (absolute; a URL string for a session on object storage);
+        manifest paths are relative to it.
     manifest : dict
         The manifest as loaded (plain JSON-compatible data).
     format : str
@@ -491,7 +494,7 @@ class Session:
     """
 
     name: str
-    root: Path
+    root: Path | str
     manifest: dict
     format: str
     frame_rate: float
@@ -502,7 +505,7 @@ class Session:
     cameras: list[Camera]
     sources: list[CameraSource]
     n_frames_available: int | None
-    manifest_path: Path = field(default=Path(MANIFEST_NAME))
+    manifest_path: Path | str = field(default=Path(MANIFEST_NAME))
     allow_external_paths: bool = False
 
     @property
@@ -559,7 +562,13 @@ def _check_range(rng: tuple[int, int], n: int | None, *, file: str, field: str, 
                            file=file, field=field)
 
 
-def _resolve(spec: str, root: Path, *, allow_external: bool, file: str, camera: str, field: str) -> str:
+def _resolve(spec: str, root: Path | str, *, allow_external: bool, file: str, camera: str, field: str) -> str:
+    if location.is_url(spec):
+        if not allow_external:
+            raise SessionError(f"URL {spec!r} is not allowed (paths are relative to the session folder "
+                               "unless allow_external_paths: true)", file=file, camera=camera, field=field)
+        return location.normalize(spec)
+    remote = location.is_url(str(root))  # a session on object storage: "/"-separated paths below it
     if not allow_external:
         if spec.startswith("~") or os.path.isabs(spec) or re.match(r"^[A-Za-z]:[\\/]", spec):
             raise SessionError(f"absolute path {spec!r} is not allowed (paths are relative to the "
@@ -569,6 +578,8 @@ def _resolve(spec: str, root: Path, *, allow_external: bool, file: str, camera: 
         if norm == ".." or norm.startswith(".." + os.sep) or norm.startswith("../"):
             raise SessionError(f"path {spec!r} escapes the session folder (set allow_external_paths: "
                                "true to allow it)", file=file, camera=camera, field=field)
+        if remote:
+            return location.join(str(root), norm.replace(os.sep, "/"))
         out = str(root / norm)
         # folders on the way (a pattern's folder) may be symbolic links out of the session
         existing = out
@@ -577,12 +588,16 @@ def _resolve(spec: str, root: Path, *, allow_external: bool, file: str, camera: 
         _check_contained(existing, root, file=file, camera=camera, field=field, what=spec)
         return out
     spec = os.path.expanduser(spec)
-    return spec if os.path.isabs(spec) else os.path.normpath(str(root / spec))
+    if os.path.isabs(spec):
+        return spec
+    return location.join(str(root), spec) if remote else os.path.normpath(str(root / spec))
 
 
 def _check_contained(path: str, root: Path, *, file: str, camera: str | None, field: str | None,
                      what: str | None = None) -> None:
     """Refuse ``path`` if, with every symbolic link resolved, it is not inside ``root``."""
+    if location.is_url(str(path)) or location.is_url(str(root)):
+        return  # object stores have no symbolic links
     real = os.path.realpath(path)
     base = os.path.realpath(root)
     if real != base and not real.startswith(base.rstrip(os.sep) + os.sep):
@@ -594,16 +609,18 @@ def _check_contained(path: str, root: Path, *, file: str, camera: str | None, fi
 def _check_files_contained(i: int, cam: Camera, src: CameraSource, fs: FrameSource, indices, root: Path,
                            mfile: str) -> None:
     """Every frame and reference file a run will open, symlinks resolved, is in the session folder."""
+    if location.is_url(str(root)):
+        return  # object stores have no symbolic links
     frames = [fs.file_of(k) for k in indices] if isinstance(fs, ImageSequence) else [fs.path]
     for k, f in zip(indices if isinstance(fs, ImageSequence) else [None], frames):
         _check_contained(f, root, file=mfile, camera=cam.name,
                          field=f"cameras[{i}].frames" + (f"[{k}]" if k is not None else ""), what=f)
-    if src.reference_kind == "sequence":
+    refs = [src.reference]
+    if src.reference_kind not in ("image", "video"):  # a sequence (pattern, glob, folder) or a TIFF
         with _qualified(i, "reference"):
-            seq = ImageSequence(src.reference, camera_name=cam.name)
-        refs = [seq.file_of(k) for k in range(len(seq))]
-    else:
-        refs = [src.reference]
+            seq = open_frames(src.reference, camera_name=cam.name)
+        if isinstance(seq, ImageSequence):
+            refs = [seq.file_of(k) for k in range(len(seq))]
     for f in refs:
         _check_contained(f, root, file=mfile, camera=cam.name, field=f"cameras[{i}].reference", what=f)
 
@@ -767,15 +784,14 @@ def _check_frames_content(i: int, cam: Camera, fs: FrameSource, indices: list[in
                 break
         return
     if isinstance(fs, ImageSequence):
-        for k in indices:
-            size = image_header(fs.file_of(k))
+        incomplete = images_incomplete([fs.file_of(k) for k in indices])
+        for k, size, why in zip(indices, image_headers([fs.file_of(k) for k in indices]), incomplete):
             if size is None:  # a format Pillow does not know, or a corrupt file: decode it
                 img, _ = read_image(fs.file_of(k), camera_name=cam.name, field=f"frames[{k}]")
                 size = (img.shape[1], img.shape[0])
             if size != (W, H):
                 raise SessionError(f"frame {k} is {size[0]}x{size[1]} pixels but image_size is [{W}, {H}]",
                                    file=fs.file_of(k), camera=cam.name, field=f"cameras[{i}].image_size")
-            why = image_incomplete(fs.file_of(k))
             if why is not None:
                 raise SessionError(f"frame {k} is truncated: {why}", file=fs.file_of(k), camera=cam.name,
                                    field=f"cameras[{i}].frames[{k}]")
@@ -793,7 +809,7 @@ def _check_reference(i: int, cam: Camera, source: CameraSource) -> None:
     ref = source.reference
     fld = f"cameras[{i}].reference"
     if source.reference_kind == "image":
-        if not os.path.isfile(ref):
+        if not location.isfile(ref):
             raise SessionError("reference image not found", file=ref, camera=cam.name, field=fld)
         size = image_header(ref)
         if size is None:
@@ -825,7 +841,7 @@ def _check_reference(i: int, cam: Camera, source: CameraSource) -> None:
         if size != (W, H):
             raise SessionError(f"reference is {size[0]}x{size[1]} pixels but image_size is [{W}, {H}]",
                                file=f, camera=cam.name, field=fld)
-        why = image_incomplete(f) if source.reference_kind != "video" else None
+        why = images_incomplete([f])[0] if source.reference_kind != "video" else None
         if why is not None:
             raise SessionError(f"the reference is truncated: {why}", file=f, camera=cam.name, field=fld)
 
@@ -876,15 +892,28 @@ def load_session(path: str | os.PathLike, *, frames: tuple[int, int] | None = No
     SessionError
         One line naming the file, the camera and the field.
     """
-    p = Path(path).expanduser()
-    manifest_path = p / MANIFEST_NAME if p.is_dir() else p
-    mfile = str(manifest_path)
-    if not manifest_path.is_file():
-        where = f"no {MANIFEST_NAME} in the session folder" if p.is_dir() else "session manifest not found"
-        raise SessionError(where, file=mfile)
-    manifest_path = manifest_path.resolve()
-    mfile = str(manifest_path)
-    root = manifest_path.parent
+    if location.is_url(location.normalize(os.fspath(path))):
+        manifest_path = root = None
+        url = location.normalize(os.fspath(path))
+        try:
+            manifest_path = url if location.isfile(url) else location.join(url, MANIFEST_NAME)
+            found = location.isfile(manifest_path)
+        except (OSError, ValueError) as exc:  # no such bucket, no credentials, a bad endpoint...
+            raise SessionError(f"cannot reach the session ({type(exc).__name__}: {exc})", file=url) from None
+        if not found:
+            raise SessionError("session manifest not found", file=manifest_path)
+        mfile = manifest_path
+        root = location.parent(manifest_path)
+    else:
+        p = Path(path).expanduser()
+        manifest_path = p / MANIFEST_NAME if p.is_dir() else p
+        mfile = str(manifest_path)
+        if not manifest_path.is_file():
+            where = f"no {MANIFEST_NAME} in the session folder" if p.is_dir() else "session manifest not found"
+            raise SessionError(where, file=mfile)
+        manifest_path = manifest_path.resolve()
+        mfile = str(manifest_path)
+        root = manifest_path.parent
 
     raw = _read_yaml(manifest_path)
     if raw is None:
@@ -1019,7 +1048,7 @@ def load_session(path: str | os.PathLike, *, frames: tuple[int, int] | None = No
                            camera=c.name, field=f"cameras[{i}].image_size")
 
     return Session(
-        name=m.name if m.name is not None else root.name,
+        name=m.name if m.name is not None else location.basename(root),
         root=root,
         manifest=raw,
         format=m.format,

@@ -24,7 +24,9 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
+import functools
 import hashlib
+import itertools
 import json
 import logging
 import math
@@ -37,7 +39,8 @@ import numpy as np
 import zarr
 from zarr.codecs import Crc32cCodec, ZstdCodec
 
-from schlieren.storage.chunkio import ChunkLayout, CorruptChunk, chunk_layout
+from schlieren.storage import location
+from schlieren.storage.chunkio import ChunkLayout, CorruptChunk, chunk_layout, chunk_of
 from schlieren.storage.errors import ChunkError, StoreError
 from schlieren.storage.integrity import (
     INTEGRITY_VERSION,
@@ -49,6 +52,7 @@ from schlieren.storage.integrity import (
     missing_reason,
 )
 from schlieren.storage.layout import STORE_FORMAT, ArraySpec, assert_aligned, normalize_region
+from schlieren.storage.remote import RemoteChunks
 
 __all__ = ["ResultStore", "fingerprint", "to_json", "decode_attrs", "JSON_ATTRS", "remove_store"]
 
@@ -147,7 +151,7 @@ def _now() -> str:
 # --------------------------------------------------------------------------------------
 def _location(path) -> str:
     if isinstance(path, (str, os.PathLike)):
-        return os.fspath(path)
+        return location.normalize(path)
     root = getattr(path, "root", None)  # LocalStore and friends
     return f"{type(path).__name__}({root})" if root is not None else type(path).__name__
 
@@ -176,13 +180,17 @@ class ResultStore:
     constructor directly.
     """
 
-    def __init__(self, group: zarr.Group, location: str, store_arg: Any, mode: str):
+    def __init__(self, group: zarr.Group, location_: str, store_arg: Any, mode: str):
         self._group = group
-        self._location = location
+        self._location = location_
         self._store_arg = store_arg
         self._mode = mode
         self._arrays: dict[str, zarr.Array] = {}
         self._layouts: dict[str, ChunkLayout | None] = {}
+        self._markers_listed: dict[str, set[tuple[int, ...]]] = {}  # object stores: see is_done
+        # object stores: chunk cache and background writes (storage/remote.py)
+        self._remote = RemoteChunks(write_behind=False) \
+            if isinstance(store_arg, str) and location.is_url(location_) else None
         info = decode_attrs(group.attrs).get("integrity")
         self._integrity: dict | None = info if isinstance(info, dict) else None
 
@@ -254,20 +262,27 @@ class ResultStore:
 
         existing = cls._try_open_existing(path, loc)
         if existing is not None:
-            existing._check_resume(root_attrs, specs)
-            existing._create_missing(specs)
+            members = existing._members()
+            existing._check_resume(root_attrs, specs, members)
+            if existing._remote is not None and any(sp.name not in members for sp in specs):
+                # an interrupted upload: complete it through zarr, past the root's array list
+                existing._group = _open_group(loc, mode="r+", zarr_format=3, use_consolidated=False)
+            created = existing._create_missing(specs, existing=members)
             existing._repair_static(specs)
             if not existing.attrs.get("template_complete", False):
                 existing.update_attrs({"template_complete": True})
             else:
                 existing._consolidate()
+            if existing._remote is not None:
+                existing._prefetch(existing._members() if created else members)
             log.info("resuming the existing store %s", loc)
             return existing
 
+        if location.is_url(loc) and isinstance(path, str):
+            return cls._create_by_upload(loc, root_attrs, specs)
         try:
-            group = zarr.open_group(checked(path, read_only=False, location=loc), mode="w-",
-                                    attributes=_encode_attrs({**root_attrs, "created": _now()}, set()),
-                                    zarr_format=3)
+            group = _open_group(path, mode="w-", attributes=_encode_attrs({**root_attrs, "created": _now()}, set()),
+                                zarr_format=3)
         except (FileExistsError, zarr.errors.ContainsGroupError, zarr.errors.ContainsArrayError):
             # created concurrently by someone else
             raise StoreError("the store already exists (created concurrently); not overwriting it",
@@ -277,9 +292,58 @@ class ResultStore:
         store.update_attrs({"template_complete": True})  # also consolidates the metadata
         return store
 
+    @classmethod
+    def _create_by_upload(cls, loc: str, root_attrs: dict, specs: list[ArraySpec]) -> "ResultStore":
+        """Create the template at an object-store URL: built in memory, uploaded in one batch.
+
+        Through zarr's API each array costs several sequential requests (existence checks
+        of the node and its parents, then the metadata): some 370 for the result layout,
+        4 s against a local S3 server. The same objects are built here in a MemoryStore
+        and uploaded concurrently, between a first root metadata (``template_complete``
+        false, so a run killed meanwhile resumes through :meth:`_create_missing`) and the
+        final one, which also holds every array's metadata (zarr's consolidated metadata:
+        a worker opening the store then reads one object instead of one per array).
+        """
+        from zarr.storage import MemoryStore
+
+        objects: dict = {}
+        group = zarr.open_group(MemoryStore(store_dict=objects), mode="w-", zarr_format=3,
+                                attributes=_encode_attrs({**root_attrs, "created": _now()}, set()))
+        in_memory = cls(group, loc, None, "r+")
+        in_memory._create_missing(specs)
+        first_root = objects["zarr.json"].to_bytes()
+        in_memory.update_attrs({"template_complete": True})  # and consolidates the metadata
+        blobs = {key: buf.to_bytes() for key, buf in objects.items()}
+        final_root = blobs.pop("zarr.json")
+        try:
+            location.write_bytes(location.join(loc, "zarr.json"), first_root)
+            location.write_many({location.join(loc, key): blob for key, blob in blobs.items()})
+            location.write_bytes(location.join(loc, "zarr.json"), final_root)
+        except OSError as exc:  # no such bucket, no write permission...
+            raise StoreError(f"cannot write the store ({type(exc).__name__}: {exc})", file=loc) from None
+        store = cls(_open_group(loc, mode="r+", zarr_format=3), loc, loc, "r+")
+        store._prefetch(store._members())
+        return store
+
+    def _members(self) -> dict[str, Any]:
+        """Every array and group below the root by path (zarr fetches their metadata concurrently)."""
+        with warnings.catch_warnings():  # the geometry cache folder beside the arrays
+            warnings.filterwarnings("ignore", message=".*not recognized as a component of a Zarr hierarchy")
+            return dict(self._group.members(max_depth=None))
+
     @staticmethod
     def _try_open_existing(path, loc: str) -> "ResultStore | None":
-        if isinstance(path, (str, os.PathLike)):
+        if location.is_url(loc):
+            try:
+                found = location.isfile(location.join(loc, "zarr.json"))
+                if not found and location.exists(loc):
+                    raise StoreError("the location holds objects but no result store; not overwriting it",
+                                     file=loc)
+            except (OSError, ValueError) as exc:  # no such bucket, no credentials, a bad endpoint...
+                raise StoreError(f"cannot reach the store ({type(exc).__name__}: {exc})", file=loc) from None
+            if not found:
+                return None
+        elif isinstance(path, (str, os.PathLike)):
             p = Path(path)
             if not p.exists():
                 return None
@@ -292,7 +356,7 @@ class ResultStore:
                                      "overwriting it", file=loc)
                 return None
         try:
-            group = zarr.open_group(checked(path, read_only=False, location=loc), mode="r+", zarr_format=3)
+            group = _open_group(path, mode="r+", zarr_format=3)
         except (FileNotFoundError, zarr.errors.GroupNotFoundError, zarr.errors.NodeTypeValidationError):
             if isinstance(path, (str, os.PathLike)):
                 raise StoreError("the folder holds Zarr data that is not a result store group; not "
@@ -303,7 +367,7 @@ class ResultStore:
                              "not overwriting it", file=loc) from None
         return ResultStore(group, loc, path, "r+")
 
-    def _check_resume(self, new_attrs: dict, specs: list[ArraySpec]) -> None:
+    def _check_resume(self, new_attrs: dict, specs: list[ArraySpec], members: Mapping[str, Any]) -> None:
         old = decode_attrs(self._group.attrs)
         loc = self._location
         if old.get("format") != STORE_FORMAT:
@@ -327,9 +391,8 @@ class ResultStore:
                              f"{shown or 'the fingerprint'}); not overwriting it: choose another output "
                              "path, or pass --overwrite to replace it", file=loc, field="fingerprint")
         for spec in specs:
-            try:
-                arr = self._group[spec.name]
-            except KeyError:
+            arr = members.get(spec.name)
+            if arr is None:
                 continue
             if not isinstance(arr, zarr.Array):
                 raise StoreError(f"{spec.name} is a group, expected an array", file=loc, field=spec.name)
@@ -341,8 +404,13 @@ class ResultStore:
                                  f"{arr.dtype} does not match the layout {spec.shape} chunks {spec.chunks} "
                                  f"{spec.dtype}; not overwriting it", file=loc, field=spec.name)
 
-    def _create_missing(self, specs: list[ArraySpec]) -> None:
+    def _create_missing(self, specs: list[ArraySpec], existing: Iterable[str] = ()) -> int:
+        """Create the arrays of ``specs`` not in ``existing``; returns how many."""
+        existing = set(existing)
+        created = 0
         for spec in specs:
+            if spec.name in existing:
+                continue
             parent_name, _, leaf = spec.name.rpartition("/")
             parent = self._group
             if parent_name:
@@ -358,9 +426,11 @@ class ResultStore:
             )
             kwargs["compressors"] = _COMPRESSORS
             arr = parent.create_array(leaf, **kwargs)
+            created += 1
             if spec.data is not None:
                 arr[...] = np.asarray(spec.data) if spec.dtype != "str" else np.asarray(spec.data, dtype=str)
         self._arrays.clear()
+        return created
 
     def _repair_static(self, specs: list[ArraySpec]) -> None:
         """Rewrite template arrays (coordinates) whose chunks are lost, corrupt or changed."""
@@ -381,15 +451,18 @@ class ResultStore:
                 arr[...] = want
 
     @classmethod
-    def open(cls, path, *, mode: str = "r+") -> "ResultStore":
-        """Open an existing store (``mode="r"`` read-only, ``"r+"`` for task writes)."""
+    def open(cls, path, *, mode: str = "r+", write_behind: bool = False) -> "ResultStore":
+        """Open an existing store (``mode="r"`` read-only, ``"r+"`` for task writes).
+
+        ``write_behind`` (object stores only, for the tasks' store): chunk writes go out in
+        the background until :meth:`flush` or the next :meth:`mark_done`
+        (storage/remote.py). Folder stores write at once either way.
+        """
         loc = _location(path)
         if mode not in ("r", "r+"):
             raise ValueError(f"mode must be 'r' or 'r+', got {mode!r}")
-        if isinstance(path, (str, os.PathLike)) and not os.path.isdir(path):
-            raise StoreError("no result store at this path", file=loc)
         try:
-            group = zarr.open_group(checked(path, read_only=mode == "r", location=loc), mode=mode, zarr_format=3)
+            group = _open_group(path, mode=mode, zarr_format=3)
         except (FileNotFoundError, zarr.errors.GroupNotFoundError, zarr.errors.NodeTypeValidationError):
             raise StoreError("no result store at this path", file=loc) from None
         except (ValueError, OSError, json.JSONDecodeError) as exc:
@@ -397,7 +470,33 @@ class ResultStore:
         if group.attrs.get("format") != STORE_FORMAT:
             raise StoreError(f"not a {STORE_FORMAT} store (format {group.attrs.get('format')!r})", file=loc,
                              field="format")
-        return cls(group, loc, path, mode)
+        store = cls(group, loc, path, mode)
+        if store._remote is not None:
+            store._prefetch(store._members())
+            store._remote.write_behind = write_behind and mode == "r+"
+        return store
+
+    def _prefetch(self, members: Mapping[str, Any]) -> None:
+        """Keep the arrays of ``members`` (:meth:`_members`: one concurrent fetch of every
+        array's metadata; in an object store, instead of two requests per array on first use)."""
+        self._arrays.update((k, self._configured(k, v)) for k, v in members.items() if isinstance(v, zarr.Array))
+
+    def _configured(self, name: str, arr: zarr.Array) -> zarr.Array:
+        """Data arrays of a checksummed store store fill-valued chunks too: a set marker then
+        means every chunk of its task has a file (markers keep zarr's default)."""
+        if self._integrity is not None and not name.startswith(f"{MARKER_GROUP}/"):
+            return arr.with_config({"write_empty_chunks": True})
+        return arr
+
+    @property
+    def integrity(self) -> dict | None:
+        """The ``integrity`` root attribute (None for a store of an older version)."""
+        return self._integrity
+
+    @property
+    def remote(self) -> bool:
+        """Is the store on object storage (an fsspec URL)?"""
+        return self._remote is not None
 
     def __reduce__(self):
         if isinstance(self._store_arg, (str, os.PathLike)):
@@ -429,16 +528,8 @@ class ResultStore:
                 raise StoreError("no such array in the store", file=self._location, field=name) from None
             if not isinstance(arr, zarr.Array):
                 raise StoreError("is a group, not an array", file=self._location, field=name)
-            if self._integrity is not None and not name.startswith(f"{MARKER_GROUP}/"):
-                # store fill-valued chunks too: a set marker then means every chunk has a file
-                arr = arr.with_config({"write_empty_chunks": True})
-            self._arrays[name] = arr
+            arr = self._arrays[name] = self._configured(name, arr)
         return arr
-
-    @property
-    def integrity(self) -> dict | None:
-        """The ``integrity`` root attribute (None for a store of an older version)."""
-        return self._integrity
 
     def _chunk_files(self, name: str) -> ChunkLayout | None:
         """Direct chunk-file access to ``name`` (storage/chunkio.py), or None to use zarr."""
@@ -446,7 +537,8 @@ class ResultStore:
             return self._layouts[name]
         except KeyError:
             pass
-        root = os.fspath(self._store_arg) if isinstance(self._store_arg, (str, os.PathLike)) else None
+        root = self._location if isinstance(self._store_arg, (str, os.PathLike)) \
+            and not location.is_url(self._location) else None
         lay = self._layouts[name] = chunk_layout(self.array(name), root, name)
         return lay
 
@@ -504,7 +596,15 @@ class ResultStore:
         if coords is not None:  # one whole chunk: write its file directly (same bytes as zarr)
             lay.write(coords, a.astype(arr.dtype, copy=False))
             return
-        arr[region] = a.astype(arr.dtype, copy=False)
+        a = a.astype(arr.dtype, copy=False)
+        if self._remote is not None:
+            coords = chunk_of(region, tuple(arr.chunks), tuple(arr.shape))
+            if coords is None:
+                self._remote.forget(lambda key: key[0] == name)
+            self._remote.put(None if coords is None else (name, coords), a,
+                             functools.partial(arr.__setitem__, region, a), f"{name} at {index}")
+            return
+        arr[region] = a
 
     def read(self, name: str, index=()) -> np.ndarray:
         """Read ``array[index]`` (numpy indexing semantics: int entries drop their axis)."""
@@ -529,9 +629,42 @@ class ResultStore:
                 else:
                     a = a[tuple(slice(0, n) for n in shape)].astype(lay.dtype.newbyteorder("="), copy=True)
                 return a.reshape(a.shape[len(index):])
+        if self._remote is not None:
+            a = self._written(name, index)
+            if a is not None:  # written by this process: no request
+                return a
+            self._remote.barrier()  # what this process sent is stored before it is read back
         if index == ():
             return np.asarray(arr[...])
         return np.asarray(arr[index])
+
+    def _written(self, name: str, index: tuple) -> np.ndarray | None:
+        """Object stores: ``array[index]`` if it is one whole chunk this process wrote, else None."""
+        if not all(isinstance(i, (int, np.integer)) and not isinstance(i, bool) for i in index):
+            return None
+        arr = self.array(name)
+        try:
+            coords = chunk_of(normalize_region(index, arr.shape), tuple(arr.chunks), tuple(arr.shape))
+        except IndexError:
+            return None
+        a = self._remote.get((name, coords)) if coords is not None else None
+        return None if a is None else a.reshape(a.shape[len(index):])
+
+    def read_many(self, name: str, indices: list) -> list[np.ndarray]:
+        """``[self.read(name, i) for i in indices]``; from an object store the chunks not in
+        this process's memory are requested together instead of one after another."""
+        if self._remote is None:
+            return [self.read(name, i) for i in indices]
+        out = [self._written(name, i if isinstance(i, tuple) else (i,)) for i in indices]
+        missing = [j for j, a in enumerate(out) if a is None]
+        if len(missing) > 1:
+            self._remote.barrier()  # what this process sent is stored before it is read back
+            got = self._remote.read_all(functools.partial(self.read, name), [indices[j] for j in missing])
+        else:
+            got = [self.read(name, indices[j]) for j in missing]
+        for j, a in zip(missing, got):
+            out[j] = a
+        return out
 
     def _load_chunk(self, name: str, lay: ChunkLayout, coords) -> np.ndarray | None:
         """The stored chunk (None if it has no file and need not have one); ChunkError if
@@ -564,20 +697,15 @@ class ResultStore:
         return tuple(m.metadata.dimension_names or ()) if m.shape else ()
 
     # -- integrity: listing and checking chunks ---------------------------------------
+    def _folder(self) -> str | None:
+        """The store's folder (None on object storage or for store objects)."""
+        if isinstance(self._store_arg, (str, os.PathLike)) and not location.is_url(self._location):
+            return os.fspath(self._store_arg)
+        return None
+
     def all_array_names(self) -> list[str]:
         """Every array of the store, markers (``status/<stage>``) included."""
-        out = []
-
-        def walk(grp, prefix=""):
-            for name, _ in grp.arrays():
-                out.append(prefix + name)
-            for name, sub in grp.groups():
-                walk(sub, prefix + name + "/")
-
-        with warnings.catch_warnings():  # a non-zarr folder (the geometry cache) is not a member
-            warnings.filterwarnings("ignore", message=".*not recognized as a component of a Zarr hierarchy")
-            walk(self._group)
-        return sorted(out)
+        return sorted(k for k, v in self._members().items() if isinstance(v, zarr.Array))
 
     def chunk_grid(self, name: str) -> tuple[tuple[str, ...], tuple[int, ...], tuple[int, ...]]:
         """``(dims, chunk shape, number of chunks per dim)`` of array ``name``."""
@@ -590,12 +718,13 @@ class ResultStore:
         the orphaned ``*.partial`` files of killed writers among them."""
         keys: set[tuple[int, ...]] = set()
         partial: list[str] = []
-        if isinstance(self._store_arg, (str, os.PathLike)):
-            base = os.path.join(os.fspath(self._store_arg), *name.split("/"), "c")
+        folder = self._folder()
+        if folder is not None:
+            base = os.path.join(folder, *name.split("/"), "c")
             if os.path.isfile(base):
                 return {()}, partial
-            for folder, _, files in os.walk(base):
-                rel = os.path.relpath(folder, base)
+            for sub, _, files in os.walk(base):
+                rel = os.path.relpath(sub, base)
                 head = () if rel == "." else tuple(rel.split(os.sep))
                 if not all(p.isdigit() for p in head):
                     continue
@@ -603,7 +732,7 @@ class ResultStore:
                     if f.isdigit():
                         keys.add(tuple(int(p) for p in head + (f,)))
                     elif f.endswith(".partial"):
-                        partial.append(os.path.join(folder, f))
+                        partial.append(os.path.join(sub, f))
             return keys, partial
         from zarr.core.sync import sync
 
@@ -644,8 +773,9 @@ class ResultStore:
         """Delete a stored chunk (a damaged one, before its task is recomputed)."""
         if self._mode == "r":
             raise StoreError("the store is open read-only", file=self._location, field=name)
-        if isinstance(self._store_arg, (str, os.PathLike)):
-            path = os.path.join(os.fspath(self._store_arg), *name.split("/"), "c", *(str(int(i)) for i in coords))
+        folder = self._folder()
+        if folder is not None:
+            path = os.path.join(folder, *name.split("/"), "c", *(str(int(i)) for i in coords))
             try:
                 os.remove(path)
             except FileNotFoundError:
@@ -665,6 +795,9 @@ class ResultStore:
 
     def stages(self) -> list[str]:
         """Stages that have completion markers."""
+        prefix = MARKER_GROUP + "/"
+        if self._remote is not None and any(k.startswith(prefix) for k in self._arrays):
+            return sorted(k[len(prefix):] for k in self._arrays if k.startswith(prefix))
         try:
             grp = self._group[MARKER_GROUP]
         except KeyError:
@@ -683,8 +816,47 @@ class ResultStore:
         coords = lay.chunk_of(region) if lay is not None else None
         if coords is not None:
             lay.write(coords, ones)
+        elif self._remote is not None:
+            def send():
+                arr[region] = ones
+                listed = self._markers_listed.get(stage)
+                if listed is not None:
+                    listed.update(itertools.product(*(range(s.start, s.stop) for s in region)))
+            # sent once the data it vouches for is stored, never if that failed
+            self._remote.put(None, None, send, f"the {stage} marker at {index}", after_pending=True)
         else:
             arr[region] = ones
+
+    def flush(self) -> None:
+        """Wait until every write made through this object is stored (see :meth:`open`).
+
+        Raises
+        ------
+        OSError
+            A background write failed (naming the array and index); its marker was not sent.
+        """
+        if self._remote is not None:
+            self._remote.barrier()
+
+    def unmark(self, stage: str, index=()) -> None:
+        """Clear the marker of ``stage`` at ``index``: its task runs again on the next run."""
+        if self._mode == "r":
+            raise StoreError("the store is open read-only", file=self._location, field=stage)
+        arr = self._marker(stage)
+        region = normalize_region(index, arr.shape)
+        self.flush()
+        lay = self._chunk_files(f"{MARKER_GROUP}/{stage}")
+        coords = lay.chunk_of(region) if lay is not None else None
+        if coords is not None:  # an unset marker has no file (zarr's default for the fill value)
+            try:
+                os.remove(lay.path(coords))
+            except FileNotFoundError:
+                pass
+        else:
+            arr[region] = np.zeros(tuple(s.stop - s.start for s in region), dtype=np.uint8)
+        listed = self._markers_listed.get(stage)
+        if listed is not None:
+            listed.difference_update(itertools.product(*(range(s.start, s.stop) for s in region)))
 
     def is_done(self, stage: str, index) -> bool:
         """True if every position of ``index`` in ``stage``'s marker is set.
@@ -692,11 +864,24 @@ class ResultStore:
         Every task asks this before it runs, so in a folder store a single position is
         read straight from its marker chunk file (storage/chunkio.py): a chunk never
         written holds the fill value 0 (not done). Through zarr's I/O thread a read costs
-        about 1 ms, several in a busy worker. A marker chunk that is corrupt counts as not
-        done (its task is recomputed and rewrites it), with a warning.
+        about 1 ms, several in a busy worker.
+
+        In an object store one request per position (8-10 ms against a local S3 server)
+        would cost more than many tasks: the first question about a stage lists the
+        marker's chunks once (a set marker is a stored chunk; an unset one holds the fill
+        value and is not stored), and later questions in this process are answered from
+        that listing plus the markers set through this object. A marker set elsewhere since
+        the listing reads as not done, which only repeats a task whose writes are
+        idempotent; a set marker never reads as unset.
+
+        A marker chunk that is corrupt counts as not done (its task is recomputed and
+        rewrites it), with a warning.
         """
         arr = self._marker(stage)
         region = normalize_region(index, arr.shape)
+        if self._remote is not None:
+            listed = self._listed_markers(stage)
+            return all(c in listed for c in itertools.product(*(range(s.start, s.stop) for s in region)))
         try:
             return self._marker_region_set(stage, arr, region)
         except ChunkError as exc:
@@ -704,7 +889,8 @@ class ResultStore:
             return False
 
     def _marker_set(self, stage: str, index) -> bool:
-        """Like :meth:`is_done` but a corrupt marker raises :class:`ChunkError`."""
+        """Like :meth:`is_done` but read from the marker itself (not an object store's
+        listing), and a corrupt marker raises :class:`ChunkError`."""
         arr = self._marker(stage)
         return self._marker_region_set(stage, arr, normalize_region(index, arr.shape))
 
@@ -724,25 +910,35 @@ class ResultStore:
         """Is the marker chunk at grid ``coords`` set? :class:`ChunkError` if it is corrupt."""
         return self._marker_set(stage, tuple(int(c) for c in coords))
 
-    def unmark(self, stage: str, index=()) -> None:
-        """Clear the marker of ``stage`` at ``index``: its task runs again on the next run."""
-        if self._mode == "r":
-            raise StoreError("the store is open read-only", file=self._location, field=stage)
-        arr = self._marker(stage)
-        region = normalize_region(index, arr.shape)
-        name = f"{MARKER_GROUP}/{stage}"
-        lay = self._chunk_files(name)
-        coords = lay.chunk_of(region) if lay is not None else None
-        if coords is not None:
-            try:
-                os.remove(lay.path(coords))
-            except FileNotFoundError:
-                pass
-        else:
-            arr[region] = np.zeros(tuple(s.stop - s.start for s in region), dtype=np.uint8)
+    def _listed_markers(self, stage: str) -> set[tuple[int, ...]]:
+        """Positions of ``stage``'s marker whose chunk is stored.
+
+        The first call lists every marker chunk of every stage (one listing request per
+        1000 of them), later ones reuse it.
+        """
+        if not self._markers_listed:
+            for stage_ in self.stages():
+                arr = self._marker(stage_)
+                if tuple(arr.chunks) != (1,) * arr.ndim:  # pragma: no cover - markers are made so
+                    raise StoreError("marker chunks must hold one position", file=self._location,
+                                     field=f"{MARKER_GROUP}/{stage_}")
+                self._markers_listed[stage_] = set()
+            for key in location.find(location.join(self._location, MARKER_GROUP)):
+                if key.endswith("/c"):  # "<stage>/c": the single chunk of a 0-d marker
+                    stage_, pos = key[:-2], ()
+                else:  # "<stage>/c/<i>/<j>" (and "<stage>/zarr.json", skipped)
+                    stage_, sep, rest = key.partition("/c/")
+                    try:
+                        pos = tuple(int(p) for p in rest.split("/")) if sep else None
+                    except ValueError:
+                        pos = None
+                if pos is not None and stage_ in self._markers_listed:
+                    self._markers_listed[stage_].add(pos)
+        return self._markers_listed[stage]
 
     def done(self, stage: str) -> np.ndarray:
         """The whole marker of ``stage`` as a bool array (corrupt marker chunks: not done)."""
+        self.flush()
         arr = self._marker(stage)
         try:
             return np.asarray(arr[...]) == 1
@@ -781,6 +977,11 @@ class ResultStore:
         Only the coordinator calls this, after the template and after attribute updates;
         tasks write chunks only, which leaves the metadata unchanged.
         """
+        if self._remote is not None and self._group.metadata.consolidated_metadata is not None:
+            # an object store: the arrays' metadata never changes after the template, and an
+            # attribute update keeps the root's consolidated copy; re-consolidating would
+            # read every array's metadata again (some 45 requests)
+            return
         import warnings
 
         with warnings.catch_warnings():
@@ -791,6 +992,13 @@ class ResultStore:
 
     def __repr__(self) -> str:
         return f"ResultStore({self._location!r}, mode={self._mode!r})"
+
+
+def _open_group(path, **kwargs) -> zarr.Group:
+    """``zarr.open_group`` of a folder, an fsspec URL (zarr's FsspecStore) or a store object,
+    through :class:`~schlieren.storage.integrity.CheckedStore` (every chunk read checked)."""
+    return zarr.open_group(checked(path, read_only=kwargs.get("mode") == "r",
+                                   location=_location(path)), **kwargs)
 
 
 def _differences(old: Any, new: Any, where: str = "") -> list[str]:
@@ -820,12 +1028,15 @@ def remove_store(path: str | os.PathLike) -> None:
 
     from schlieren.storage.arrays_cache import remove_cache
 
-    p = Path(os.fspath(path))
-    if not p.exists():
+    loc = location.normalize(path)
+    if not location.exists(loc):
         return
-    ResultStore.open(p, mode="r")  # a StoreError unless it is one of our stores: never delete anything else
-    remove_cache(p)
-    shutil.rmtree(p)
+    ResultStore.open(loc, mode="r")  # a StoreError unless it is one of our stores: never delete anything else
+    remove_cache(loc)
+    if location.is_url(loc):
+        location.remove_tree(loc)
+        return
+    shutil.rmtree(loc)
 
 
 def _reopen(path: str, mode: str) -> ResultStore:

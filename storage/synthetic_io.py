@@ -43,6 +43,7 @@ import yaml
 import zarr
 
 from schlieren.pipeline.geometry import Camera, Grid, Medium
+from schlieren.storage import location
 from schlieren.storage.errors import StoreError
 
 __all__ = [
@@ -318,17 +319,17 @@ class Truth:
 
 
 def _open_group(path: str | os.PathLike, what: str, *, checked_reads: bool = False):
-    p = Path(path)
-    if not p.exists():
-        raise StoreError(f"{what} does not exist", file=str(p))
+    p = location.normalize(path)
+    if not location.exists(p):
+        raise StoreError(f"{what} does not exist", file=p)
     try:
         if checked_reads:
             from schlieren.storage.integrity import checked
 
-            return zarr.open_group(checked(str(p), read_only=True), mode="r")
-        return zarr.open_group(str(p), mode="r")
+            return zarr.open_group(checked(p, read_only=True), mode="r")
+        return location.zarr_open_group(p, mode="r")
     except Exception as exc:  # zarr raises several types for a non-group
-        raise StoreError(f"cannot open {what} as a Zarr group ({type(exc).__name__})", file=str(p)) from exc
+        raise StoreError(f"cannot open {what} as a Zarr group ({type(exc).__name__})", file=p) from exc
 
 
 def read_truth(path: str | os.PathLike) -> Truth:

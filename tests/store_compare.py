@@ -31,3 +31,29 @@ def assert_same_store(a, b) -> None:
             assert np.array_equal(x, y, equal_nan=True), f"{k} differs (max {np.nanmax(np.abs(x - y))})"
         else:
             assert np.array_equal(x, y), f"{k} differs"
+
+
+def sigkill_when(cmd: list[str], progress, at_least: int, timeout: float = 240) -> int:
+    """Start ``cmd``, SIGKILL it once ``progress()`` reaches ``at_least``; return ``progress()`` then.
+
+    Fails if the command finishes (or ``timeout`` passes) first.
+    """
+    import os
+    import signal
+    import subprocess
+    import time
+
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.time() + timeout
+    try:
+        while progress() < at_least and proc.poll() is None and time.time() < deadline:
+            time.sleep(0.2)
+        assert proc.poll() is None, "the run finished before it could be killed: " + proc.stderr.read().decode()
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    done = progress()
+    assert done >= at_least
+    return done

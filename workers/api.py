@@ -189,13 +189,15 @@ def open(store):
     ``u/v`` in image pixels) and CF attributes are described in docs/store.md. Nested
     root attributes (``session``, ``params``...) are JSON text; :func:`json.loads` them.
     """
+    from schlieren.storage import location
     from schlieren.storage.integrity import open_dataset
     from schlieren.storage.store import ResultStore
 
     ResultStore.open(store, mode="r")  # not a result store: a one-line StoreError naming the path
     # every chunk read is checked: a corrupt one, or one lost under a set completion marker,
-    # raises ChunkError naming the array and the chunk instead of returning data
-    return open_dataset(os.fspath(store), consolidated=None)
+    # raises ChunkError naming the array and the chunk instead of returning data (a store at
+    # a URL: credentials and endpoint from the environment, as for runs)
+    return open_dataset(location.normalize(store), consolidated=None)
 
 
 def synth(out_dir, **kwargs):

@@ -27,6 +27,7 @@ import numpy as np
 
 from schlieren.pipeline import resources
 from schlieren.pipeline.geometry import FlowGrid
+from schlieren.storage import location
 from schlieren.storage.errors import ResourceError
 
 log = logging.getLogger(__name__)
@@ -149,7 +150,7 @@ def preflight(session, cfg, layout, out_path, *, workers: list[WorkerSlots]) -> 
         arrays += math.prod(spec.shape) * itemsize
     need = resources.estimate_disk(arrays, cams, session.grid, fg)
     free = None
-    if isinstance(out_path, (str, os.PathLike)):
+    if isinstance(out_path, (str, os.PathLike)) and not location.is_url(os.fspath(out_path)):
         out = Path(os.fspath(out_path))
         have = _stored_bytes(out) if out.is_dir() else 0
         free = float(shutil.disk_usage(_nearest_existing(out)).free)

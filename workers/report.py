@@ -13,6 +13,7 @@ import logging
 import os
 from pathlib import Path
 
+from schlieren.storage import location
 from schlieren.storage.export import ExportResult, export
 from schlieren.workers.report_build import build_report
 
@@ -21,8 +22,10 @@ __all__ = ["default_report_dir", "default_export_dir", "make_report", "generate_
 log = logging.getLogger(__name__)
 
 
-def _stem(store: Path) -> Path:
-    store = Path(os.fspath(store)).resolve()
+def _stem(store) -> Path:
+    """``/data/run.zarr`` -> ``/data/run``; a store at a URL -> ``./run`` (outputs are local files)."""
+    loc = location.normalize(store)
+    store = Path(location.basename(loc)).resolve() if location.is_url(loc) else Path(loc).resolve()
     return store.with_suffix("") if store.suffix else store
 
 

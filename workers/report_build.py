@@ -26,6 +26,7 @@ import numpy as np
 
 from schlieren.pipeline import viz
 from schlieren.pipeline.geometry import FlowGrid, Grid, Medium
+from schlieren.storage import location
 from schlieren.storage.report import (ReportPage, ReportReader, ReportWriter, fmt_number, frame_range,
                                       html_img, html_table, safe_name)
 
@@ -148,7 +149,7 @@ def _summary_html(rd: ReportReader, store_path, name, grid: Grid | None, cameras
     session = rd.session
     when = "none" if shown is None else f"frame {rd.capture_index(shown)}" + (
         f" (t = {fmt_number(times[shown], 6)} s)" if times is not None and np.isfinite(times[shown]) else "")
-    rows = [["session", name], ["store", str(Path(store_path).resolve())],
+    rows = [["session", name], ["store", location.display(store_path)],
             ["format", attrs.get("format", "missing")], ["software version", attrs.get("version", "missing")],
             ["frames in store", n_frames],
             ["frames shown", f"{rd.capture_index(sel.start)}:{rd.capture_index(sel.start) + len(sel)}"

@@ -32,6 +32,7 @@ from typing import Callable
 
 from schlieren.pipeline.geometry import FlowGrid
 from schlieren.pipeline.stages import STAGES, RunConfig, bind_medium, check_config, config_to_dict
+from schlieren.storage import location
 from schlieren.storage.layout import result_layout
 from schlieren.storage.session import Session, load_session
 from schlieren.storage.errors import StoreError
@@ -96,6 +97,12 @@ def _fingerprint(session: Session, cfg: RunConfig, frames: tuple[int, int]) -> s
     return hashlib.sha256(blob.encode()).hexdigest()
 
 
+def session_location(session: Session) -> str:
+    """The manifest's absolute path, or its URL for a session on object storage."""
+    m = str(session.manifest_path)
+    return m if location.is_url(m) else str(Path(m).resolve())
+
+
 def run_layout(session: Session, cfg: RunConfig) -> tuple[list, Extents]:
     """The store's arrays and the plan's extents for ``session`` and ``cfg``."""
     a, b = session.frames
@@ -122,7 +129,7 @@ def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig) -> tup
     fp = _fingerprint(session, cfg, (a, b))
     attrs = {
         "session": session.manifest,
-        "session_path": str(Path(session.manifest_path).resolve()),
+        "session_path": session_location(session),
         "session_name": session.name,
         "params": config_to_dict(cfg),
         "version": software_version(),
@@ -170,13 +177,14 @@ def excluded_frames(store: ResultStore) -> list[tuple[str, int, list[str]]]:
 
 
 def store_lease(out_path, purpose: str = "run"):
-    """The lease of a folder store (a no-op context for other store objects)."""
+    """The lease of a folder store (a no-op context for object-store URLs and store objects:
+    one writer per store is not enforced there yet)."""
     import contextlib
     import os
 
     from schlieren.storage.lease import StoreLease
 
-    if isinstance(out_path, (str, os.PathLike)):
+    if isinstance(out_path, (str, os.PathLike)) and not location.is_url(os.fspath(out_path)):
         return StoreLease(out_path, purpose=purpose)
     return contextlib.nullcontext()
 

@@ -12,7 +12,7 @@ import logging
 from typing import Callable
 
 from schlieren.workers.plan import Plan
-from schlieren.workers.tasks import TaskFailed, run_tasks
+from schlieren.workers.tasks import TaskFailed, flush_writes, run_tasks
 
 log = logging.getLogger(__name__)
 
@@ -57,6 +57,19 @@ def single_threaded_kernels():
 
 
 def _loop(store_path, plan, receipts, failures, on_receipt, on_failure) -> None:
+    try:
+        _tasks(store_path, plan, receipts, failures, on_receipt, on_failure)
+    finally:
+        if plan.tasks:
+            try:  # object stores: the writes still in flight (later tasks read them from memory)
+                flush_writes(store_path, plan.token)
+            except TaskFailed as exc:
+                failures["store-writes"] = str(exc)
+                if on_failure:
+                    on_failure("store-writes", str(exc))
+
+
+def _tasks(store_path, plan, receipts, failures, on_receipt, on_failure) -> None:
     for task in plan.tasks:
         bad = [d for d in task.deps if d in failures]
         if bad:
@@ -65,7 +78,7 @@ def _loop(store_path, plan, receipts, failures, on_receipt, on_failure) -> None:
                 on_failure(task.key, failures[task.key])
             continue
         try:
-            got = run_tasks(store_path, task.stage, task.indices, run_token=plan.token)
+            got = run_tasks(store_path, task.stage, task.indices, run_token=plan.token, flush=False)
         except TaskFailed as exc:
             failures[task.key] = str(exc)
             if on_failure:

@@ -35,7 +35,7 @@ from schlieren.workers.monitoring import log_receipt
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run_task", "run_tasks", "TaskFailed", "RunContext", "context"]
+__all__ = ["run_task", "run_tasks", "flush_writes", "TaskFailed", "RunContext", "context"]
 
 
 class TaskFailed(Exception):
@@ -122,6 +122,23 @@ class RunContext:
     def mask_threshold(self) -> float:
         return self._once("mask_threshold", lambda: float(self.store.read("mask_threshold", ())[0]))
 
+    def read_upstream_many(self, name: str, indices: list[tuple[int, ...]]) -> list[np.ndarray]:
+        """:meth:`read_upstream` of each of ``indices``, the uncached ones read together
+        (:meth:`ResultStore.read_many`: concurrent requests in an object store)."""
+        missing = [i for i in dict.fromkeys(indices) if (name, i) not in self._chunks]
+        if len(missing) > 1:
+            for i, a in zip(missing, self.store.read_many(name, missing)):
+                self._cache_chunk((name, i), a)
+        return [self.read_upstream(name, i) for i in indices]
+
+    def _cache_chunk(self, key, a: np.ndarray) -> None:
+        a.flags.writeable = False
+        self._chunks[key] = a
+        self._chunk_bytes += a.nbytes
+        while self._chunk_bytes > self.CHUNK_CACHE_BYTES and len(self._chunks) > 1:
+            _, old = self._chunks.popitem(last=False)
+            self._chunk_bytes -= old.nbytes
+
     def read_upstream(self, name: str, index: tuple[int, ...]) -> np.ndarray:
         """``store.read(name, index)`` of a chunk an upstream task has finished, cached (LRU).
 
@@ -134,19 +151,14 @@ class RunContext:
             self._chunks.move_to_end(key)
             return a
         a = self.store.read(name, index)
-        a.flags.writeable = False
-        self._chunks[key] = a
-        self._chunk_bytes += a.nbytes
-        while self._chunk_bytes > self.CHUNK_CACHE_BYTES and len(self._chunks) > 1:
-            _, old = self._chunks.popitem(last=False)
-            self._chunk_bytes -= old.nbytes
+        self._cache_chunk(key, a)
         return a
 
 
 @functools.lru_cache(maxsize=4)
 def context(store_path: str, run_token: str = "") -> RunContext:
     """The run's context in this process (``run_token`` tells apart runs at one path)."""
-    store = ResultStore.open(store_path)
+    store = ResultStore.open(store_path, write_behind=True)  # run_task(s) flush before returning
     a = store.attrs
     run = a["run"]
     session = load_session(a["session_path"], frames=tuple(run["frames"]), check_files=False)
@@ -188,6 +200,7 @@ def _sync(ctx: RunContext, c: int) -> dict:
         a, b = s.strobe_search
         src = ctx.frames(c)
         b = min(b, len(src))
+        src.prefetch(range(a, b))
         rows = np.stack([src.read(f).mean(axis=1) for f in range(a, b)])
         try:
             det = sync.detect_flash(rows, **kernel_kwargs(ctx.config.flash, sync.detect_flash))
@@ -225,7 +238,6 @@ def _deflection(ctx: RunContext, c: int, j: int) -> dict:
     d = flowmod.deflection_stage(ctx.prepared_reference(c, parity), img, ctx.config.flow)
     ctx.store.write("flow_raw", (c, j), d.astype(np.float32))
     # dark, saturated or frozen frames: flagged here, excluded by resampling
-    src = ctx.frames(c)
     dtype = src.raw_dtype
     full = float(np.iinfo(dtype).max) if np.issubdtype(dtype, np.integer) else None
     ref_mean = ctx._once(("reference_mean", c, parity),
@@ -309,8 +321,8 @@ def _mask(ctx: RunContext, c: int, k: int) -> dict:
     params = ctx.config.masks
     h = params.temporal_radius
     ks = [min(max(i, 0), ctx.n_frames - 1) for i in range(k - h, k + h + 1)]
-    pots = np.stack([ctx.read_upstream("potential", (c, i)) for i in ks])
-    flows = np.stack([ctx.read_upstream("flow", (c, i)) for i in ks])
+    pots = np.stack(ctx.read_upstream_many("potential", [(c, i) for i in ks]))
+    flows = np.stack(ctx.read_upstream_many("flow", [(c, i) for i in ks]))
     thr = ctx.mask_threshold()
     m = masksmod.make_mask(pots, h, thr, flows=flows, **kernel_kwargs(params, masksmod.make_mask))
     ctx.store.write("mask", (c, k), np.asarray(m, dtype=bool))
@@ -328,7 +340,7 @@ def _geometry_stage(ctx: RunContext) -> dict:
 
 
 def _hull(ctx: RunContext, k: int) -> dict:
-    ms = np.stack([ctx.store.read("mask", (c, k)) for c in range(len(ctx.cameras))])
+    ms = np.stack(ctx.store.read_many("mask", [(c, k) for c in range(len(ctx.cameras))]))
     h = hullmod.visual_hull(ms, ctx.cameras, ctx.session.grid, ctx.flow_grid, params=ctx.config.hull)
     ctx.store.write("hull", (k,), np.asarray(h, dtype=bool))
     return {"voxels": int(h.sum())}
@@ -336,7 +348,7 @@ def _hull(ctx: RunContext, k: int) -> dict:
 
 def _tomography(ctx: RunContext, k: int) -> dict:
     geom = _geometry(ctx.store_path, _geometry_key(ctx))
-    flows = np.stack([ctx.read_upstream("flow", (c, k)) for c in range(len(ctx.cameras))])
+    flows = np.stack(ctx.read_upstream_many("flow", [(c, k) for c in range(len(ctx.cameras))]))
     hull = ctx.store.read("hull", (k,))
     x0 = None
     if k % max(ctx.config.warm_start_block, 1) != 0:
@@ -422,6 +434,26 @@ def run_task(store_path: str, stage_name: str, index: tuple[int, ...], *_deps, r
     executor passes them so the graph carries the dependencies); they are ignored.
     ``run_token`` (the plan's) keys this process's caches of the run.
     """
+    receipt = _run_one(store_path, stage_name, index, run_token)
+    flush_writes(store_path, run_token, stage_name)
+    return receipt
+
+
+def flush_writes(store_path: str, run_token: str = "", stage_name: str = "store") -> None:
+    """Wait until this process's writes to the run's store are stored.
+
+    In an object store chunks and markers go out in the background (storage/remote.py);
+    a task's dependents may run elsewhere, so every Dask task calls this before it
+    returns. A failed write raises :class:`TaskFailed` naming the array and index (its
+    marker was not sent, so a rerun computes it again).
+    """
+    try:
+        context(str(store_path), str(run_token)).store.flush()
+    except OSError as exc:
+        raise TaskFailed(f"{stage_name}: {exc}") from None
+
+
+def _run_one(store_path: str, stage_name: str, index: tuple[int, ...], run_token: str) -> dict:
     index = tuple(int(i) for i in index)
     try:
         return _run_task(store_path, stage_name, index, run_token)
@@ -480,18 +512,44 @@ def _run_task(store_path: str, stage_name: str, index: tuple[int, ...], run_toke
     return receipt
 
 
-def run_tasks(store_path: str, stage_name: str, indices, *_deps, run_token: str = "") -> list[dict]:
+def _prefetch_frames(store_path: str, run_token: str, stage_name: str, indices) -> None:
+    """The input frames a batch of ``frames``/``deflection`` indices reads, fetched together
+    (one concurrent batch from an object store; nothing happens for folders)."""
+    first = {"frames": "first_frame", "deflection": "raw_first"}.get(stage_name)
+    if first is None or not indices:
+        return
+    try:
+        ctx = context(str(store_path), str(run_token))
+        by_camera: dict[int, list[int]] = {}
+        for c, k in indices:
+            by_camera.setdefault(int(c), []).append(getattr(ctx, first) + int(k))
+        for c, frames in by_camera.items():
+            ctx.frames(c).prefetch(frames)
+    except Exception:  # noqa: BLE001 - only a hint: each read reports its own problem, naming the frame
+        log.debug("prefetching the frames of %s %s failed", stage_name, indices, exc_info=True)
+
+
+def run_tasks(store_path: str, stage_name: str, indices, *_deps, run_token: str = "",
+              flush: bool = True) -> list[dict]:
     """Run one stage at each of ``indices`` in order (a batched task) and return the receipts.
 
     Every index is attempted even after one fails, so everything computable is written
     and marked; then the first failure is raised (its message names the camera and
-    frame, with how many more failed in this task).
+    frame, with how many more failed in this task). ``flush=False`` returns without
+    waiting for background writes (the serial loop, which reads them back in this
+    process, calls :func:`flush_writes` at its end).
     """
     receipts: list[dict] = []
     failed: list[str] = []
+    _prefetch_frames(store_path, run_token, stage_name, indices)
     for index in indices:
         try:
-            receipts.append(run_task(store_path, stage_name, index, run_token=run_token))
+            receipts.append(_run_one(store_path, stage_name, index, run_token))
+        except TaskFailed as exc:
+            failed.append(str(exc))
+    if flush:
+        try:
+            flush_writes(store_path, run_token, stage_name)
         except TaskFailed as exc:
             failed.append(str(exc))
     if failed:

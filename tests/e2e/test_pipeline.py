@@ -11,12 +11,9 @@
 from __future__ import annotations
 
 import json
-import os
 import shutil
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +24,7 @@ from schlieren.storage.store import decode_attrs
 
 from schlieren.workers.run import run_session
 
-from store_compare import assert_same_store
+from store_compare import assert_same_store, sigkill_when
 
 
 def test_every_stage_completed_and_time_is_recorded(serial_store, tiny_session):
@@ -134,19 +131,7 @@ def test_sigkill_then_rerun_resumes_and_matches(serial_store, tiny_session, tmp_
     out = tmp_path / "killed.zarr"
     cmd = [sys.executable, "-m", "schlieren.workers.cli", "run", str(tiny_session.session),
            "--out", str(out), "--serial", "--no-progress"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    deadline = time.time() + 240
-    try:
-        while _markers_set(out) < 30 and proc.poll() is None and time.time() < deadline:
-            time.sleep(0.2)
-        assert proc.poll() is None, "the run finished before it could be killed"
-        os.kill(proc.pid, signal.SIGKILL)
-        proc.wait(30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    before = _markers_set(out)
-    assert before >= 30
+    before = sigkill_when(cmd, lambda: _markers_set(out), 30)
     summary = run_session(tiny_session.session, out, serial=True)
     assert summary.ok, summary.failures
     assert summary.skipped >= before

@@ -237,3 +237,31 @@ def test_an_older_store_is_read_but_not_resumed(legacy, tmp_path):
     f.write_bytes(f.read_bytes()[:-9])
     with pytest.raises(ChunkError, match="does not decompress"):
         s.read("refractivity", (0,))
+
+
+def test_object_store_chunks_are_checked_the_same_way(s3_server):
+    """A store in a bucket (zarr's FsspecStore, through CheckedStore): a flipped object and a
+    deleted one under set markers are refused by every reader and found by the scans."""
+    import fsspec
+
+    url = s3_server.bucket("integrity") + "/run.zarr"
+    s = _make(url)
+    s.flush()
+    fs = fsspec.filesystem("s3", endpoint_url=s3_server.endpoint)
+    key = url.removeprefix("s3://")
+    blob = bytearray(fs.cat_file(f"{key}/refractivity/c/1/0/0/0"))
+    blob[len(blob) // 2] ^= 0x20
+    fs.pipe_file(f"{key}/refractivity/c/1/0/0/0", bytes(blob))
+    fs.rm_file(f"{key}/flow/c/0/2/0/0/0")
+    s = ResultStore.open(url, mode="r")
+    with pytest.raises(ChunkError, match=r"field refractivity: chunk \(1, 0, 0, 0\) fails its CRC-32C"):
+        s.read("refractivity", (1,))
+    with pytest.raises(ChunkError, match=r"field flow: chunk \(0, 2, 0, 0, 0\) is missing although stage resample"):
+        s.read("flow", (0, 2))
+    with pytest.raises(ChunkError, match=r"field refractivity"):
+        open_dataset(url)["refractivity"].values
+    np.testing.assert_array_equal(s.read("refractivity", (0,)), _vol(0))
+    quick, full = scan_store(s), scan_store(s, full=True)
+    assert [(p.array, p.kind) for p in quick.problems] == [("flow", "missing")]
+    assert sorted((p.array, p.kind, p.stage) for p in full.problems) == \
+        [("flow", "missing", "resample"), ("refractivity", "corrupt", "integrate")]

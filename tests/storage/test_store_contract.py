@@ -42,11 +42,13 @@ def attrs(fp="run-1"):
             "session": {"name": "tiny", "frames": (10, 14)}, "version": "0.1.0"}
 
 
-@pytest.fixture(params=["local", "memory"])
+@pytest.fixture(params=["local", "memory", "s3"])
 def location(request, tmp_path):
-    """A fresh place for a store: a folder path or a MemoryStore."""
+    """A fresh place for a store: a folder path, a MemoryStore or a URL on a local S3 server."""
     if request.param == "local":
         return tmp_path / "run.zarr"
+    if request.param == "s3":
+        return request.getfixturevalue("s3_server").bucket() + "/run.zarr"
     return zarr.storage.MemoryStore()
 
 

@@ -88,7 +88,7 @@ def test_containerfile_sets_thread_caps_and_a_non_root_user():
     assert "DASK_CONFIG=/opt/schlieren/deploy/config" in text and "COPY deploy/config" in text
     users = re.findall(r"^USER\s+(\S+)", text, re.M)
     assert users and users[-1] not in ("root", "0")
-    assert re.search(r'pip install --constraint deploy/constraints\.txt "\.\[cluster\]"', text)
+    assert re.search(r'pip install --constraint deploy/constraints\.txt "\.\[cluster,s3\]"', text)
     # everything the image copies exists in the repository
     for src in re.findall(r"^COPY\s+(.+?)\s+\S+$", text, re.M):
         for part in src.split():

@@ -64,8 +64,10 @@ def add_parser(sub) -> None:
     p = sub.add_parser("run", help="process a capture session into a result store",
                        description="Process a capture session (session.yaml) into a Zarr result store. "
                                    "A rerun on the same store resumes from the completion markers.")
-    p.add_argument("session", help="session folder or its session.yaml")
-    p.add_argument("--out", required=True, help="result store (Zarr v3 folder)")
+    p.add_argument("session", help="session folder or its session.yaml (or an fsspec URL: s3://bucket/capture)")
+    p.add_argument("--out", required=True,
+                   help="result store: a Zarr v3 folder, or an fsspec URL such as s3://bucket/run.zarr "
+                        "(credentials and AWS_ENDPOINT_URL from the environment)")
     p.add_argument("--frames", default=None, metavar="A:B", help="half-open frame range to process")
     add_common_run_args(p)
     p.set_defaults(func=handler)
