@@ -35,24 +35,24 @@ __all__ = ["BYTES_PER_PIXEL", "BYTES_PER_VOXEL", "PROCESS_BYTES", "PIXEL_MODEL",
 # --- measured by benchmarks/memory.py (results/memory.json); do not edit by hand ---------
 #: 2-D tasks: ``(bytes, bytes per image pixel)`` of each per-camera-frame stage.
 PIXEL_MODEL: dict[str, tuple[float, float]] = {
-    'deflection': (51154953.76904317, 72.44275691463349),
-    'resample': (49901860.83513764, 19.809145702625045),
-    'potential': (2789828.8789866446, 8.990082594861095),
-    'mask': (2738987.787020186, 7.7982304283946915),
+    'deflection': (51790209.2120285, 74.19268689154205),
+    'resample': (49898905.05014693, 19.971032399106072),
+    'potential': (2899621.3131103087, 9.967190542601195),
+    'mask': (2863093.1525048483, 9.015632143556486),
 }
 #: 3-D tasks: ``(bytes, bytes per voxel, bytes per ray-voxel crossing, bytes per flow-grid
 #: ray)`` of each stage.
 TASK_MODEL: dict[str, tuple[float, float, float, float]] = {
-    'geometry': (45754493.817809865, 72.76115639152084, 15.95310808202645, 271.0392983577276),
-    'tomography': (55026506.36640544, 290.74520630995386, 13.192663370501199, 214.5532536589242),
-    'integrate': (55546595.13458744, 116.5601259720464, 0.0, 0.0),
+    'geometry': (45845118.152265266, 72.36303530854521, 16.089318179921612, 270.2437806527056),
+    'tomography': (55116127.30276086, 292.0214414464918, 13.132682012889807, 214.37094187161588),
+    'integrate': (55794092.23504497, 111.33096781173964, 0.0, 0.0),
 }
 #: The geometry cache on disk: ``(bytes per flow-grid ray, bytes per crossing)``.
 CACHE_MODEL: tuple[float, float] = (90.66880794904968, 25.120435587894406)
 #: A worker process with the pipeline's libraries and ``distributed`` imported.
-PROCESS_BYTES = 191307776.0
+PROCESS_BYTES = 194662400.0
 #: The largest under-estimate of any measurement by the fitted model; tasks are scaled by it.
-MODEL_MARGIN = 1.070192337744042
+MODEL_MARGIN = 1.0636795834531168
 # -------------------------------------------------------------------------------------------
 #: The largest per-voxel coefficient of the 3-D stages (a lower bound per voxel and frame).
 BYTES_PER_VOXEL = max((a for _, a, _, _ in TASK_MODEL.values()), default=0.0)
