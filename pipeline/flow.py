@@ -26,7 +26,7 @@ displacement field unchanged).
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import cv2
 import numba as nb
@@ -50,6 +50,7 @@ __all__ = [
     "warp_coefficients",
     "endpoint_error",
     "invalid_pixels",
+    "window_for_voxel",
 ]
 
 log = logging.getLogger(__name__)
@@ -137,6 +138,21 @@ class FlowParams:
     texture_threshold : float
         A pixel is textureless where the local standard deviation of the image (7x7) is
         below this fraction of its median over the image.
+    window_per_voxel : float
+        When > 0, the pipeline sets each camera's LK window (and the support of its
+        invalid-pixel check) to this many times the reconstruction voxel's footprint in
+        that camera's pixels (:func:`window_for_voxel`: odd, 5 to 31 px), overriding
+        ``window``: the flow then resolves what the voxels can hold, at any image size and
+        voxel (a 9 px window suits 2 px voxels, 17-25 px suit the paper's 9 px voxels).
+        0 uses ``window``.
+    ici_gamma : float
+        LK only (frame gradient): > 0 chooses the window per pixel by the intersection
+        of confidence intervals (:func:`_lk_ici`), among odd windows from
+        ``ici_min_window`` to ``window`` growing by about 1.4x; the interval half-width
+        is ``ici_gamma`` predicted standard deviations (from the measured image noise).
+        0 uses ``window`` everywhere. The texture correction is not applied to ICI flow.
+    ici_min_window : int
+        Smallest window of the ICI ladder, pixels.
     """
 
     method: str = param("lk", unit="", choices=METHODS)
@@ -163,6 +179,9 @@ class FlowParams:
     factor: int = param(3, unit="px per flow cell", ge=1, le=32)
     invalid_check: bool = param(True)
     texture_threshold: float = param(0.1, unit="1", ge=0, le=1)
+    window_per_voxel: float = param(4.4, unit="1", ge=0, le=50)
+    ici_gamma: float = param(0.0, unit="1", ge=0, le=10)
+    ici_min_window: int = param(5, unit="px", ge=3, le=255, odd=True)
 
     def __post_init__(self):
         if self.method not in METHODS:
@@ -185,7 +204,8 @@ class FlowParams:
         """Keyword arguments of :func:`deflection_field` taken from these parameters."""
         d = asdict(self)
         for k in ("outlier_threshold", "outlier_epsilon", "smoothing_sigma", "adaptive_sigma",
-                  "adaptive_threshold", "texture_correction", "factor", "invalid_check", "texture_threshold"):
+                  "adaptive_threshold", "texture_correction", "factor", "invalid_check", "texture_threshold",
+                  "window_per_voxel"):
             d.pop(k)
         return d
 
@@ -408,6 +428,53 @@ def _lk_solve_kernel(sxx, sxy, syy, lam, bx, by, u, v):
 
 
 @nb.njit(fastmath=True, cache=True, nogil=True)
+def _ici_kernel(sxx, sxy, syy, lam, bx, by, mxx, mxy, myy, s2, gamma, code, lo, hi, alive, u, v, chosen, sd):
+    # One window of the ICI rule: d_w = (T + lam I)^-1 b, Var(d_w) = s2 (T+lam)^-1 M (T+lam)^-1.
+    # A pixel keeps d_w while its interval [d_w - gamma sd, d_w + gamma sd] still meets the
+    # intersection of every smaller window's interval (per component); once it does not,
+    # the pixel keeps its last estimate (Katkovnik's intersection of confidence intervals).
+    H, W = u.shape
+    for r in range(H):
+        for c in range(W):
+            if not alive[r, c]:
+                continue
+            p = sxx[r, c] + lam
+            q = sxy[r, c]
+            s = syy[r, c] + lam
+            det = p * s - q * q
+            if det <= _F32(0.0):
+                continue
+            inv = _F32(1.0) / det
+            a = s * inv          # (T + lam)^-1 = [[a, b], [b, d]]
+            b = -q * inv
+            d = p * inv
+            du = a * bx[r, c] + b * by[r, c]
+            dv = b * bx[r, c] + d * by[r, c]
+            m1 = mxx[r, c]
+            m2 = mxy[r, c]
+            m3 = myy[r, c]
+            vu = a * (a * m1 + b * m2) + b * (a * m2 + b * m3)
+            vv = b * (b * m1 + d * m2) + d * (b * m2 + d * m3)
+            su = gamma * np.sqrt(max(vu * s2, _F32(0.0)))
+            sv = gamma * np.sqrt(max(vv * s2, _F32(0.0)))
+            l0 = max(lo[r, c, 0], du - su)
+            h0 = min(hi[r, c, 0], du + su)
+            l1 = max(lo[r, c, 1], dv - sv)
+            h1 = min(hi[r, c, 1], dv + sv)
+            if l0 <= h0 and l1 <= h1:
+                lo[r, c, 0] = l0
+                hi[r, c, 0] = h0
+                lo[r, c, 1] = l1
+                hi[r, c, 1] = h1
+                u[r, c] = du
+                v[r, c] = dv
+                chosen[r, c] = code
+                sd[r, c] = np.sqrt(max((vu + vv) * s2, _F32(0.0)))
+            else:
+                alive[r, c] = False
+
+
+@nb.njit(fastmath=True, cache=True, nogil=True)
 def _block_moments_kernel(gx, gy, f, out):
     # Per f x f block (i, j) of the flow grid, for a in (gx gx, gx gy, gy gy): the block
     # sum of a, of a * xl and of a * yl, where (xl, yl) is the pixel offset from the block
@@ -522,9 +589,9 @@ def invalid_pixels(image: np.ndarray, *, texture_threshold: float = 0.1, size: i
     """Pixels of one image that cannot carry a BOS deflection.
 
     * non-finite values (NaN from a dead pixel map, inf);
-    * clipped runs: pixels at the image's minimum or maximum grey level where more than
-      ``clip_fraction`` of a ``size`` x ``size`` window is clipped the same way (a black or
-      saturated region; isolated extreme pixels of a contrasty background stay valid);
+    * clipped runs: where more than ``clip_fraction`` of a ``size`` x ``size`` window sits
+      at the image's minimum or maximum grey level (a black or saturated region; isolated
+      extreme pixels of a contrasty background stay valid);
     * textureless pixels: the local standard deviation (``size`` x ``size``) is below
       ``texture_threshold`` times its median over the image (a blank wall, a stuck
       region: optical flow there returns only noise or the regulariser's zero).
@@ -540,24 +607,36 @@ def invalid_pixels(image: np.ndarray, *, texture_threshold: float = 0.1, size: i
     """
     img = _as_image(image, "image")
     bad = ~np.isfinite(img)
-    fin = img[~bad]
+    fin = img[~bad] if bad.any() else img.ravel()
     if fin.size == 0:
         return np.ones(img.shape, bool)
-    x = _fill_nonfinite(img, float(np.median(fin[:: max(fin.size // 20000, 1)])))
+    x = _fill_nonfinite(img, float(np.median(fin[:: max(fin.size // 20000, 1)]))) if bad.any() else img
     lo, hi = float(fin.min()), float(fin.max())
-    k = (size, size)
+    # The clipped-run and texture statistics are regional: take them at half resolution
+    # (a quarter of the pixels; 2x2 means), then back to full resolution, grown by a pixel.
+    half = min(img.shape) >= 4 * size
+    xs = cv2.resize(x, (x.shape[1] // 2, x.shape[0] // 2), interpolation=cv2.INTER_AREA) if half else x
+    ks = ((size + 1) // 2, (size + 1) // 2) if half else (size, size)
+    region = np.zeros(xs.shape, bool)
     if hi > lo:
         for c in (x <= lo, x >= hi):
-            frac = cv2.boxFilter(c.astype(np.float32), -1, k, borderType=cv2.BORDER_REFLECT)
-            bad |= c & (frac > clip_fraction)
-    m = cv2.boxFilter(x, -1, k, borderType=cv2.BORDER_REFLECT)
-    m2 = cv2.boxFilter(x * x, -1, k, borderType=cv2.BORDER_REFLECT)
+            cs = cv2.resize(c.astype(np.float32), (xs.shape[1], xs.shape[0]), interpolation=cv2.INTER_AREA) \
+                if half else c.astype(np.float32)
+            region |= cv2.boxFilter(cs, -1, ks, borderType=cv2.BORDER_REFLECT) > clip_fraction
+    m = cv2.boxFilter(xs, -1, ks, borderType=cv2.BORDER_REFLECT)
+    m2 = cv2.boxFilter(xs * xs, -1, ks, borderType=cv2.BORDER_REFLECT)
     sd = np.sqrt(np.maximum(m2 - m * m, 0.0))
-    med = float(np.median(sd[::3, ::3]))
+    med = float(np.median(sd[::2, ::2]))
     if med <= 0:      # no texture in most of the image (a blank or black frame)
         return np.ones(img.shape, bool) if texture_threshold > 0 else bad
     if texture_threshold > 0:
-        bad |= sd < np.float32(texture_threshold * med)
+        region |= sd < np.float32(texture_threshold * med)
+    if region.any():
+        if half:
+            region = cv2.resize(region.astype(np.uint8), (img.shape[1], img.shape[0]),
+                                interpolation=cv2.INTER_NEAREST)
+            region = cv2.dilate(region, np.ones((3, 3), np.uint8)).astype(bool)
+        bad |= region
     return bad
 
 
@@ -798,10 +877,18 @@ class PreparedReference:
     levels: int
     pyramid: tuple               # standardised, pre-smoothed images per level (fine first)
     coefficients: tuple          # padded B-spline coefficients per level
+    _invalid: dict = field(default_factory=dict, repr=False)   # texture_threshold -> invalid map
 
     @property
     def shape(self) -> tuple[int, int]:
         return self.image.shape
+
+    def invalid(self, texture_threshold: float) -> np.ndarray:
+        """:func:`invalid_pixels` of the reference (computed once per threshold)."""
+        key = float(texture_threshold)
+        if key not in self._invalid:
+            self._invalid[key] = invalid_pixels(self.image, texture_threshold=key)
+        return self._invalid[key]
 
 
 def prepare_reference(reference: np.ndarray, *, presmooth: float = 0.6, levels: int = 3
@@ -828,7 +915,7 @@ def prepare_reference(reference: np.ndarray, *, presmooth: float = 0.6, levels: 
 # Solvers (one pyramid level each); all share the driver in _pyramid_flow
 # ----------------------------------------------------------------------------------------
 def _lk_level(coef, frame, u, v, *, window, window_type, iterations, regularisation,
-              gradient="frame", keep=None, weight=None, **_):
+              gradient="frame", keep=None, weight=None, ici=None, **_):
     """Dense Lucas-Kanade on one level, warping the reference at every iteration.
 
     Each pixel ``q`` of the window of ``p`` is linearised around its own current warp:
@@ -882,7 +969,79 @@ def _lk_level(coef, frame, u, v, *, window, window_type, iterations, regularisat
         bx = _window_filter(ex, taps)
         by = _window_filter(ey, taps)
         _lk_solve_kernel(sxx, sxy, syy, lam, bx, by, u, v)
+    if ici is not None:
+        u, v = _lk_ici(coef, frame, gx, gy, u, v, window_type=window_type, regularisation=regularisation, **ici)
     return u, v
+
+
+def window_for_voxel(px_per_voxel: float, window_per_voxel: float, *, smallest: int = 5,
+                     largest: int = 31) -> int:
+    """The odd LK window (pixels) spanning ``window_per_voxel`` voxel footprints."""
+    w = int(round(window_per_voxel * px_per_voxel))
+    w = min(max(w, smallest), largest)
+    return w if w % 2 else w + 1
+
+
+def ici_windows(smallest: int, largest: int, ratio: float = 1.4) -> tuple[int, ...]:
+    """Odd window edges from ``smallest`` to ``largest``, growing by about ``ratio``."""
+    out = [int(smallest) | 1]
+    while out[-1] < largest:
+        nxt = max(int(round(out[-1] * ratio)) | 1, out[-1] + 2)
+        out.append(min(nxt, int(largest) | 1))
+    return tuple(out)
+
+
+def _lk_ici(coef, frame, gx, gy, u, v, *, windows, window_type, regularisation, gamma, info=None):
+    """Per-pixel LK window by the intersection of confidence intervals (ICI).
+
+    Around the converged pilot estimate ``(u, v)``, one more LK step is taken with every
+    window of ``windows`` (small to large, sharing the linearisation), each with its
+    variance ``sigma^2 (T + lam)^-1 M (T + lam)^-1`` (``M`` the structure tensor filtered
+    with the squared window weights, ``sigma`` the image noise: a robust scale of the
+    warped residual ``frame - ref(q + d)``). A pixel takes the largest window whose
+    confidence interval (``gamma`` standard deviations) still meets those of all smaller
+    windows: large windows where the deflection is smooth (less noise), small ones where
+    it has fine structure (less bias). Katkovnik, Egiazarian & Astola, *Local Approximation
+    Techniques in Signal and Image Processing* (2006), applied to LK's window.
+
+    ``info`` (a dict) receives ``noise`` (image noise, standardised units), the median
+    chosen window and the median predicted flow noise (pixels of this level).
+    """
+    H, W = frame.shape
+    ex = np.empty_like(frame)
+    ey = np.empty_like(frame)
+    _lk_residual_kernel(coef, frame, gx, gy, u, v, ex, ey)
+    warped = np.empty_like(frame)
+    _warp_kernel(coef, u, v, warped)
+    res = (frame - warped)[::2, ::2]
+    keep_px = (gx[::2, ::2] != 0) | (gy[::2, ::2] != 0)   # invalid pixels have zeroed gradients
+    res = res[keep_px] if keep_px.any() else res.ravel()
+    noise = float(1.4826 * np.median(np.abs(res - np.median(res))))
+    s2 = np.float32(max(noise, 1e-6) ** 2)
+    gxx, gxy, gyy = gx * gx, gx * gy, gy * gy
+    lo = np.full((H, W, 2), -np.inf, np.float32)
+    hi = np.full((H, W, 2), np.inf, np.float32)
+    alive = np.ones((H, W), np.bool_)
+    chosen = np.zeros((H, W), np.int16)
+    sd = np.zeros((H, W), np.float32)
+    uu = u.copy()
+    vv = v.copy()
+    for code, w in enumerate(windows):
+        taps = _window_taps(w, window_type)
+        t2 = (taps * taps).astype(np.float32)
+        sxx = _window_filter(gxx, taps)
+        sxy = _window_filter(gxy, taps)
+        syy = _window_filter(gyy, taps)
+        lam = np.float32(regularisation * 0.5 * (float(sxx[::4, ::4].mean()) + float(syy[::4, ::4].mean())))
+        _ici_kernel(sxx, sxy, syy, lam, _window_filter(ex, taps), _window_filter(ey, taps),
+                    _window_filter(gxx, t2), _window_filter(gxy, t2), _window_filter(gyy, t2), s2,
+                    np.float32(gamma), code, lo, hi, alive, uu, vv, chosen, sd)
+    if info is not None:
+        info["noise"] = noise
+        info["window_median"] = int(np.asarray(windows)[int(np.median(chosen[::2, ::2]))])
+        info["window_fraction"] = {int(w): float(np.mean(chosen[::2, ::2] == i)) for i, w in enumerate(windows)}
+        info["flow_noise_px"] = float(np.median(sd[::2, ::2]))
+    return uu, vv
 
 
 _HS_KERNEL = np.array([[1, 2, 1], [2, 0, 2], [1, 2, 1]], np.float32) / 12.0
@@ -928,8 +1087,9 @@ def _pyramid_flow(level_solver, prep: PreparedReference, frame_pyr, *, iteration
             u, v = _upsample_flow(u, v, prep.pyramid[lev].shape)
         it = fine_iterations if lev == 0 else iterations
         w = weights[lev] if weights is not None and lev < len(weights) else None
+        extra = {} if lev == 0 or "ici" not in kw else {"ici": None}
         u, v = level_solver(prep.coefficients[lev], frame_pyr[lev], u, v, iterations=it,
-                            keep=keep if lev == 0 else None, weight=w, **kw)
+                            keep=keep if lev == 0 else None, weight=w, **{**kw, **extra})
     return u, v
 
 
@@ -1039,6 +1199,8 @@ def deflection_field(
     corr_window: int = 32,
     corr_step: int = 16,
     corr_taper: bool = False,
+    ici_gamma: float = 0.0,
+    ici_min_window: int = 5,
 ) -> np.ndarray:
     """Full-resolution BOS deflection field between a reference background and a frame.
 
@@ -1070,7 +1232,7 @@ def deflection_field(
 def _flow_components(reference, frame, *, method, window, window_type, levels, iterations,
                      fine_iterations, presmooth, regularisation, gradient, alpha,
                      inner_iterations, dis_preset, corr_window, corr_step, corr_taper,
-                     keep=None, valid=None):
+                     ici_gamma=0.0, ici_min_window=5, keep=None, valid=None, info=None):
     """:func:`deflection_field` as two (H, W) float32 arrays (u, v); for LK, ``keep``
     (a dict) receives the full-resolution frame gradients ``gx``, ``gy``. ``valid``
     (H, W) bool: pixels the flow may use (LK and HS weight the others out; every method
@@ -1097,10 +1259,14 @@ def _flow_components(reference, frame, *, method, window, window_type, levels, i
         fpyr = _pyramid(_standardise(frm, prep.mean, prep.scale, presmooth), len(prep.pyramid))
         weights = None if valid is None or valid.all() else _weight_pyramid(valid, len(prep.pyramid))
         if method == "lk":
+            ici = None
+            if ici_gamma > 0 and gradient == "frame":
+                ici = {"windows": ici_windows(min(ici_min_window, window), window), "gamma": ici_gamma,
+                       "info": info}
             u, v = _pyramid_flow(_lk_level, prep, fpyr, window=window, window_type=window_type,
                                  iterations=iterations, fine_iterations=fine_iterations,
                                  regularisation=regularisation, gradient=gradient,
-                                 keep=keep, weights=weights)
+                                 keep=keep, weights=weights, ici=ici)
         else:
             u, v = _pyramid_flow(_hs_level, prep, fpyr, iterations=iterations,
                                  fine_iterations=fine_iterations, alpha=alpha,
@@ -1201,7 +1367,8 @@ def downsample_flow(flow: np.ndarray, flow_grid: FlowGrid) -> np.ndarray:
     return cv2.resize(crop, (cols, rows), interpolation=cv2.INTER_AREA)
 
 
-def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowParams()) -> np.ndarray:
+def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowParams(), *,
+                     info: dict | None = None) -> np.ndarray:
     """Per camera-frame deflection stage: flow, area downsampling, outliers, smoothing.
 
     Paper sec. 4: full-resolution optical flow, downsampled to the flow grid
@@ -1232,20 +1399,24 @@ def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowPara
         :class:`PreparedReference` of the camera saves its per-call preparation.
     frame : ndarray, shape (H, W)
     params : FlowParams
+    info : dict, optional
+        Receives what the data chose (with ICI: the image noise, the median window, the
+        fraction of pixels per window and the median predicted flow noise in pixels).
 
     Returns
     -------
     flow : ndarray, shape (H // f, W // f, 2), float32
         Deflection in original-image pixels (component 0 = u, 1 = v).
     """
-    keep = {} if params.method == "lk" and params.texture_correction else None
+    ici = params.method == "lk" and params.ici_gamma > 0 and params.gradient == "frame"
+    keep = {} if params.method == "lk" and params.texture_correction and not ici else None
     valid = None
     if params.invalid_check:
-        ref_img = reference.image if isinstance(reference, PreparedReference) else reference
-        inv = invalid_pixels(ref_img, texture_threshold=params.texture_threshold) | \
-            invalid_pixels(frame, texture_threshold=params.texture_threshold)
+        inv_ref = reference.invalid(params.texture_threshold) if isinstance(reference, PreparedReference) \
+            else invalid_pixels(reference, texture_threshold=params.texture_threshold)
+        inv = inv_ref | invalid_pixels(frame, texture_threshold=params.texture_threshold)
         valid = ~inv if inv.any() else None
-    u, v = _flow_components(reference, frame, **params.field_kwargs(), keep=keep, valid=valid)
+    u, v = _flow_components(reference, frame, **params.field_kwargs(), keep=keep, valid=valid, info=info)
     H, W = u.shape
     rows, cols = FlowGrid((W, H), params.factor).shape
     f = params.factor

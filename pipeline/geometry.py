@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-__all__ = ["Camera", "Grid", "FlowGrid", "Medium", "rodrigues"]
+__all__ = ["Camera", "Grid", "FlowGrid", "Medium", "rodrigues", "pixel_footprint", "auto_voxel_size"]
 
 
 def rodrigues(rvec) -> np.ndarray:
@@ -339,3 +339,56 @@ class Medium:
     @property
     def refractivity_ambient(self) -> float:
         return self.n_ambient - 1.0
+
+
+#: :func:`auto_voxel_size` defaults (chosen on the realistic family's tune cases, see
+#: benchmarks/results/realistic.md): image pixels per voxel edge at the volume centre, the
+#: largest grid, and the largest projection matrix (ray-voxel crossings) it may imply.
+AUTO_PX_PER_VOXEL = 2.0
+AUTO_MAX_VOXELS = 4_000_000
+AUTO_MAX_CROSSINGS = 2.0e8
+
+
+def pixel_footprint(camera: Camera, point) -> float:
+    """Metres per image pixel at ``point`` (x, y, z): its distance from the camera over the focal length."""
+    d = float(np.linalg.norm(np.asarray(point, dtype=np.float64) - camera.center))
+    f = 0.5 * float(camera.K[0, 0] + camera.K[1, 1])
+    return d / f
+
+
+def auto_voxel_size(cameras, vmin, vmax, *, px_per_voxel: float = AUTO_PX_PER_VOXEL,
+                    max_voxels: int = AUTO_MAX_VOXELS, max_crossings: float = AUTO_MAX_CROSSINGS,
+                    flow_factor: int = 3) -> tuple[float, dict]:
+    """The reconstruction voxel from the cameras' pixel footprint at the volume.
+
+    A voxel should span about ``px_per_voxel`` image pixels (the median footprint over the
+    cameras at the box centre): finer voxels than the flow can resolve only add unknowns,
+    coarser ones throw away the resolution the cameras have (on weak, fine-structured
+    flows, 2.5 mm voxels at 3.8 px each lost 4 dB against 1.25 mm ones). Two budgets bound
+    it from below: at most ``max_voxels`` voxels in the box, and at most ``max_crossings``
+    ray-voxel crossings (flow-grid rays of every camera times the voxels across the box),
+    which sets the size of the projection matrix (about 4 bytes x 2 per crossing). The
+    result is rounded up to 0.05 mm.
+
+    Returns
+    -------
+    voxel : float
+        Metres.
+    info : dict
+        ``footprint`` (m/px), ``px_per_voxel`` (achieved), ``limited_by``
+        (``"footprint"``, ``"voxels"`` or ``"matrix"``).
+    """
+    lo = np.asarray(vmin, dtype=np.float64)
+    hi = np.asarray(vmax, dtype=np.float64)
+    ext = hi - lo
+    centre = 0.5 * (lo + hi)
+    fp = float(np.median([pixel_footprint(c, centre) for c in cameras]))
+    candidates = {"footprint": px_per_voxel * fp,
+                  "voxels": float(np.prod(ext) / max(max_voxels, 1)) ** (1.0 / 3.0)}
+    rays = sum((int(c.width) // flow_factor) * (int(c.height) // flow_factor) for c in cameras)
+    chord = float(np.mean(ext))
+    candidates["matrix"] = rays * chord / max_crossings
+    limited_by = max(candidates, key=candidates.get)
+    v = candidates[limited_by]
+    v = float(np.ceil(v / 5e-5 - 1e-9) * 5e-5)
+    return v, {"footprint": fp, "px_per_voxel": v / fp, "limited_by": limited_by}

@@ -40,6 +40,7 @@ __all__ = [
     "threshold_from_summaries",
     "threshold_from_samples",
     "make_mask",
+    "flow_noise",
 ]
 
 
@@ -69,6 +70,12 @@ class MaskParams:
         plume's strength and size, which a single percentile cannot follow.
     flow_sigma : float
         Gaussian smoothing of the flow before ``deflection_threshold``, flow-grid cells.
+    noise_factor : float
+        The deflection criterion uses ``max(deflection_threshold, noise_factor * sigma)``,
+        ``sigma`` the flow noise of the frame measured from the smoothed flow itself
+        (:func:`flow_noise`): with noisy captures (lossy video) a fixed threshold marks
+        noise as flow and the hull fills the box. 5 sigma leaves about 4e-6 of the
+        flow-free cells above it. 0 keeps the fixed threshold.
     """
 
     percentile: float = param(95.0, unit="%", gt=0, lt=100)
@@ -78,6 +85,7 @@ class MaskParams:
     n_quantiles: int = param(2000, unit="1", ge=10, le=100000)
     deflection_threshold: float = param(0.015, unit="px", ge=0, le=100)
     flow_sigma: float = param(1.5, unit="flow cells", ge=0, le=100)
+    noise_factor: float = param(5.0, unit="1", ge=0, le=100)
 
     def __post_init__(self):
         if not 0.0 < self.percentile < 100.0:
@@ -232,9 +240,33 @@ def threshold_from_samples(samples: np.ndarray, *, percentile: float = 95.0) -> 
     return float(np.percentile(np.abs(np.asarray(samples, dtype=np.float64)), percentile))
 
 
+def flow_noise(flow: np.ndarray) -> float:
+    """Robust RMS noise of one flow component (pixels), from the flow field itself.
+
+    ``1.4826 * MAD`` of each component about its median, combined as
+    ``sqrt((s_u^2 + s_v^2) / 2)``: in a BOS frame most cells see no flow, so the median
+    absolute deviation measures the noise, not the plume. NaN cells are ignored.
+
+    Parameters
+    ----------
+    flow : ndarray, shape (h, w, 2)
+
+    Returns
+    -------
+    float
+    """
+    f = np.asarray(flow, dtype=np.float64).reshape(-1, 2)
+    f = f[np.isfinite(f).all(axis=1)]
+    if f.shape[0] < 10:
+        return 0.0
+    s = 1.4826 * np.median(np.abs(f - np.median(f, axis=0)), axis=0)
+    return float(np.sqrt(0.5 * np.sum(s ** 2)))
+
+
 def make_mask(potentials: np.ndarray, centre: int, threshold: float, *, flows=None,
               smooth_sigma: float = 1.0, dilation_radius: int = 4, temporal_radius: int = 1,
-              deflection_threshold: float = 0.015, flow_sigma: float = 1.5) -> np.ndarray:
+              deflection_threshold: float = 0.015, flow_sigma: float = 1.5,
+              noise_factor: float = 5.0) -> np.ndarray:
     """Conservative mask of one camera-frame: threshold, temporal union, spatial dilation.
 
     Paper sec. 4 / Figure 4: ``|P| > threshold`` on the smoothed potential of every frame
@@ -281,7 +313,10 @@ def make_mask(potentials: np.ndarray, centre: int, threshold: float, *, flows=No
             if flow_sigma > 0:
                 fl = cv2.GaussianBlur(fl, (0, 0), sigmaX=flow_sigma, sigmaY=flow_sigma,
                                       borderType=cv2.BORDER_REFLECT)
-            m |= np.hypot(fl[..., 0], fl[..., 1]) > deflection_threshold
+            thr = deflection_threshold
+            if noise_factor > 0:
+                thr = max(thr, noise_factor * flow_noise(fl))
+            m |= np.hypot(fl[..., 0], fl[..., 1]) > thr
     if dilation_radius > 0:
         r = int(dilation_radius)
         yy, xx = np.mgrid[-r:r + 1, -r:r + 1]

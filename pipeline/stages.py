@@ -187,9 +187,15 @@ STAGES: tuple[Stage, ...] = (
     Stage("geometry", _tomo.build_geometry, "tomography", (), ("geometry",), (), cost=1.35),
     Stage("hull", _hull.visual_hull, "hull", ("mask",), ("hull",), ("frame",),
           after=(("mask", "same"),), cost=0.36),
-    Stage("tomography", _tomo.solve_gradient, "tomography", ("flow", "hull", "geometry"),
+    # the regularisation weight, from the noise measured outside the masks (discrepancy
+    # principle on the middle frame; with reg_choice "fixed" it only records reg_weight)
+    Stage("regularisation", _tomo.choose_reg_weight, "tomography", ("flow", "mask", "geometry"),
+          ("reg_weight", "rhs_noise"), (), after=(("mask", "all"), ("geometry", "all")),
+          resources={"TOMO": 1}, cost=2.5),
+    Stage("tomography", _tomo.solve_gradient, "tomography", ("flow", "hull", "geometry", "reg_weight"),
           ("gradient",), ("frame",),
-          after=(("hull", "same"), ("resample", "same"), ("geometry", "all"), ("tomography", "chain")),
+          after=(("hull", "same"), ("resample", "same"), ("geometry", "all"), ("regularisation", "all"),
+                 ("tomography", "chain")),
           resources={"TOMO": 1}, cost=0.71),
     Stage("integrate", _poisson.integrate, "poisson", ("gradient", "hull"),
           ("refractivity", "density", "temperature"), ("frame",),

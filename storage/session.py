@@ -31,7 +31,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from schlieren.pipeline import resources as _resources
-from schlieren.pipeline.geometry import Camera, Grid, Medium, rodrigues
+from schlieren.pipeline.geometry import Camera, Grid, Medium, auto_voxel_size, rodrigues
 from schlieren.storage import location
 from schlieren.storage.errors import SessionError
 from schlieren.storage.frames import (
@@ -183,7 +183,7 @@ class _Model(BaseModel):
 class VolumeModel(_Model):
     min: list[float]
     max: list[float]
-    voxel_size: float
+    voxel_size: float | None = None   # None: chosen from the cameras' pixel footprint
 
     @field_validator("min", "max", mode="before")
     @classmethod
@@ -193,7 +193,7 @@ class VolumeModel(_Model):
     @field_validator("voxel_size")
     @classmethod
     def _positive(cls, v):
-        if v <= 0:
+        if v is not None and v <= 0:
             raise ValueError(f"must be positive (metres), got {v}")
         return v
 
@@ -639,12 +639,20 @@ def _total_memory() -> int:
     return int(psutil.virtual_memory().total)
 
 
-def _check_volume(v: VolumeModel, file: str) -> Grid:
+def _check_volume(v: VolumeModel, file: str, cameras=None) -> Grid:
     lo, hi = np.asarray(v.min), np.asarray(v.max)
     for k, ax in enumerate("xyz"):
         if hi[k] <= lo[k]:
             raise SessionError(f"empty or inverted volume: max.{ax} = {hi[k]:g} is not greater than "
                                f"min.{ax} = {lo[k]:g}", file=file, field="volume.max")
+    if v.voxel_size is None:
+        if not cameras:
+            raise SessionError("voxel_size is missing and there are no cameras to choose it from",
+                               file=file, field="volume.voxel_size")
+        voxel, info = auto_voxel_size(cameras, lo, hi)
+        log.info("volume.voxel_size not given: %.2f mm chosen (%.2f px per voxel at a footprint of %.3f mm/px, "
+                 "limited by %s)", 1e3 * voxel, info["px_per_voxel"], 1e3 * info["footprint"], info["limited_by"])
+        v = v.model_copy(update={"voxel_size": voxel})
     grid = Grid(tuple(lo), tuple(hi), v.voxel_size)
     if min(grid.shape) < 1:
         raise SessionError(f"voxel_size {v.voxel_size:g} m gives an empty grid {grid.shape_xyz} (x, y, z) "
@@ -952,7 +960,7 @@ def load_session(path: str | os.PathLike, *, frames: tuple[int, int] | None = No
         raise SessionError("some cameras are interlaced and some are not: every camera of a session needs the "
                            "same frame (or field) rate", file=mfile, camera=c.name, field=f"cameras[{i}].interlaced")
     interlaced = m.cameras[0].interlaced is not None if m.cameras else False
-    grid = _check_volume(m.volume, mfile)
+    grid = _check_volume(m.volume, mfile) if m.volume.voxel_size is not None else None
     medium = Medium(**m.medium.model_dump())
 
     strobe = None
@@ -996,6 +1004,8 @@ def load_session(path: str | os.PathLike, *, frames: tuple[int, int] | None = No
         kind = _kind_of_frames(c.frames, mfile, c.name, f"cameras[{i}].frames")
         cameras.append(cam)
         sources.append(CameraSource(c.name, fr, ref, kind, _kind_of_reference(c.reference), c.interlaced))
+    if grid is None:   # no voxel_size in the manifest: from the cameras' pixel footprint
+        grid = _check_volume(m.volume, mfile, cameras)
 
     seeing = [cam.name for cam in cameras if _sees_volume(cam, grid)]
     if not seeing:

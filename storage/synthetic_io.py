@@ -92,7 +92,7 @@ def _camera_entry(cam: Camera, *, frames: str, reference: str, write_offset: boo
 
 def write_manifest(out_dir: str | os.PathLike, *, name: str, frame_rate: float, frames: tuple[int, int],
                    grid: Grid, medium: Medium, cameras: list[Camera], camera_files: dict[str, tuple[str, str]],
-                   strobe_search: tuple[int, int] | None) -> Path:
+                   strobe_search: tuple[int, int] | None, voxel_size: bool = True) -> Path:
     """Write ``session.yaml`` (SPEC section 1).
 
     Parameters
@@ -111,6 +111,9 @@ def write_manifest(out_dir: str | os.PathLike, *, name: str, frame_rate: float, 
         ``name -> (frames spec, reference spec)``, relative to ``out_dir``.
     strobe_search : (int, int) or None
         With a range, the manifest gets ``sync.strobe.search_frames`` and no offsets.
+    voxel_size : bool
+        Write ``volume.voxel_size`` (False leaves the choice to the pipeline: the
+        cameras' pixel footprint).
 
     Returns
     -------
@@ -122,10 +125,12 @@ def write_manifest(out_dir: str | os.PathLike, *, name: str, frame_rate: float, 
         "name": name,
         "frame_rate": float(frame_rate),
         "frames": [int(frames[0]), int(frames[1])],
-        "volume": {"min": list(grid.vmin), "max": list(grid.vmax), "voxel_size": float(grid.voxel_size)},
+        "volume": {"min": list(grid.vmin), "max": list(grid.vmax)},
         "medium": {"n_ambient": medium.n_ambient, "T_ambient": medium.T_ambient,
                    "p_ambient": medium.p_ambient, "gladstone_dale": medium.gladstone_dale},
     }
+    if voxel_size:
+        doc["volume"]["voxel_size"] = float(grid.voxel_size)
     if strobe_search is not None:
         doc["sync"] = {"strobe": {"search_frames": [int(strobe_search[0]), int(strobe_search[1])]}}
     doc["cameras"] = [_camera_entry(c, frames=camera_files[c.name][0], reference=camera_files[c.name][1],

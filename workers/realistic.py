@@ -117,7 +117,10 @@ class RealisticCase:
     reference_frames : int
         Noisy reference frames recorded per camera (averaged by the pipeline).
     voxel : float
-        Truth (CFD) and manifest voxel size, metres.
+        Truth (CFD) grid, metres.
+    manifest_voxel : bool
+        Write ``voxel`` into the manifest; by default the manifest leaves it out, as a
+        user would, and the pipeline chooses it from the cameras' pixel footprint.
     """
 
     name: str
@@ -133,6 +136,7 @@ class RealisticCase:
     noise: float = 1.5
     reference_frames: int = 16
     voxel: float = VOXEL
+    manifest_voxel: bool = False
 
     def key(self) -> str:
         """Content hash of everything that changes the rendered session."""
@@ -160,7 +164,7 @@ CASES: tuple[RealisticCase, ...] = _cases()
 #: A small subset for tests: 4 cameras, 160x120, one frame, coarse voxels (no CFD needed).
 QUICK_CASES: tuple[RealisticCase, ...] = (
     RealisticCase("quick-4cam-160", "plume-s1", "tune", 4, (160, 120), peak_px=0.25, frames=1,
-                  reference_frames=4, voxel=0.005),
+                  reference_frames=4, voxel=0.005, manifest_voxel=True),
 )
 
 
@@ -252,7 +256,7 @@ def _render(case: RealisticCase, d: Path, result, *, voxel: float):
                       video=case.video is not None, video_codec=case.video or "ffv1",
                       video_bits_per_pixel=case.bits_per_pixel, distortion=case.distortion, voxel_size=voxel,
                       recon_voxel=voxel, reference_frames=case.reference_frames, knot_dt=1.0 / 120.0,
-                      name=f"realistic-{case.name}")
+                      name=f"realistic-{case.name}", manifest_voxel=case.manifest_voxel)
 
 
 def _peak_deflection(truth_path) -> float:
@@ -338,6 +342,26 @@ def _rows_from(ev: dict) -> dict:
             "frames": [{k: f[k] for k in ("frame", "psnr", "psnr_plume", "peak_ratio")} for f in ev["frames"]]}
 
 
+def _chosen(store_path) -> dict:
+    """What the run chose from the data: the voxel, the regularisation weight and the noise it saw."""
+    from schlieren.storage.store import ResultStore
+
+    st = ResultStore.open(store_path, mode="r")
+    out = {}
+    try:
+        vs = np.ravel(st.array("refractivity").attrs["voxel_size"])[0]
+        out["voxel_mm"] = round(1e3 * float(vs), 3)
+    except (KeyError, IndexError):
+        pass
+    for name in ("reg_weight", "rhs_noise"):
+        try:
+            v = np.asarray(st.read(name, ()), dtype=np.float64).ravel()
+        except KeyError:
+            continue
+        out[name] = float(v[0]) if v.size == 1 else [float(x) for x in v]
+    return out
+
+
 def run_case(case: RealisticCase, work: Path, *, config: RunConfig | None = None, client=None, label: str = "",
              truth_rows: bool = True, progress: Callable[[str], None] | None = None) -> dict:
     """Render (or reuse) ``case``, run the full pipeline and score it; returns a JSON-able dict."""
@@ -362,8 +386,7 @@ def run_case(case: RealisticCase, work: Path, *, config: RunConfig | None = None
         res["failures"] = dict(summary.root_failures())
         return res
     res["rows"]["optical_flow"] = _rows_from(evaluate(store, info["truth"]))
-    st = ResultStore.open(store, mode="r")
-    res["chosen"] = st.attrs.get("chosen", {}) if hasattr(st, "attrs") else {}
+    res["chosen"] = _chosen(store)
     if truth_rows:
         vols = bench.truth_rows(info["session"], store, info["truth"], config=cfg)
         from schlieren.storage.session import load_session

@@ -96,7 +96,8 @@ def synthesize(out_dir, *, cameras: int = 16, ring: str = "half", phantom: str =
                background_distance: float = 2.5, height_jitter: float = 0.0, supersample: int = 3,
                exposure: float = 1.0 / 120.0, medium: Medium = Medium(), knot_dt: float | None = None,
                step: float | None = None, name: str | None = None, video_codec: str = "ffv1",
-               video_bits_per_pixel: float = 0.16, reference_frames: int = 0) -> SynthResult:
+               video_bits_per_pixel: float = 0.16, reference_frames: int = 0,
+               manifest_voxel: bool = True) -> SynthResult:
     """Render a synthetic session and its ground truth into ``out_dir``.
 
     Parameters
@@ -125,6 +126,9 @@ def synthesize(out_dir, *, cameras: int = 16, ring: str = "half", phantom: str =
     video_codec : {"ffv1", "h264"}
         Lossless FFV1 (default) or lossy H.264 at ``video_bits_per_pixel`` bits per pixel
         and frame (camcorder-like: 0.16, :class:`~schlieren.storage.synthetic_io.VideoSink`).
+    manifest_voxel : bool
+        Write ``recon_voxel`` as the manifest's ``volume.voxel_size``; False leaves it out,
+        so the pipeline chooses the voxel from the cameras' pixel footprint.
     reference_frames : int
         0: one noise-free reference image per camera. ``N > 0``: ``N`` reference frames
         (no flow) with the same sensor noise as the capture, as a PNG sequence, or in
@@ -284,7 +288,7 @@ def synthesize(out_dir, *, cameras: int = 16, ring: str = "half", phantom: str =
     timings["truth_traces"] = t_truth
     session = sio.write_manifest(out, name=name or f"synthetic-{phantom}-{cameras}{ring}", frame_rate=frame_rate,
                                  frames=(A, A + frames), grid=grid, medium=medium, cameras=rig, camera_files=files,
-                                 strobe_search=(0, A) if strobe else None)
+                                 strobe_search=(0, A) if strobe else None, voxel_size=manifest_voxel)
     timings["total"] = _time.perf_counter() - t_all
     return SynthResult(session=session, truth=truth_path, time_offsets=offsets, times=times, frames=(A, A + frames),
                        timings=timings)

@@ -15,6 +15,7 @@ killed midway is simply run again.
 from __future__ import annotations
 
 import functools
+import dataclasses
 import logging
 import time
 from collections import OrderedDict
@@ -24,7 +25,7 @@ import numpy as np
 
 from schlieren.pipeline import derived, flow as flowmod, frame_quality as fq, hull as hullmod, masks as masksmod
 from schlieren.pipeline import poisson, sync, tomography
-from schlieren.pipeline.geometry import Camera, FlowGrid
+from schlieren.pipeline.geometry import Camera, FlowGrid, pixel_footprint
 from schlieren.pipeline.stages import RunConfig, config_from_dict, frame_statistics, kernel_kwargs, stage
 from schlieren.storage import arrays_cache
 from schlieren.storage.errors import SessionError
@@ -235,7 +236,8 @@ def _deflection(ctx: RunContext, c: int, j: int) -> dict:
     src = ctx.frames(c)
     img = ctx.frame(c, f)
     parity = src.parity(f) if hasattr(src, "parity") else None  # interlaced fields
-    d = flowmod.deflection_stage(ctx.prepared_reference(c, parity), img, ctx.config.flow)
+    params = flow_params(ctx, c)
+    d = flowmod.deflection_stage(ctx.prepared_reference(c, parity), img, params)
     ctx.store.write("flow_raw", (c, j), d.astype(np.float32))
     # dark, saturated or frozen frames: flagged here, excluded by resampling
     dtype = src.raw_dtype
@@ -248,7 +250,7 @@ def _deflection(ctx: RunContext, c: int, j: int) -> dict:
         previous = None
     q = fq.frame_quality(img, previous, reference_mean=ref_mean, full_scale=full)
     ctx.store.write("frame_quality", (c, j), q)
-    out = {"max_px": float(np.nanmax(np.abs(d))) if d.size else 0.0}
+    out = {"max_px": float(np.nanmax(np.abs(d))) if np.isfinite(d).any() else 0.0, "window": params.window}
     bad = fq.flag_names(q[3])
     if bad:
         out["excluded"] = bad
@@ -265,6 +267,21 @@ def bad_frames(ctx: RunContext, c: int, lo: int, hi: int) -> tuple[int, ...]:
         if np.isfinite(q[3]) and int(q[3]):
             out.append(f)
     return tuple(out)
+
+
+def flow_params(ctx: RunContext, c: int):
+    """Camera ``c``'s flow parameters: the LK window from the voxel footprint (``window_per_voxel``)."""
+    params = ctx.config.flow
+    if params.window_per_voxel <= 0:
+        return params
+
+    def make():
+        grid = ctx.session.grid
+        centre = 0.5 * (np.asarray(grid.vmin) + np.asarray(grid.vmax))
+        px = grid.voxel_size / pixel_footprint(ctx.cameras[c], centre)
+        return dataclasses.replace(params, window=flowmod.window_for_voxel(px, params.window_per_voxel))
+
+    return ctx._once(("flow_params", c), make)
 
 
 def _resample(ctx: RunContext, c: int, k: int) -> dict:
@@ -346,6 +363,47 @@ def _hull(ctx: RunContext, k: int) -> dict:
     return {"voxels": int(h.sum())}
 
 
+def _regularisation(ctx: RunContext) -> dict:
+    """The tomography weight for the run: Morozov's discrepancy principle on the middle frame.
+
+    The noise of the right-hand side is measured on the rays outside every camera's mask
+    (no flow: pure measurement noise); the weight whose data residual matches it is
+    chosen on the middle frame's hull and used for every frame (one weight per run keeps
+    the frames comparable and costs one frame's search, about 4-6 warm-started solves).
+    """
+    params = ctx.config.tomography
+    out = {"reg_choice": params.reg_choice}
+    weight, noise = float(params.reg_weight), np.full(3, np.nan)
+    if params.reg_choice == "discrepancy" and ctx.n_frames > 0:
+        k = ctx.n_frames // 2
+        geom = _geometry(ctx.store_path, _geometry_key(ctx))
+        C = len(ctx.cameras)
+        masks = np.stack([ctx.store.read("mask", (c, k)) for c in range(C)])
+        flows = np.stack([ctx.read_upstream("flow", (c, k)) for c in range(C)])
+        rhs = tomography.rhs_from_flows(geom, flows, n_ambient=params.n_ambient)
+        noise = tomography.rhs_noise(rhs, ~masks)
+        hull = hullmod.visual_hull(masks, ctx.cameras, ctx.session.grid, ctx.flow_grid, params=ctx.config.hull)
+        if np.all(np.isfinite(noise)) and noise.any() and hull.any():
+            choice = tomography.choose_reg_weight(geom, flows, hull, noise, params=params)
+            weight = choice.reg_weight
+            out["path"] = [[float(a), float(b)] for a, b in choice.path]
+            log.info("regularisation: weight %.4g from the discrepancy principle (noise %s, frame %d)",
+                     weight, np.array2string(noise, precision=3), k)
+        else:
+            log.warning("regularisation: no noise measurable outside the masks; using reg_weight %.4g", weight)
+    ctx.store.write("reg_weight", (), np.array([weight], dtype=np.float64))
+    ctx.store.write("rhs_noise", (), np.asarray(noise, dtype=np.float64))
+    out.update({"reg_weight": weight, "rhs_noise": [float(v) for v in noise]})
+    return out
+
+
+def tomo_params(ctx: RunContext):
+    """The run's tomography parameters with the weight the regularisation stage chose."""
+    params = ctx.config.tomography
+    w = ctx._once("reg_weight", lambda: float(ctx.store.read("reg_weight", ())[0]))
+    return dataclasses.replace(params, reg_weight=w) if np.isfinite(w) else params
+
+
 def _tomography(ctx: RunContext, k: int) -> dict:
     geom = _geometry(ctx.store_path, _geometry_key(ctx))
     flows = np.stack(ctx.read_upstream_many("flow", [(c, k) for c in range(len(ctx.cameras))]))
@@ -364,7 +422,7 @@ def _tomography(ctx: RunContext, k: int) -> dict:
         ctx.store.write("refractivity", (k,), np.asarray(r, dtype=np.float32))
         ctx.store.write("gradient", (k,), np.stack([gx, gy, gz], axis=-1).astype(np.float32))
         return _info_dict(info)
-    grad, info = tomography.solve_gradient(geom, flows, hull, params=ctx.config.tomography, x0=x0)
+    grad, info = tomography.solve_gradient(geom, flows, hull, params=tomo_params(ctx), x0=x0)
     ctx.store.write("gradient", (k,), np.asarray(grad, dtype=np.float32))
     return _info_dict(info)
 
@@ -396,6 +454,7 @@ def _info_dict(info) -> dict:
 
 _GLUE = {
     "frames": _frames, "sync": _sync, "clock": _clock, "deflection": _deflection,
+    "regularisation": _regularisation,
     "resample": _resample, "potential": _potential, "threshold": _threshold, "mask": _mask,
     "geometry": _geometry_stage, "hull": _hull, "tomography": _tomography,
     "integrate": _integrate,

@@ -25,7 +25,18 @@ class TomoParams:
     reg_weight : float
         Weight of the first-difference smoothness term restricted to the basis set,
         relative to the mean of ``diag(S^T S)`` (dimensionless; 0 = plain least squares,
-        which semi-converges with noisy data).
+        which semi-converges with noisy data). Used as given with ``reg_choice: fixed``;
+        with ``discrepancy`` it is only the fallback when no noise can be measured.
+    reg_choice : {"discrepancy", "fixed"}
+        How the pipeline sets the weight: ``discrepancy`` measures the noise of the
+        right-hand side on the rays outside every flow mask and picks, on the middle
+        frame, the weight whose data residual matches it (Morozov's discrepancy
+        principle, :func:`~schlieren.pipeline.tomography.solve.choose_reg_weight`); the
+        chosen weight is stored (``reg_weight`` array) and used for every frame.
+        ``fixed`` uses ``reg_weight``.
+    reg_tau : float
+        Safety factor of the discrepancy principle: the residual target is ``reg_tau``
+        times the measured noise level.
     max_iter : int
         Iteration cap of the fused conjugate-gradient (CGLS-equivalent) solver.
     tol : float
@@ -43,6 +54,8 @@ class TomoParams:
     step: float = param(0.25, unit="voxels", gt=0, le=1)
     hull_dilation: int = param(1, unit="voxels", ge=0, le=10)
     reg_weight: float = param(0.1, unit="1", ge=0, le=1e6)
+    reg_choice: str = param("discrepancy", choices=("discrepancy", "fixed"))
+    reg_tau: float = param(1.0, unit="1", gt=0, le=100)
     max_iter: int = param(25, unit="1", ge=1, le=10000)
     tol: float = param(5e-3, unit="1", gt=0, lt=1)
     discrepancy: float = param(0.0, unit="1", ge=0, le=100)

@@ -22,6 +22,7 @@ noise-free deflections it costs 1.0 dB (58.9 -> 57.8 dB).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -605,7 +606,7 @@ class RegularisationChoice:
 
 
 def choose_reg_weight(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarray, noise: np.ndarray, *,
-                      params: TomoParams = TomoParams(), tau: float = 1.0, largest: float = 4.0,
+                      params: TomoParams = TomoParams(), tau: float | None = None, largest: float = 4.0,
                       smallest: float = 1e-4, factor: float = 2.0) -> RegularisationChoice:
     """Choose the regularisation weight of one frame by Morozov's discrepancy principle.
 
@@ -626,13 +627,15 @@ def choose_reg_weight(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.nda
         RMS noise of each right-hand-side component (dimensionless).
     params : TomoParams
         All but ``reg_weight`` / ``tol`` / ``max_iter`` are used.
-    tau : float
-        Safety factor of the discrepancy principle (1 = the noise level exactly).
+    tau : float, optional
+        Safety factor of the discrepancy principle (1 = the noise level exactly);
+        default ``params.reg_tau``.
 
     Returns
     -------
     RegularisationChoice
     """
+    tau = float(params.reg_tau if tau is None else tau)
     noise = np.asarray(noise, dtype=np.float64).reshape(3)
     if not np.all(np.isfinite(noise)) or not noise.any():
         raise ValueError(f"the noise estimate must be finite and positive, got {noise}")
@@ -654,8 +657,7 @@ def choose_reg_weight(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.nda
     mu = float(largest)
     prev = None
     while True:
-        p = TomoParams(step=params.step, hull_dilation=params.hull_dilation, reg_weight=mu, max_iter=200, tol=1e-3,
-                       n_ambient=params.n_ambient)
+        p = dataclasses.replace(params, reg_weight=mu, max_iter=200, tol=1e-3, discrepancy=0.0)
         xr, _it, _reason, rel, _t = _solve_restricted(sys_, b, p, _scatter(sys_.inset, x) if x is not None else None,
                                                       None)
         x = xr

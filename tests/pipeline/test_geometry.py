@@ -76,3 +76,23 @@ def test_grid_shape_origin_and_index():
     assert X.shape == (120, 60, 60, 3)
     assert np.allclose(g.world_to_index(X[5, 7, 9]), [9, 7, 5])
     assert g.to_attrs()["voxel_size"] == [0.0025] * 3
+
+
+def test_auto_voxel_from_the_pixel_footprint_and_its_budgets():
+    """Focal length 1000 px at 2 m: 2 mm per pixel at the box centre; 2 px per voxel -> 4 mm."""
+    from schlieren.pipeline.geometry import auto_voxel_size, pixel_footprint
+
+    K = np.array([[1000.0, 0, 320], [0, 1000.0, 240], [0, 0, 1]])
+    bp, bn = Camera.background_from_distance(np.eye(3), np.array([0.0, 0.0, 2.0]), 5.0)
+    cams = [Camera(f"c{i}", K, np.zeros(5), np.eye(3), np.array([0.0, 0.0, 2.0]), (640, 480), bp, bn)
+            for i in range(3)]
+    assert pixel_footprint(cams[0], (0.0, 0.0, 0.0)) == pytest.approx(0.002)
+    v, info = auto_voxel_size(cams, (-0.1, -0.1, -0.1), (0.1, 0.1, 0.1), px_per_voxel=2.0)
+    assert v == pytest.approx(0.004) and info["limited_by"] == "footprint"
+    assert info["px_per_voxel"] == pytest.approx(2.0)
+    # a voxel budget of 1000 voxels for a (0.2 m)^3 box: 20 mm
+    v, info = auto_voxel_size(cams, (-0.1, -0.1, -0.1), (0.1, 0.1, 0.1), max_voxels=1000)
+    assert v == pytest.approx(0.02) and info["limited_by"] == "voxels"
+    # the matrix budget: 3 cameras x 213 x 160 rays x 0.2 m chord / 1e6 crossings = 20.4 mm
+    v, info = auto_voxel_size(cams, (-0.1, -0.1, -0.1), (0.1, 0.1, 0.1), max_crossings=1e6)
+    assert info["limited_by"] == "matrix" and v == pytest.approx(0.02045, abs=5e-5)

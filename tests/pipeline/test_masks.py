@@ -146,3 +146,26 @@ def test_invalid_cells_do_not_poison_the_potential_and_stay_in_the_mask():
     m = M.make_mask(P[None], 0, thr, dilation_radius=0)
     assert m[5:12, 5:15].all() and m[30, 40] and not m[50, 70]
     assert M.threshold_from_summaries([M.potential_summary(np.full((4, 4), np.nan, np.float32))]) == np.inf
+
+
+def test_flow_noise_is_recovered_and_drives_the_deflection_threshold():
+    """Known white flow noise is recovered within 20 % despite a plume in 10 % of the cells;
+    the mask then ignores the noise (a fixed 0.015 px threshold marked all of it)."""
+    rng = np.random.default_rng(3)
+    h, w = 120, 160
+    sigma = 0.03
+    noise = rng.normal(scale=sigma, size=(h, w, 2)).astype(np.float32)
+    yy, xx = np.mgrid[0:h, 0:w]
+    plume = np.zeros((h, w, 2), np.float32)
+    core = (np.abs(xx - 80) < 12) & (yy > 20)
+    plume[core, 0] = np.sign(xx[core] - 80 + 0.5) * 0.4
+    flow = plume + noise
+    assert M.flow_noise(flow) == pytest.approx(sigma, rel=0.2)
+    P = M.flow_potential(flow)
+    thr = M.threshold_from_summaries([M.potential_summary(P)], percentile=95)
+    fixed = M.make_mask(P[None], 0, thr, flows=flow[None], dilation_radius=0, flow_sigma=0.0, noise_factor=0)
+    adaptive = M.make_mask(P[None], 0, thr, flows=flow[None], dilation_radius=0, flow_sigma=0.0)
+    far = np.abs(xx - 80) > 40
+    assert fixed[far].mean() > 0.5            # the noise passes a fixed 0.015 px threshold
+    assert adaptive[far].mean() < 0.05
+    assert adaptive[core].mean() > 0.9

@@ -724,3 +724,22 @@ def test_reference_of_the_wrong_size(session_builder):
     ref = b.root / "cam01" / "reference.png"
     cv2.imwrite(str(ref), np.zeros((31, 40), np.uint8))
     expect_error(b.root, file=ref, camera="cam01", field="cameras[1].reference", match="40x31")
+
+
+def test_missing_voxel_size_is_chosen_from_the_pixel_footprint(session_builder):
+    """No volume.voxel_size: the voxel spans 2 image pixels at the volume centre."""
+    from schlieren.pipeline.geometry import auto_voxel_size, pixel_footprint
+
+    b = session_builder
+    b.manifest["volume"].pop("voxel_size")
+    b.save()
+    s = load_session(b.root)
+    centre = 0.5 * (np.asarray(s.grid.vmin) + np.asarray(s.grid.vmax))
+    fp = float(np.median([pixel_footprint(c, centre) for c in s.cameras]))
+    v, info = auto_voxel_size(s.cameras, s.grid.vmin, s.grid.vmax)
+    assert s.grid.voxel_size == pytest.approx(v)
+    assert info["limited_by"] == "footprint" and 2.0 <= s.grid.voxel_size / fp < 2.0 + 5e-5 / fp + 1e-9
+    # an explicit voxel_size stays an override
+    b.manifest["volume"]["voxel_size"] = 0.01
+    b.save()
+    assert load_session(b.root).grid.voxel_size == 0.01

@@ -77,7 +77,7 @@ def test_quick_table1(tmp_path):
     (rig,) = res["rigs"]
     assert (rig["ring"], rig["cameras"]) == ("half", 3)
     rows = rig["rows"]
-    assert set(rows) == {"exact", "approximate", "optical_flow", "approximate_plain"}
+    assert set(rows) == {"exact", "approximate", "optical_flow", "approximate_aniso"}
     for r in rows.values():
         assert np.isfinite(r["psnr"]) and r["psnr"] == pytest.approx(20 * np.log10(1 / r["rms"]))
     # Ray-traced exit directions carry no optical-flow error: at least as good, up to a margin.

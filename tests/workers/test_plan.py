@@ -1,5 +1,6 @@
 """The compiled task plan: topological order, dependency kinds, resume skipping."""
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -161,3 +162,38 @@ def test_default_frames_per_task_follows_the_image_size():
     assert default_frames_per_task((1440, 1080)) == 1
     assert default_frames_per_task((4096, 3072)) == 1
     assert default_frames_per_task((32, 24)) == MAX_FRAMES_PER_TASK
+
+
+def _deps_oracle(st, index, ext):
+    """The former quadratic scan: every index of the dependency stage tested against the rule."""
+    from schlieren.workers.plan import _STAGE, _indices
+
+    labels = dict(zip(st.over, index))
+    out = []
+    for dep_name, how in st.after:
+        dep = _STAGE[dep_name]
+        for i in _indices(dep, ext):
+            dl = dict(zip(dep.over, i))
+            if how == "all":
+                out.append((dep_name, i))
+            elif how == "same" and all(labels[d] == dl[d] for d in dl.keys() & labels.keys()):
+                out.append((dep_name, i))
+            elif how == "window" and dl.get("camera", labels.get("camera")) == labels.get("camera"):
+                f = dl["raw_frame"] - ext.raw_offset if "raw_frame" in dl else dl["frame"]
+                if abs(f - labels["frame"]) <= st.frame_halo:
+                    out.append((dep_name, i))
+        if how == "chain" and labels["frame"] % max(ext.warm_start_block, 1) != 0:
+            out.append((dep_name, (labels["frame"] - 1,)))
+    return sorted(out)
+
+
+@pytest.mark.parametrize("ext", [Extents(camera=3, frame=7, raw_frame=11, raw_offset=2, warm_start_block=4),
+                                 Extents(camera=1, frame=1, raw_frame=5, raw_offset=2, warm_start_block=1),
+                                 Extents(camera=4, frame=9, raw_frame=9, raw_offset=0, warm_start_block=3)])
+def test_direct_dependencies_equal_the_exhaustive_scan(ext):
+    """The linear dependency construction gives exactly the edges of the exhaustive scan."""
+    from schlieren.workers.plan import _deps, _indices
+
+    for st in STAGES:
+        for index in _indices(st, ext):
+            assert sorted(_deps(st, index, ext)) == _deps_oracle(st, index, ext), (st.name, index)
