@@ -27,7 +27,8 @@ import numpy as np
 
 from schlieren.storage import location
 
-__all__ = ["cache_root", "cache_dir", "save_arrays", "load_arrays", "has_arrays", "remove_cache", "verify_arrays"]
+__all__ = ["cache_root", "cache_dir", "save_arrays", "load_arrays", "has_arrays", "remove_cache", "verify_arrays",
+           "remove_arrays"]
 
 
 def cache_root(store_path: str | os.PathLike) -> Path | str:
@@ -162,3 +163,22 @@ def verify_arrays(path: str | os.PathLike, *, read: bool = True) -> list[str]:
         elif read and _file_crc(f)["crc32c"] != want["crc32c"]:
             problems.append(f"{f}: fails its CRC-32C checksum")
     return problems
+
+
+def remove_arrays(path: str | os.PathLike) -> None:
+    """Delete one saved set (a damaged one, rebuilt by its stage); its manifest goes first,
+    so a half-deleted set never looks complete."""
+    loc = location.normalize(path)
+    if location.is_url(loc):
+        try:
+            location.remove(location.join(loc, "manifest.json"))
+        except FileNotFoundError:
+            pass
+        location.remove_tree(loc)
+        return
+    p = Path(loc)
+    if not p.exists():
+        return
+    trash = p.parent / f".{p.name}.{uuid.uuid4().hex}.trash"
+    os.replace(p, trash)
+    shutil.rmtree(trash, ignore_errors=True)

@@ -349,6 +349,8 @@ def _mask(ctx: RunContext, c: int, k: int) -> dict:
 def _geometry_stage(ctx: RunContext) -> dict:
     key = _geometry_key(ctx)
     path = arrays_cache.cache_dir(ctx.store_path, "geometry", key)
+    if arrays_cache.has_arrays(path) and arrays_cache.verify_arrays(path, read=False):
+        arrays_cache.remove_arrays(path)  # truncated or incomplete: build it again
     if not arrays_cache.has_arrays(path):
         geom = tomography.build_geometry(ctx.cameras, ctx.session.grid, ctx.flow_grid,
                                          params=ctx.config.tomography)

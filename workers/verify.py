@@ -100,9 +100,8 @@ def downstream(ext: Extents, roots) -> set[tuple[str, tuple[int, ...]]]:
 
 
 def _geometry_cache(store: ResultStore, scan: ScanResult, *, full: bool) -> tuple[list[Problem], bool]:
-    """``(problems, unusable)`` of the geometry cache behind a set ``geometry`` marker."""
-    if () not in scan.done.get("geometry", set()):
-        return [], False
+    """``(problems, unusable)`` of the geometry cache (checked whether or not its marker is
+    set: a set of files that exists is trusted by the stage that would build it)."""
     try:
         from schlieren.workers.tasks import _geometry_key, context
 
@@ -110,8 +109,8 @@ def _geometry_cache(store: ResultStore, scan: ScanResult, *, full: bool) -> tupl
     except Exception as exc:  # noqa: BLE001 - e.g. the session manifest moved: cannot tell
         log.warning("cannot locate the geometry cache of %s (%s); not checked", store.path, exc)
         return [], False
-    if not arrays_cache.has_arrays(path):
-        return [], True  # removed (schlieren clean) or never copied: rebuilt when needed
+    if not arrays_cache.has_arrays(path):  # removed (schlieren clean) or never copied
+        return [], () in scan.done.get("geometry", set())
     bad = arrays_cache.verify_arrays(path, read=full)
     if bad:
         return [Problem("geometry cache", (), "corrupt", bad[0])], True
@@ -163,7 +162,7 @@ def verify_store(store: ResultStore, *, full: bool = False, repair: bool = False
     if geo_problems:
         arrays_cache.remove_cache(store.path)
         report.removed_files += 1
-    if geo_unusable and len(scan.done.get("tomography", ())) < ext.frame:
+    if geo_unusable and () in scan.done.get("geometry", set()) and len(scan.done.get("tomography", ())) < ext.frame:
         store.unmark("geometry")  # tomography remains: the run builds the geometry again
         scan.done.get("geometry", set()).discard(())
         report.invalidated["geometry"] = report.invalidated.get("geometry", 0) + 1
