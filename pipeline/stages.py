@@ -164,11 +164,11 @@ class Stage:
 STAGES: tuple[Stage, ...] = (
     Stage("frames", frame_statistics, None, ("images",), ("frame_stats",), ("camera", "frame"),
           batch=True, cost=0.005),
-    Stage("sync", _sync.offset_from_flash, None, ("images",), ("time_offset",), ("camera",),
+    Stage("sync", _sync.offset_from_flash, None, ("images",), ("time_offset", "flash_frames"), ("camera",),
           cost=0.011),
     Stage("clock", _sync.output_times, None, ("time_offset",), ("time",), (),
           after=(("sync", "all"),), cost=0.001),
-    Stage("deflection", _flow.deflection_stage, "flow", ("images",), ("flow_raw",),
+    Stage("deflection", _flow.deflection_stage, "flow", ("images",), ("flow_raw", "frame_quality"),
           ("camera", "raw_frame"), batch=True, cost=0.014),
     Stage("resample", _sync.resample_flow, "resample", ("flow_raw", "time_offset", "time"),
           ("flow",), ("camera", "frame"), after=(("clock", "all"), ("deflection", "window")),

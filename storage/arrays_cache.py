@@ -5,7 +5,9 @@ the result store, in ``<store>.cache/`` (outside the Zarr hierarchy, so that zar
 xarray see only Zarr nodes in the store; ``schlieren clean STORE`` removes it); every tomography task maps the files read-only (``mmap_mode="r"``)
 instead of receiving the matrix through the task graph (DASK-ZARR.md item 6).
 The directory is written under a temporary name and renamed when complete, so a crash
-never leaves a half-written cache that looks valid.
+never leaves a half-written cache that looks valid; its manifest records each file's size
+and CRC-32C, which :func:`verify_arrays` checks (``schlieren verify``, and every worker
+when it first maps the geometry).
 
 A store on object storage (an fsspec URL) has no files to map: the folder's files are
 uploaded there with ``manifest.json`` last (its presence means complete), and each
@@ -25,7 +27,8 @@ import numpy as np
 
 from schlieren.storage import location
 
-__all__ = ["cache_root", "cache_dir", "save_arrays", "load_arrays", "has_arrays", "remove_cache"]
+__all__ = ["cache_root", "cache_dir", "save_arrays", "load_arrays", "has_arrays", "remove_cache", "verify_arrays",
+           "remove_arrays"]
 
 
 def cache_root(store_path: str | os.PathLike) -> Path | str:
@@ -73,11 +76,12 @@ def save_arrays(path: str | os.PathLike, arrays: dict) -> Path | str:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.parent / f".{path.name}.{uuid.uuid4().hex}.tmp"
     tmp.mkdir()
-    meta = {"arrays": [], "scalars": {}}
+    meta = {"arrays": [], "scalars": {}, "files": {}}
     for k, v in arrays.items():
         if isinstance(v, np.ndarray):
             np.save(tmp / f"{k}.npy", v, allow_pickle=False)
             meta["arrays"].append(k)
+            meta["files"][f"{k}.npy"] = _file_crc(tmp / f"{k}.npy")
         else:
             meta["scalars"][k] = v
     (tmp / "manifest.json").write_text(json.dumps(meta))
@@ -115,3 +119,66 @@ def load_arrays(path: str | os.PathLike, *, mmap: bool = True) -> dict:
     for k in meta["arrays"]:
         out[k] = np.load(path / f"{k}.npy", mmap_mode="r" if mmap else None, allow_pickle=False)
     return out
+
+
+def _file_crc(path: Path) -> dict:
+    import google_crc32c
+
+    crc = google_crc32c.Checksum()
+    size = 0
+    with open(path, "rb") as f:
+        while block := f.read(1 << 22):
+            crc.update(block)
+            size += len(block)
+    return {"size": size, "crc32c": int.from_bytes(crc.digest(), "big")}
+
+
+def verify_arrays(path: str | os.PathLike, *, read: bool = True) -> list[str]:
+    """Problems of a saved set of arrays (empty list: intact).
+
+    Checks that every file listed in the manifest exists with its size and, with
+    ``read``, its CRC-32C (sets saved before checksums were recorded: existence only).
+    """
+    if location.is_url(location.normalize(path)):  # an object store: check the staged copy
+        try:
+            path = location.stage_folder(path, complete_marker="manifest.json")
+        except (OSError, ValueError) as exc:
+            return [f"{path}: cannot be fetched ({exc})"]
+    path = Path(path)
+    try:
+        meta = json.loads((path / "manifest.json").read_text())
+    except (OSError, ValueError) as exc:
+        return [f"{path / 'manifest.json'}: unreadable ({exc})"]
+    problems = []
+    files = meta.get("files") or {f"{k}.npy": None for k in meta.get("arrays", [])}
+    for name, want in files.items():
+        f = path / name
+        if not f.is_file():
+            problems.append(f"{f}: missing")
+            continue
+        if want is None:
+            continue
+        if f.stat().st_size != want["size"]:
+            problems.append(f"{f}: {f.stat().st_size} bytes, not {want['size']} (truncated?)")
+        elif read and _file_crc(f)["crc32c"] != want["crc32c"]:
+            problems.append(f"{f}: fails its CRC-32C checksum")
+    return problems
+
+
+def remove_arrays(path: str | os.PathLike) -> None:
+    """Delete one saved set (a damaged one, rebuilt by its stage); its manifest goes first,
+    so a half-deleted set never looks complete."""
+    loc = location.normalize(path)
+    if location.is_url(loc):
+        try:
+            location.remove(location.join(loc, "manifest.json"))
+        except FileNotFoundError:
+            pass
+        location.remove_tree(loc)
+        return
+    p = Path(loc)
+    if not p.exists():
+        return
+    trash = p.parent / f".{p.name}.{uuid.uuid4().hex}.trash"
+    os.replace(p, trash)
+    shutil.rmtree(trash, ignore_errors=True)

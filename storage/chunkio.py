@@ -9,10 +9,17 @@ what zarr does for the arrays the store creates, in the calling thread:
 
 * the chunk file is ``<array>/c/<i>/<j>/...`` (default chunk key encoding, ``/``);
 * its bytes are the chunk in C order, little endian (``bytes`` codec), compressed by
-  ``zstd`` at the array's level without checksum (numcodecs, which zarr itself calls);
-* a chunk equal to the fill value everywhere is not stored (zarr's default
-  ``write_empty_chunks=False``): writing one removes the file, reading a missing file
-  gives the fill value;
+  ``zstd`` at the array's level without checksum (numcodecs, which zarr itself calls),
+  then followed by the CRC-32C of those compressed bytes as 4 little-endian bytes (zarr's
+  ``crc32c`` codec, google-crc32c as in zarr) in arrays that have it: every store this
+  version creates; stores of older versions have no checksum and are still read;
+* a chunk equal to the fill value everywhere is stored only if the array is opened with
+  ``write_empty_chunks=True`` (the result store's data arrays, so that a missing chunk
+  under a set completion marker means "lost", never "empty"); otherwise, as zarr's
+  default does, writing one removes the file and reading a missing file gives the fill
+  value;
+* a chunk that fails its checksum, does not decompress or has the wrong size raises
+  :class:`CorruptChunk` (never data);
 * a write goes to a temporary file in the same folder and is renamed over the chunk,
   so a reader (or a killed task) never sees half a chunk.
 
@@ -24,12 +31,42 @@ tests check byte-identity with zarr's files both ways.
 from __future__ import annotations
 
 import os
+import struct
 import uuid
 from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["ChunkLayout", "chunk_layout", "chunk_of"]
+__all__ = ["ChunkLayout", "CorruptChunk", "chunk_layout", "chunk_of", "add_checksum", "strip_checksum"]
+
+
+class CorruptChunk(ValueError):
+    """A chunk's bytes fail their checksum or do not decode (``reason`` says which)."""
+
+    def __init__(self, reason: str, path: str | None = None):
+        self.reason = reason
+        self.path = path
+        super().__init__(reason if path is None else f"{path}: {reason}")
+
+
+def add_checksum(blob: bytes) -> bytes:
+    """``blob`` followed by its CRC-32C, 4 bytes little endian (zarr's ``crc32c`` codec)."""
+    import google_crc32c
+
+    return blob + struct.pack("<I", google_crc32c.value(blob))
+
+
+def strip_checksum(blob: bytes) -> bytes:
+    """The bytes before the CRC-32C trailer, after checking it; :class:`CorruptChunk` if wrong."""
+    import google_crc32c
+
+    if len(blob) < 4:
+        raise CorruptChunk(f"truncated: {len(blob)} bytes, shorter than its checksum")
+    inner = blob[:-4]
+    stored = struct.unpack("<I", blob[-4:])[0]
+    if google_crc32c.value(inner) != stored:
+        raise CorruptChunk("fails its CRC-32C checksum (flipped bytes or a truncated file)")
+    return inner
 
 
 @dataclass(frozen=True)
@@ -42,6 +79,8 @@ class ChunkLayout:
     dtype: np.dtype  # little-endian storage dtype
     fill_value: object
     level: int  # zstd level
+    checksum: bool = False  # a crc32c codec follows zstd
+    write_empty: bool = False  # fill-value chunks are stored (write_empty_chunks=True)
 
     def chunk_of(self, region: tuple[slice, ...]) -> tuple[int, ...] | None:
         """Grid coordinates of the single whole chunk ``region`` covers, or None."""
@@ -52,18 +91,40 @@ class ChunkLayout:
             return os.path.join(self.root, "c")
         return os.path.join(self.root, "c", *(str(i) for i in coords))
 
-    def read(self, coords: tuple[int, ...], region_shape: tuple[int, ...]) -> np.ndarray:
-        """The chunk at ``coords`` (its fill value if never written), cut to ``region_shape``."""
+    def load(self, coords: tuple[int, ...]) -> np.ndarray | None:
+        """The whole stored chunk at ``coords`` (full chunk shape, a read-only view), or
+        None if it has no file. :class:`CorruptChunk` if its bytes do not decode."""
+        path = self.path(coords)
+        try:
+            with open(path, "rb") as f:
+                blob = f.read()
+        except FileNotFoundError:
+            return None
+        return self.decode(blob, path)
+
+    def decode(self, blob: bytes, path: str | None = None) -> np.ndarray:
+        """A chunk's stored bytes as the full chunk (:class:`CorruptChunk` if they do not decode)."""
         from numcodecs import Zstd
 
         try:
-            with open(self.path(coords), "rb") as f:
-                blob = f.read()
-        except FileNotFoundError:
-            return np.full(region_shape, self.fill_value, dtype=self.dtype.newbyteorder("="))
-        raw = Zstd().decode(blob)
+            if self.checksum:
+                blob = strip_checksum(blob)
+            raw = Zstd().decode(blob)
+        except CorruptChunk as exc:
+            raise CorruptChunk(exc.reason, path) from None
+        except Exception as exc:  # noqa: BLE001 - zstd raises RuntimeError and friends
+            raise CorruptChunk(f"does not decompress ({type(exc).__name__}: {exc})", path) from None
         # zarr stores edge chunks at the full chunk shape (the padding holds the fill value)
-        a = np.frombuffer(raw, dtype=self.dtype).reshape(self.chunks)
+        want = int(np.prod(self.chunks)) * self.dtype.itemsize
+        if len(raw) != want:
+            raise CorruptChunk(f"decodes to {len(raw)} bytes, not the chunk's {want}", path)
+        return np.frombuffer(raw, dtype=self.dtype).reshape(self.chunks)
+
+    def read(self, coords: tuple[int, ...], region_shape: tuple[int, ...]) -> np.ndarray:
+        """The chunk at ``coords`` (its fill value if never written), cut to ``region_shape``."""
+        a = self.load(coords)
+        if a is None:
+            return np.full(region_shape, self.fill_value, dtype=self.dtype.newbyteorder("="))
         if a.shape != tuple(region_shape):
             a = a[tuple(slice(0, n) for n in region_shape)]
         return a.astype(self.dtype.newbyteorder("="), copy=True)
@@ -78,13 +139,15 @@ class ChunkLayout:
             full = np.full(self.chunks, self.fill_value, dtype=self.dtype)
             full[tuple(slice(0, n) for n in chunk.shape)] = chunk
             chunk = full
-        if _all_fill(chunk, self.fill_value):
+        if not self.write_empty and _all_fill(chunk, self.fill_value):
             try:
                 os.remove(path)
             except FileNotFoundError:
                 pass
             return
         blob = Zstd(level=self.level).encode(np.ascontiguousarray(chunk).tobytes())
+        if self.checksum:
+            blob = add_checksum(blob)
         folder = os.path.dirname(path)
         tmp = f"{path}.{uuid.uuid4().hex}.partial"
         try:
@@ -131,12 +194,13 @@ def chunk_layout(arr, store_root: str | os.PathLike | None, name: str) -> ChunkL
 
     Eligible: a folder store, a regular chunk grid, the default ``/`` chunk key encoding,
     no sharding, a numeric or bool dtype, and exactly the codecs ``bytes`` (little endian)
-    then ``zstd`` without checksum. Anything else returns None (use zarr).
+    then ``zstd`` without its own checksum, optionally followed by ``crc32c``. Anything
+    else returns None (use zarr).
     """
     if store_root is None:
         return None
     try:
-        from zarr.codecs import BytesCodec, ZstdCodec
+        from zarr.codecs import BytesCodec, Crc32cCodec, ZstdCodec
         from zarr.core.chunk_grids import RegularChunkGrid
         from zarr.core.chunk_key_encodings import DefaultChunkKeyEncoding
     except ImportError:  # pragma: no cover - another zarr layout
@@ -150,7 +214,9 @@ def chunk_layout(arr, store_root: str | os.PathLike | None, name: str) -> ChunkL
     if not isinstance(enc, DefaultChunkKeyEncoding) or enc.separator != "/":
         return None
     codecs = tuple(meta.codecs)
-    if len(codecs) != 2 or not isinstance(codecs[0], BytesCodec) or not isinstance(codecs[1], ZstdCodec):
+    checksum = len(codecs) == 3 and isinstance(codecs[2], Crc32cCodec)
+    if len(codecs) != 2 + checksum or not isinstance(codecs[0], BytesCodec) \
+            or not isinstance(codecs[1], ZstdCodec):
         return None
     endian = getattr(codecs[0].endian, "value", codecs[0].endian)
     if endian not in (None, "little"):
@@ -164,10 +230,11 @@ def chunk_layout(arr, store_root: str | os.PathLike | None, name: str) -> ChunkL
     if dtype.kind not in "biuf" or dtype.hasobject:
         return None
     config = getattr(arr, "config", None)
-    if getattr(config, "write_empty_chunks", True) or getattr(config, "order", "C") != "C":
+    if config is None or getattr(config, "order", "C") != "C":
         return None
     return ChunkLayout(root=os.path.join(os.fspath(store_root), *name.split("/")),
                        shape=tuple(int(s) for s in arr.shape),
                        chunks=tuple(int(c) for c in meta.chunk_grid.chunk_shape),
                        dtype=dtype.newbyteorder("<"), fill_value=meta.fill_value,
-                       level=int(codecs[1].level))
+                       level=int(codecs[1].level), checksum=checksum,
+                       write_empty=bool(config.write_empty_chunks))

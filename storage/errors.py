@@ -44,3 +44,30 @@ class SessionError(SchlierenInputError):
 
 class StoreError(SchlierenInputError):
     """The result store cannot be created, opened or resumed."""
+
+
+class ResourceError(SchlierenInputError):
+    """The run would not fit in the memory of its workers or on the store's disk."""
+
+
+class ChunkError(StoreError):
+    """A chunk of the result store is corrupt, or missing although its stage is marked done.
+
+    Readers raise it instead of returning data; the message names the store, the array
+    and the chunk, and says how to repair it. ``array`` and ``chunk`` (grid coordinates)
+    are kept as attributes.
+    """
+
+    def __init__(self, message: str, *, file: str | None = None, array: str | None = None,
+                 chunk: tuple[int, ...] | None = None, reason: str | None = None):
+        self.array = array
+        self.chunk = tuple(chunk) if chunk is not None else None
+        self.reason = reason if reason is not None else message
+        super().__init__(message, file=file, field=array)
+
+    def __reduce__(self):  # keep the attributes across processes (Dask workers)
+        return (_rebuild_chunk_error, (self.message, self.file, self.array, self.chunk, self.reason))
+
+
+def _rebuild_chunk_error(message, file, array, chunk, reason=None):
+    return ChunkError(message, file=file, array=array, chunk=chunk, reason=reason)

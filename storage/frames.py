@@ -51,6 +51,8 @@ __all__ = [
     "is_pattern",
     "is_video",
     "image_header",
+    "image_incomplete",
+    "images_incomplete",
     "image_headers",
     "VIDEO_EXTENSIONS",
     "IMAGE_EXTENSIONS",
@@ -209,6 +211,68 @@ def image_header(path: str | os.PathLike, head: bytes | None = None) -> tuple[in
             return int(im.size[0]), int(im.size[1])
     except (OSError, UnidentifiedImageError, ValueError, SyntaxError):
         return None
+
+
+_PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"
+
+
+def _incomplete(head: bytes, tail: bytes, size: int, tiff_tags=None) -> str | None:
+    if head.startswith(b"\x89PNG\r\n\x1a\n"):
+        return None if tail.endswith(_PNG_END) else "the PNG ends before its IEND chunk"
+    if head.startswith(b"\xff\xd8"):
+        return None if b"\xff\xd9" in tail else "the JPEG has no end-of-image marker"
+    if head[:4] in (b"II*\x00", b"MM\x00*") and tiff_tags is not None:
+        offsets, counts = tiff_tags
+        if offsets and counts:
+            end = max(int(o) + int(c) for o, c in zip(offsets, counts))
+            if end > size:
+                return f"the TIFF's image data ends at byte {end}, past the file's {size} bytes"
+    return None
+
+
+def image_incomplete(path: str | os.PathLike) -> str | None:
+    """Why an image file is cut short, or None if its structure is complete.
+
+    Cheap structural checks that read a few bytes, not the pixels: a PNG must end with
+    its ``IEND`` chunk, a JPEG with its end-of-image marker, a TIFF's strips or tiles
+    must lie inside the file. Other formats are not checked (None).
+    """
+    p = os.fspath(path)
+    try:
+        size = os.path.getsize(p)
+        with open(p, "rb") as f:
+            head = f.read(8)
+            f.seek(max(0, size - 64))
+            tail = f.read()
+    except OSError as exc:
+        return f"cannot read it ({exc.strerror or exc})"
+    tags = None
+    if head[:4] in (b"II*\x00", b"MM\x00*"):
+        try:
+            from PIL import Image
+
+            with Image.open(p) as im:
+                t = im.tag_v2
+                tags = (t.get(273) or t.get(324), t.get(279) or t.get(325))
+        except Exception as exc:  # noqa: BLE001 - Pillow raises many types for broken files
+            return f"the TIFF header does not parse ({type(exc).__name__})"
+    return _incomplete(head, tail, size, tags)
+
+
+def images_incomplete(paths: list[str]) -> list[str | None]:
+    """:func:`image_incomplete` of each file; on an object store the PNG and JPEG ends are
+    fetched in two concurrent batches (TIFF strips are not checked there)."""
+    if not paths or not location.is_url(os.fspath(paths[0])):
+        return [image_incomplete(p) for p in paths]
+    try:
+        fs, _ = location.filesystem(os.fspath(paths[0]))
+        sizes = [int(fs.size(location.filesystem(os.fspath(p))[1])) for p in paths]
+        heads = location.read_many([os.fspath(p) for p in paths], 0, 8)
+        tails = [location.read_bytes(os.fspath(p), max(0, n - 64), n) for p, n in zip(paths, sizes)]
+    except Exception as exc:  # noqa: BLE001 - a store that cannot answer: decoding will tell
+        log.debug("completeness of %d remote frames not checked: %s", len(paths), exc)
+        return [None] * len(paths)
+    return [_incomplete(h or b"", t or b"", n) for h, t, n in zip(heads, tails, sizes)]
 
 
 #: Leading bytes of an image file fetched from an object store to read its header.

@@ -59,18 +59,22 @@ VOLUME_ARRAYS = ("hull", "gradient", "refractivity", "density", "temperature")
 # ---------------------------------------------------------------------------------------
 
 def open_result(store_path: str | os.PathLike):
-    """Open a result store read-only.
+    """Open a result store read-only, every chunk read checked (storage/integrity.py).
 
     Raises
     ------
     StoreError
         The path does not exist, is not a Zarr group, or has another ``format``.
     """
+    import zarr
+
+    from schlieren.storage.integrity import checked
+
     path = location.normalize(store_path)
     if not location.exists(path):
         raise StoreError("result store not found", file=path)
-    try:
-        group = location.zarr_open_group(path, mode="r")
+    try:  # reads are checked: a corrupt chunk, or one lost under a set marker, raises ChunkError
+        group = zarr.open_group(checked(path, read_only=True), mode="r")
     except Exception as exc:  # zarr raises several types for "not a group"
         raise StoreError(f"not a Zarr group ({type(exc).__name__}: {exc})", file=path) from None
     fmt = group.attrs.get("format")

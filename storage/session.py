@@ -30,6 +30,7 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from schlieren.pipeline import resources as _resources
 from schlieren.pipeline.geometry import Camera, Grid, Medium, auto_voxel_size, rodrigues
 from schlieren.storage import location
 from schlieren.storage.errors import SessionError
@@ -42,6 +43,7 @@ from schlieren.storage.frames import (
     frames_kind,
     image_header,
     image_headers,
+    images_incomplete,
     open_frames,
     read_image,
 )
@@ -60,9 +62,11 @@ log = logging.getLogger(__name__)
 
 SESSION_FORMAT = "schlieren-session/1"
 MANIFEST_NAME = "session.yaml"
-#: Working set of the 3-D stage per voxel and frame (gradient, hull, solver vectors...),
-#: used to refuse voxel sizes that cannot fit in the machine's memory.
-BYTES_PER_VOXEL = 40
+#: Working set of the 3-D stages per voxel and frame (the largest per-voxel coefficient
+#: measured by benchmarks/memory.py, pipeline/resources.py), a first gate refusing grids
+#: that cannot fit in the machine's memory whatever the cameras; the run's preflight
+#: (workers/preflight.py) then checks the whole model times the workers.
+BYTES_PER_VOXEL = _resources.BYTES_PER_VOXEL
 DIST_LENGTHS = (4, 5, 8, 12, 14)
 #: Fewest frames in ``sync.strobe.search_frames`` (the flash detector compares each frame
 #: with the others of the window: pipeline.sync.detect_flash needs at least 3).
@@ -574,11 +578,51 @@ def _resolve(spec: str, root: Path | str, *, allow_external: bool, file: str, ca
         if norm == ".." or norm.startswith(".." + os.sep) or norm.startswith("../"):
             raise SessionError(f"path {spec!r} escapes the session folder (set allow_external_paths: "
                                "true to allow it)", file=file, camera=camera, field=field)
-        return location.join(str(root), norm.replace(os.sep, "/")) if remote else str(root / norm)
+        if remote:
+            return location.join(str(root), norm.replace(os.sep, "/"))
+        out = str(root / norm)
+        # folders on the way (a pattern's folder) may be symbolic links out of the session
+        existing = out
+        while not os.path.lexists(existing) and os.path.dirname(existing) != existing:
+            existing = os.path.dirname(existing)
+        _check_contained(existing, root, file=file, camera=camera, field=field, what=spec)
+        return out
     spec = os.path.expanduser(spec)
     if os.path.isabs(spec):
         return spec
     return location.join(str(root), spec) if remote else os.path.normpath(str(root / spec))
+
+
+def _check_contained(path: str, root: Path, *, file: str, camera: str | None, field: str | None,
+                     what: str | None = None) -> None:
+    """Refuse ``path`` if, with every symbolic link resolved, it is not inside ``root``."""
+    if location.is_url(str(path)) or location.is_url(str(root)):
+        return  # object stores have no symbolic links
+    real = os.path.realpath(path)
+    base = os.path.realpath(root)
+    if real != base and not real.startswith(base.rstrip(os.sep) + os.sep):
+        raise SessionError(f"path {what or path!r} leads outside the session folder through a symbolic link "
+                           f"(to {real}); set allow_external_paths: true to allow it", file=file, camera=camera,
+                           field=field)
+
+
+def _check_files_contained(i: int, cam: Camera, src: CameraSource, fs: FrameSource, indices, root: Path,
+                           mfile: str) -> None:
+    """Every frame and reference file a run will open, symlinks resolved, is in the session folder."""
+    if location.is_url(str(root)):
+        return  # object stores have no symbolic links
+    frames = [fs.file_of(k) for k in indices] if isinstance(fs, ImageSequence) else [fs.path]
+    for k, f in zip(indices if isinstance(fs, ImageSequence) else [None], frames):
+        _check_contained(f, root, file=mfile, camera=cam.name,
+                         field=f"cameras[{i}].frames" + (f"[{k}]" if k is not None else ""), what=f)
+    refs = [src.reference]
+    if src.reference_kind not in ("image", "video"):  # a sequence (pattern, glob, folder) or a TIFF
+        with _qualified(i, "reference"):
+            seq = open_frames(src.reference, camera_name=cam.name)
+        if isinstance(seq, ImageSequence):
+            refs = [seq.file_of(k) for k in range(len(seq))]
+    for f in refs:
+        _check_contained(f, root, file=mfile, camera=cam.name, field=f"cameras[{i}].reference", what=f)
 
 
 def _human_bytes(n: float) -> str:
@@ -621,7 +665,7 @@ def _check_volume(v: VolumeModel, file: str, cameras=None) -> Grid:
         nx, ny, nz = grid.shape_xyz
         raise SessionError(
             f"voxel_size {v.voxel_size:g} m gives {nx}x{ny}x{nz} = {n_vox:.3g} voxels; the 3-D stage "
-            f"needs about {_human_bytes(need)} per frame ({BYTES_PER_VOXEL} bytes/voxel), more than this "
+            f"needs about {_human_bytes(need)} per frame ({BYTES_PER_VOXEL:.0f} bytes/voxel, measured), more than this "
             f"machine's {_human_bytes(total)}: use a larger voxel_size", file=file, field="volume.voxel_size")
     return grid
 
@@ -713,10 +757,15 @@ class _qualified:
         raise SessionError(exc.message, file=exc.file, camera=exc.camera, field=f) from None
 
 
-def _check_camera_files(i: int, cam: Camera, source: CameraSource) -> FrameSource:
-    """Open the frames, decode frame 0 and compare its size with ``image_size``."""
+def _check_camera_files(i: int, cam: Camera, source: CameraSource, *, contained=None) -> FrameSource:
+    """Open the frames, decode frame 0 and compare its size with ``image_size``.
+
+    ``contained(fs)``, if given, checks the files before any is read (symlinks out of the
+    session folder)."""
     W, H = cam.image_size
     fs = open_frames(source, camera_name=cam.name)  # fields of interlaced video
+    if contained is not None:
+        contained(fs)
     if len(fs) == 0:
         raise SessionError("the video holds no frames", file=source.frames, camera=cam.name,
                            field=f"cameras[{i}].frames")
@@ -743,13 +792,17 @@ def _check_frames_content(i: int, cam: Camera, fs: FrameSource, indices: list[in
                 break
         return
     if isinstance(fs, ImageSequence):
-        for k, size in zip(indices, image_headers([fs.file_of(k) for k in indices])):
+        incomplete = images_incomplete([fs.file_of(k) for k in indices])
+        for k, size, why in zip(indices, image_headers([fs.file_of(k) for k in indices]), incomplete):
             if size is None:  # a format Pillow does not know, or a corrupt file: decode it
                 img, _ = read_image(fs.file_of(k), camera_name=cam.name, field=f"frames[{k}]")
                 size = (img.shape[1], img.shape[0])
             if size != (W, H):
                 raise SessionError(f"frame {k} is {size[0]}x{size[1]} pixels but image_size is [{W}, {H}]",
                                    file=fs.file_of(k), camera=cam.name, field=f"cameras[{i}].image_size")
+            if why is not None:
+                raise SessionError(f"frame {k} is truncated: {why}", file=fs.file_of(k), camera=cam.name,
+                                   field=f"cameras[{i}].frames[{k}]")
     if indices:
         last = max(indices)
         img = fs.read(last)  # decodes fully; raises naming the frame index
@@ -796,6 +849,9 @@ def _check_reference(i: int, cam: Camera, source: CameraSource) -> None:
         if size != (W, H):
             raise SessionError(f"reference is {size[0]}x{size[1]} pixels but image_size is [{W}, {H}]",
                                file=f, camera=cam.name, field=fld)
+        why = images_incomplete([f])[0] if source.reference_kind != "video" else None
+        if why is not None:
+            raise SessionError(f"the reference is truncated: {why}", file=f, camera=cam.name, field=fld)
 
 
 def _kind_of_frames(spec: str, file: str, camera: str, field: str) -> str:
@@ -830,8 +886,9 @@ def load_session(path: str | os.PathLike, *, frames: tuple[int, int] | None = No
         sizes, equal frame counts). ``False`` checks the manifest alone.
     decode_all_frames : bool
         Decode every frame in the range to process (and the strobe search range) before
-        returning. By default only the image headers of every frame, and the first and
-        last frame in full, are checked: a frame corrupt past its header is then
+        returning. By default every frame's header is decoded and its file checked for
+        completeness (a truncated PNG, JPEG or TIFF is refused here), and the first and
+        last frame are decoded in full: a frame corrupt inside its pixel data is then
         reported, with its index, when a task reads it.
 
     Returns
@@ -964,8 +1021,10 @@ def load_session(path: str | os.PathLike, *, frames: tuple[int, int] | None = No
     if check_files:
         opened: list[FrameSource] = []
         for i, (cam, src) in enumerate(zip(cameras, sources)):
+            check = None if m.allow_external_paths else (
+                lambda fs, i=i, cam=cam, src=src: _check_files_contained(i, cam, src, fs, range(len(fs)), root, mfile))
             with _qualified(i, "frames"):
-                fs = _check_camera_files(i, cam, src)
+                fs = _check_camera_files(i, cam, src, contained=check)
             if n_avail is None:
                 n_avail = len(fs)
             elif len(fs) != n_avail:

@@ -4,9 +4,15 @@ The coordinator creates the group and every array up front
 (:meth:`ResultStore.create`, the *template*); tasks then open the store by path, write
 whole chunks (:meth:`ResultStore.write` refuses partial-chunk regions, which lose data
 under concurrent writers) and set their completion marker last
-(:meth:`ResultStore.mark_done`). Markers, not chunk presence, mean "done": zarr deletes
-chunks equal to the fill value (``write_empty_chunks=False``), and a killed task can leave
-some of its chunks written.
+(:meth:`ResultStore.mark_done`). Markers, not chunk presence, mean "done": a killed task
+can leave some of its chunks written.
+
+Integrity (``storage/integrity.py``): every array ends its codecs with ``crc32c``, the data
+arrays store even fill-valued chunks (``write_empty_chunks=True``), and the root attribute
+``integrity`` records which stage's marker covers each array. A read never returns a
+chunk that fails its checksum or that is missing under a set marker: it raises
+:class:`~schlieren.storage.errors.ChunkError` naming the array and the chunk. Stores of
+older versions (no ``integrity``) are read without these checks and are not resumed.
 
 An existing path is never overwritten or deleted: :meth:`create` on an existing store
 resumes it only if its ``fingerprint`` attribute (a hash of session + configuration,
@@ -31,11 +37,20 @@ from typing import Any, Iterable, Mapping
 
 import numpy as np
 import zarr
-from zarr.codecs import ZstdCodec
+from zarr.codecs import Crc32cCodec, ZstdCodec
 
 from schlieren.storage import location
-from schlieren.storage.chunkio import ChunkLayout, chunk_layout, chunk_of
-from schlieren.storage.errors import StoreError
+from schlieren.storage.chunkio import ChunkLayout, CorruptChunk, chunk_layout, chunk_of
+from schlieren.storage.errors import ChunkError, StoreError
+from schlieren.storage.integrity import (
+    INTEGRITY_VERSION,
+    check_coverage,
+    checked,
+    chunk_error,
+    covering_stage,
+    marker_index,
+    missing_reason,
+)
 from schlieren.storage.layout import STORE_FORMAT, ArraySpec, assert_aligned, normalize_region
 from schlieren.storage.remote import RemoteChunks
 
@@ -44,7 +59,8 @@ __all__ = ["ResultStore", "fingerprint", "to_json", "decode_attrs", "JSON_ATTRS"
 log = logging.getLogger(__name__)
 
 MARKER_GROUP = "status"
-_COMPRESSORS = (ZstdCodec(level=3),)
+#: zstd, then zarr's CRC-32C of the compressed bytes (checked on every read)
+_COMPRESSORS = (ZstdCodec(level=3), Crc32cCodec())
 
 
 # --------------------------------------------------------------------------------------
@@ -175,11 +191,13 @@ class ResultStore:
         # object stores: chunk cache and background writes (storage/remote.py)
         self._remote = RemoteChunks(write_behind=False) \
             if isinstance(store_arg, str) and location.is_url(location_) else None
+        info = decode_attrs(group.attrs).get("integrity")
+        self._integrity: dict | None = info if isinstance(info, dict) else None
 
     # -- construction ---------------------------------------------------------------
     @classmethod
     def create(cls, path, layout: Iterable[ArraySpec], *, attrs: Mapping[str, Any],
-               markers: Mapping[str, tuple]) -> "ResultStore":
+               markers: Mapping[str, tuple], producers: Mapping[str, str] | None = None) -> "ResultStore":
         """Create the group and every array (or resume the same run's store).
 
         Parameters
@@ -195,6 +213,10 @@ class ResultStore:
             Stage -> marker dimension names (sizes from the layout, e.g.
             ``("camera", "frame")``) or a shape of ints. Each marker is a uint8 array
             ``status/<stage>`` with one chunk per index.
+        producers : mapping of str to str, optional
+            Array -> the stage whose marker says its chunks are written (``flow`` ->
+            ``resample``). Readers then refuse a chunk missing under a set marker.
+            The marker's dims must be dims of the array, chunked one index per chunk.
 
         Returns
         -------
@@ -225,6 +247,18 @@ class ResultStore:
         names = [s.name for s in specs]
         if len(set(names)) != len(names):
             raise ValueError(f"duplicate array names in the layout: {sorted(n for n in names if names.count(n) > 1)}")
+        by_name = {s.name: s for s in specs}
+        for array, stage in dict(producers or {}).items():
+            if array not in by_name or stage not in markers:
+                raise ValueError(f"producer {stage!r} of {array!r}: unknown array or stage")
+            mspec = by_name[f"{MARKER_GROUP}/{stage}"]
+            check_coverage(array, by_name[array].dims, by_name[array].chunks,
+                           mspec.dims if mspec.shape else ())
+        root_attrs["integrity"] = {
+            "version": INTEGRITY_VERSION, "checksum": "crc32c", "empty_chunks": "stored",
+            "producers": dict(producers or {}),
+            "static": sorted(s.name for s in layout if s.data is not None),
+        }
 
         existing = cls._try_open_existing(path, loc)
         if existing is not None:
@@ -234,6 +268,7 @@ class ResultStore:
                 # an interrupted upload: complete it through zarr, past the root's array list
                 existing._group = _open_group(loc, mode="r+", zarr_format=3, use_consolidated=False)
             created = existing._create_missing(specs, existing=members)
+            existing._repair_static(specs)
             if not existing.attrs.get("template_complete", False):
                 existing.update_attrs({"template_complete": True})
             else:
@@ -338,6 +373,11 @@ class ResultStore:
         if old.get("format") != STORE_FORMAT:
             raise StoreError(f"the path holds a Zarr group that is not a {STORE_FORMAT} store; not "
                              "overwriting it", file=loc)
+        if not isinstance(old.get("integrity"), dict) or \
+                old["integrity"].get("version") != new_attrs.get("integrity", {}).get("version"):
+            raise StoreError("this store was written by an older schlieren without chunk checksums; it stays "
+                             "readable (evaluate, report, export, verify) but is not resumed: write the run "
+                             "to a new --out", file=loc, field="integrity")
         new_fp, old_fp = new_attrs.get("fingerprint"), old.get("fingerprint")
         if new_fp is None or old_fp is None:
             raise StoreError("a result store already exists here and no fingerprint tells whether it is "
@@ -384,14 +424,31 @@ class ResultStore:
                 shape=spec.shape, chunks=spec.chunks, dtype=spec.dtype, fill_value=spec.fill_value,
                 dimension_names=spec.dims, attributes=to_json(spec.attrs), overwrite=False,
             )
-            if spec.dtype != "str":
-                kwargs["compressors"] = _COMPRESSORS
+            kwargs["compressors"] = _COMPRESSORS
             arr = parent.create_array(leaf, **kwargs)
             created += 1
             if spec.data is not None:
                 arr[...] = np.asarray(spec.data) if spec.dtype != "str" else np.asarray(spec.data, dtype=str)
         self._arrays.clear()
         return created
+
+    def _repair_static(self, specs: list[ArraySpec]) -> None:
+        """Rewrite template arrays (coordinates) whose chunks are lost, corrupt or changed."""
+        for spec in specs:
+            if spec.data is None:
+                continue
+            want = np.asarray(spec.data) if spec.dtype != "str" else np.asarray(spec.data, dtype=str)
+            arr = self.array(spec.name)
+            try:
+                have = np.asarray(arr[...])
+                same = have.shape == want.shape and (
+                    [str(v) for v in have.ravel()] == [str(v) for v in want.ravel()] if spec.dtype == "str"
+                    else np.array_equal(have, want, equal_nan=True))
+            except (ChunkError, ValueError, RuntimeError) as exc:
+                log.warning("%s: %s; rewriting it from the template", spec.name, exc)
+                same = False
+            if not same:
+                arr[...] = want
 
     @classmethod
     def open(cls, path, *, mode: str = "r+", write_behind: bool = False) -> "ResultStore":
@@ -422,7 +479,24 @@ class ResultStore:
     def _prefetch(self, members: Mapping[str, Any]) -> None:
         """Keep the arrays of ``members`` (:meth:`_members`: one concurrent fetch of every
         array's metadata; in an object store, instead of two requests per array on first use)."""
-        self._arrays.update((k, v) for k, v in members.items() if isinstance(v, zarr.Array))
+        self._arrays.update((k, self._configured(k, v)) for k, v in members.items() if isinstance(v, zarr.Array))
+
+    def _configured(self, name: str, arr: zarr.Array) -> zarr.Array:
+        """Data arrays of a checksummed store store fill-valued chunks too: a set marker then
+        means every chunk of its task has a file (markers keep zarr's default)."""
+        if self._integrity is not None and not name.startswith(f"{MARKER_GROUP}/"):
+            return arr.with_config({"write_empty_chunks": True})
+        return arr
+
+    @property
+    def integrity(self) -> dict | None:
+        """The ``integrity`` root attribute (None for a store of an older version)."""
+        return self._integrity
+
+    @property
+    def remote(self) -> bool:
+        """Is the store on object storage (an fsspec URL)?"""
+        return self._remote is not None
 
     def __reduce__(self):
         if isinstance(self._store_arg, (str, os.PathLike)):
@@ -454,7 +528,7 @@ class ResultStore:
                 raise StoreError("no such array in the store", file=self._location, field=name) from None
             if not isinstance(arr, zarr.Array):
                 raise StoreError("is a group, not an array", file=self._location, field=name)
-            self._arrays[name] = arr
+            arr = self._arrays[name] = self._configured(name, arr)
         return arr
 
     def _chunk_files(self, name: str) -> ChunkLayout | None:
@@ -548,7 +622,12 @@ class ResultStore:
                 region = None
             coords = lay.chunk_of(region) if region is not None else None
             if coords is not None:  # exactly one whole chunk: read its file directly
-                a = lay.read(coords, tuple(s.stop - s.start for s in region))
+                a = self._load_chunk(name, lay, coords)
+                shape = tuple(s.stop - s.start for s in region)
+                if a is None:
+                    a = np.full(shape, lay.fill_value, dtype=lay.dtype.newbyteorder("="))
+                else:
+                    a = a[tuple(slice(0, n) for n in shape)].astype(lay.dtype.newbyteorder("="), copy=True)
                 return a.reshape(a.shape[len(index):])
         if self._remote is not None:
             a = self._written(name, index)
@@ -586,6 +665,125 @@ class ResultStore:
         for j, a in zip(missing, got):
             out[j] = a
         return out
+
+    def _load_chunk(self, name: str, lay: ChunkLayout, coords) -> np.ndarray | None:
+        """The stored chunk (None if it has no file and need not have one); ChunkError if
+        it is corrupt or lost under a set marker."""
+        try:
+            a = lay.load(coords)
+        except CorruptChunk as exc:
+            raise chunk_error(self._location, name, coords, exc.reason) from None
+        if a is None:
+            why = self._required(name, coords)
+            if why is not None:
+                raise chunk_error(self._location, name, coords, why)
+        return a
+
+    def _required(self, name: str, coords) -> str | None:
+        """Why the chunk ``name[coords]`` must have a file, or None if it need not."""
+        stage = covering_stage(self._integrity, name)
+        if stage in (None, "template"):
+            return None if stage is None else missing_reason(stage)
+        done = self._marker_set(stage, self.marker_position(name, stage, coords))  # ChunkError if corrupt
+        return missing_reason(stage) if done else None
+
+    def marker_position(self, name: str, stage: str, coords) -> tuple[int, ...]:
+        """Position in ``status/<stage>`` of the chunk at grid ``coords`` of array ``name``."""
+        arr = self.array(name)
+        return marker_index(self.dims(name), arr.chunks, self.marker_dims(stage), coords)
+
+    def marker_dims(self, stage: str) -> tuple[str, ...]:
+        m = self._marker(stage)
+        return tuple(m.metadata.dimension_names or ()) if m.shape else ()
+
+    # -- integrity: listing and checking chunks ---------------------------------------
+    def _folder(self) -> str | None:
+        """The store's folder (None on object storage or for store objects)."""
+        if isinstance(self._store_arg, (str, os.PathLike)) and not location.is_url(self._location):
+            return os.fspath(self._store_arg)
+        return None
+
+    def all_array_names(self) -> list[str]:
+        """Every array of the store, markers (``status/<stage>``) included."""
+        return sorted(k for k, v in self._members().items() if isinstance(v, zarr.Array))
+
+    def chunk_grid(self, name: str) -> tuple[tuple[str, ...], tuple[int, ...], tuple[int, ...]]:
+        """``(dims, chunk shape, number of chunks per dim)`` of array ``name``."""
+        arr = self.array(name)
+        counts = tuple(-(-int(s) // int(c)) for s, c in zip(arr.shape, arr.chunks))
+        return self.dims(name), tuple(int(c) for c in arr.chunks), counts
+
+    def list_chunks(self, name: str) -> tuple[set[tuple[int, ...]], list[str]]:
+        """Grid coordinates of the stored chunks of ``name`` (a listing, nothing read), and
+        the orphaned ``*.partial`` files of killed writers among them."""
+        keys: set[tuple[int, ...]] = set()
+        partial: list[str] = []
+        folder = self._folder()
+        if folder is not None:
+            base = os.path.join(folder, *name.split("/"), "c")
+            if os.path.isfile(base):
+                return {()}, partial
+            for sub, _, files in os.walk(base):
+                rel = os.path.relpath(sub, base)
+                head = () if rel == "." else tuple(rel.split(os.sep))
+                if not all(p.isdigit() for p in head):
+                    continue
+                for f in files:
+                    if f.isdigit():
+                        keys.add(tuple(int(p) for p in head + (f,)))
+                    elif f.endswith(".partial"):
+                        partial.append(os.path.join(sub, f))
+            return keys, partial
+        from zarr.core.sync import sync
+
+        inner = self._group.store
+
+        async def collect():
+            return [k async for k in inner.list_prefix(f"{name}/c")]
+
+        for key in sync(collect()):
+            rest = key[len(name) + 2:]
+            if rest == "":
+                keys.add(())
+            elif rest.startswith("/") and all(p.isdigit() for p in rest[1:].split("/")):
+                keys.add(tuple(int(p) for p in rest[1:].split("/")))
+        return keys, partial
+
+    def check_chunk(self, name: str, coords) -> str | None:
+        """Read the stored chunk ``name[coords]``: None if it decodes and passes its
+        checksum, else the reason."""
+        lay = self._chunk_files(name)
+        if lay is not None:
+            try:
+                lay.load(tuple(coords))
+            except CorruptChunk as exc:
+                return exc.reason
+            return None
+        arr = self.array(name)
+        region = tuple(slice(i * c, min((i + 1) * c, n)) for i, c, n in zip(coords, arr.chunks, arr.shape))
+        try:
+            arr[region]
+        except ChunkError as exc:
+            return exc.reason
+        except Exception as exc:  # noqa: BLE001 - any decoding failure is damage
+            return f"does not decode ({type(exc).__name__}: {exc})"
+        return None
+
+    def remove_chunk(self, name: str, coords) -> None:
+        """Delete a stored chunk (a damaged one, before its task is recomputed)."""
+        if self._mode == "r":
+            raise StoreError("the store is open read-only", file=self._location, field=name)
+        folder = self._folder()
+        if folder is not None:
+            path = os.path.join(folder, *name.split("/"), "c", *(str(int(i)) for i in coords))
+            try:
+                os.remove(path)
+            except FileNotFoundError:
+                pass
+            return
+        from zarr.core.sync import sync
+
+        sync(self._group.store.delete(f"{name}/c" + "".join(f"/{int(i)}" for i in coords)))
 
     # -- completion markers -----------------------------------------------------------
     def _marker(self, stage: str) -> zarr.Array:
@@ -647,7 +845,15 @@ class ResultStore:
         arr = self._marker(stage)
         region = normalize_region(index, arr.shape)
         self.flush()
-        arr[region] = np.zeros(tuple(s.stop - s.start for s in region), dtype=np.uint8)
+        lay = self._chunk_files(f"{MARKER_GROUP}/{stage}")
+        coords = lay.chunk_of(region) if lay is not None else None
+        if coords is not None:  # an unset marker has no file (zarr's default for the fill value)
+            try:
+                os.remove(lay.path(coords))
+            except FileNotFoundError:
+                pass
+        else:
+            arr[region] = np.zeros(tuple(s.stop - s.start for s in region), dtype=np.uint8)
         listed = self._markers_listed.get(stage)
         if listed is not None:
             listed.difference_update(itertools.product(*(range(s.start, s.stop) for s in region)))
@@ -667,19 +873,42 @@ class ResultStore:
         that listing plus the markers set through this object. A marker set elsewhere since
         the listing reads as not done, which only repeats a task whose writes are
         idempotent; a set marker never reads as unset.
+
+        A marker chunk that is corrupt counts as not done (its task is recomputed and
+        rewrites it), with a warning.
         """
         arr = self._marker(stage)
         region = normalize_region(index, arr.shape)
         if self._remote is not None:
             listed = self._listed_markers(stage)
             return all(c in listed for c in itertools.product(*(range(s.start, s.stop) for s in region)))
-        lay = self._chunk_files(f"{MARKER_GROUP}/{stage}")
+        try:
+            return self._marker_region_set(stage, arr, region)
+        except ChunkError as exc:
+            log.warning("%s; counted as not done", exc)
+            return False
+
+    def _marker_set(self, stage: str, index) -> bool:
+        """Like :meth:`is_done` but read from the marker itself (not an object store's
+        listing), and a corrupt marker raises :class:`ChunkError`."""
+        arr = self._marker(stage)
+        return self._marker_region_set(stage, arr, normalize_region(index, arr.shape))
+
+    def _marker_region_set(self, stage: str, arr, region) -> bool:
+        name = f"{MARKER_GROUP}/{stage}"
+        lay = self._chunk_files(name)
         coords = lay.chunk_of(region) if lay is not None else None
         if coords is not None:
-            if not os.path.exists(lay.path(coords)):
-                return False
-            return bool(np.all(lay.read(coords, tuple(s.stop - s.start for s in region)) == 1))
+            try:
+                a = lay.load(coords)
+            except CorruptChunk as exc:
+                raise chunk_error(self._location, name, coords, exc.reason) from None
+            return a is not None and bool(np.all(a == 1))
         return bool(np.all(np.asarray(arr[region]) == 1))
+
+    def marker_chunk_set(self, stage: str, coords) -> bool:
+        """Is the marker chunk at grid ``coords`` set? :class:`ChunkError` if it is corrupt."""
+        return self._marker_set(stage, tuple(int(c) for c in coords))
 
     def _listed_markers(self, stage: str) -> set[tuple[int, ...]]:
         """Positions of ``stage``'s marker whose chunk is stored.
@@ -708,9 +937,16 @@ class ResultStore:
         return self._markers_listed[stage]
 
     def done(self, stage: str) -> np.ndarray:
-        """The whole marker of ``stage`` as a bool array."""
+        """The whole marker of ``stage`` as a bool array (corrupt marker chunks: not done)."""
         self.flush()
-        return np.asarray(self._marker(stage)[...]) == 1
+        arr = self._marker(stage)
+        try:
+            return np.asarray(arr[...]) == 1
+        except ChunkError:
+            out = np.zeros(arr.shape, dtype=bool)
+            for idx in np.ndindex(*arr.shape):
+                out[idx] = self.is_done(stage, idx)
+            return out
 
     # -- coordinator-only attribute updates -----------------------------------------------
     def set_stage_completed(self, stage: str, timestamp: str | _dt.datetime | None = None) -> None:
@@ -759,10 +995,10 @@ class ResultStore:
 
 
 def _open_group(path, **kwargs) -> zarr.Group:
-    """``zarr.open_group`` of a folder, an fsspec URL (zarr's FsspecStore) or a store object."""
-    if isinstance(path, (str, os.PathLike)):
-        return location.zarr_open_group(path, **kwargs)
-    return zarr.open_group(path, **kwargs)
+    """``zarr.open_group`` of a folder, an fsspec URL (zarr's FsspecStore) or a store object,
+    through :class:`~schlieren.storage.integrity.CheckedStore` (every chunk read checked)."""
+    return zarr.open_group(checked(path, read_only=kwargs.get("mode") == "r",
+                                   location=_location(path)), **kwargs)
 
 
 def _differences(old: Any, new: Any, where: str = "") -> list[str]:

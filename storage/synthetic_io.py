@@ -334,11 +334,15 @@ class Truth:
     attrs: dict
 
 
-def _open_group(path: str | os.PathLike, what: str):
+def _open_group(path: str | os.PathLike, what: str, *, checked_reads: bool = False):
     p = location.normalize(path)
     if not location.exists(p):
         raise StoreError(f"{what} does not exist", file=p)
     try:
+        if checked_reads:
+            from schlieren.storage.integrity import checked
+
+            return zarr.open_group(checked(p, read_only=True), mode="r")
         return location.zarr_open_group(p, mode="r")
     except Exception as exc:  # zarr raises several types for a non-group
         raise StoreError(f"cannot open {what} as a Zarr group ({type(exc).__name__})", file=p) from exc
@@ -366,7 +370,7 @@ def read_store_refractivity(path: str | os.PathLike) -> tuple[Any, np.ndarray, n
     time : ndarray (frame,)
     origin, voxel_size : ndarray (3,)
     """
-    g = _open_group(path, "store")
+    g = _open_group(path, "store", checked_reads=True)  # a corrupt or lost chunk raises ChunkError
     for name in ("refractivity", "time"):
         if name not in g:
             raise StoreError(f"the store has no '{name}' array", file=str(path), field=name)

@@ -184,21 +184,20 @@ def run(session, out, *, workers: int | None = None, client=None, scheduler: str
 def open(store):
     """Open a result store as an ``xarray.Dataset`` (lazy, dask-backed arrays).
 
-    Dims, coordinates (capture ``frame`` index, ``time``, ``camera``, ``x/y/z`` in metres,
+    Reads are checked chunk by chunk (``storage/integrity.py``). Dims, coordinates
+    (capture ``frame`` index, ``time``, ``camera``, ``x/y/z`` in metres,
     ``u/v`` in image pixels) and CF attributes are described in docs/store.md. Nested
     root attributes (``session``, ``params``...) are JSON text; :func:`json.loads` them.
     """
-    import xarray as xr
-
+    from schlieren.storage import location
+    from schlieren.storage.integrity import open_dataset
     from schlieren.storage.store import ResultStore
 
-    from schlieren.storage import location
-
     ResultStore.open(store, mode="r")  # not a result store: a one-line StoreError naming the path
-    loc = location.normalize(store)
-    # a store at a URL (s3://...): credentials and endpoint from the environment, as for runs
-    options = {"storage_options": location.storage_options(loc)} if location.is_url(loc) else {}
-    return xr.open_zarr(loc, **options)
+    # every chunk read is checked: a corrupt one, or one lost under a set completion marker,
+    # raises ChunkError naming the array and the chunk instead of returning data (a store at
+    # a URL: credentials and endpoint from the environment, as for runs)
+    return open_dataset(location.normalize(store), consolidated=None)
 
 
 def synth(out_dir, **kwargs):

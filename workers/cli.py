@@ -109,6 +109,10 @@ def main(argv: list[str] | None = None) -> int:
     except _user_error_types() as exc:
         print(f"schlieren {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # a full disk, a read-only folder: one line, not a traceback
+        where = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
+        print(f"schlieren {args.command}: error: {exc.strerror or exc}{where}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print(f"schlieren {args.command}: interrupted; completed chunks are kept", file=sys.stderr)
         return 130

@@ -481,6 +481,27 @@ def open_client(opts: ClusterOptions) -> Iterator[tuple[Client, ClusterInfo]]:
                 yield pair
 
 
+def connect_error(opts: ClusterOptions, exc: BaseException) -> str:
+    """One line for a cluster that could not be started or reached, with the likely fix."""
+    reason = " ".join(str(exc).split()) or type(exc).__name__
+    if not opts.scheduler:
+        return f"cannot start the local cluster: {reason}"
+    address = opts.scheduler
+    tls = address.startswith("tls://")
+    low = reason.lower()
+    if isinstance(exc, ValueError):
+        return reason
+    if tls and ("certificate" in low or "ssl" in low or "handshake" in low):
+        hint = ("the certificates in --tls are not from this cluster's CA (or were refused): use the directory "
+                "`schlieren tls init` made for it")
+    elif tls:
+        hint = "check the address and that --tls holds this cluster's ca.pem, client.pem and client-key.pem"
+    else:
+        hint = ("if the scheduler uses TLS, give its tls:// address and --tls DIR; otherwise check the "
+                "address and that the scheduler runs")
+    return f"cannot connect to the scheduler {address}: {reason} ({hint})"
+
+
 @contextlib.contextmanager
 def _scheduler_client(opts: ClusterOptions) -> Iterator[tuple[Client, ClusterInfo]]:
     address = opts.scheduler or ""

@@ -4,12 +4,18 @@ Order of events (SPEC sections 1-2):
 
 1. the session is loaded and validated completely (bad input stops here, nothing is
    scheduled and no store is touched);
-2. the store is created with every array up front, or reopened when it was made for the
-   same session and parameters (a rerun resumes; a different run is refused, never
+2. the preflight checks memory (the model measured by benchmarks/memory.py, times the
+   workers) and disk space;
+3. the store's lease is taken (one writer per store, ``storage/lease.py``), then the store
+   is created with every array up front, or reopened when it was made for the same
+   session and parameters (a rerun resumes; a different run is refused, never
    overwritten);
-3. the stage table is compiled into tasks, minus those whose completion marker is set;
-4. the tasks run in a plain loop or as Dask futures; failures are collected per task and
-   summarised, every completed chunk stays.
+4. the markers are verified (``workers/verify.py``): every chunk a set marker covers must
+   have a file (``verify=True`` also reads every chunk's checksum); damaged tasks and
+   everything downstream of them are unmarked;
+5. the stage table is compiled into tasks, minus those whose completion marker is set;
+6. the tasks run in a plain loop or as Dask futures; failures (I/O errors such as a full
+   disk included) are collected per task and summarised, every completed chunk stays.
 """
 
 from __future__ import annotations
@@ -67,6 +73,8 @@ class RunSummary:
     receipts: list[dict] = field(default_factory=list)
     dashboard: str | None = None
     warnings: list[str] = field(default_factory=list)
+    integrity: object = None  # the VerifyReport of the markers checked before planning
+    bad_frames: list = field(default_factory=list)  # (camera, capture frame, [reasons]) excluded
 
     @property
     def ok(self) -> bool:
@@ -95,8 +103,8 @@ def session_location(session: Session) -> str:
     return m if location.is_url(m) else str(Path(m).resolve())
 
 
-def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig) -> tuple[ResultStore, Extents, str]:
-    """Create (or reopen for resume) the result store for ``session`` and return the extents."""
+def run_layout(session: Session, cfg: RunConfig) -> tuple[list, Extents]:
+    """The store's arrays and the plan's extents for ``session`` and ``cfg``."""
     a, b = session.frames
     n_frames = b - a
     raw_first = max(0, a - RAW_MARGIN)
@@ -104,11 +112,21 @@ def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig) -> tup
     fg = FlowGrid(session.cameras[0].image_size, cfg.flow_factor)
     ext = Extents(camera=len(session.cameras), frame=n_frames, raw_frame=raw_last - raw_first,
                   raw_offset=a - raw_first, warm_start_block=cfg.warm_start_block)
-    fp = _fingerprint(session, cfg, (a, b))
     layout = result_layout(camera_names=[c.name for c in session.cameras], n_frames=n_frames,
                            flow_shape=fg.shape, grid=session.grid, first_frame=a,
                            n_raw=ext.raw_frame, raw_first=raw_first,
                            n_summary=cfg.masks.n_quantiles + 1, flow_factor=fg.factor)
+    return layout, ext
+
+
+def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig) -> tuple[ResultStore, Extents, str]:
+    """Create (or reopen for resume) the result store for ``session`` and return the extents."""
+    a, b = session.frames
+    n_frames = b - a
+    raw_first = max(0, a - RAW_MARGIN)
+    fg = FlowGrid(session.cameras[0].image_size, cfg.flow_factor)
+    layout, ext = run_layout(session, cfg)
+    fp = _fingerprint(session, cfg, (a, b))
     attrs = {
         "session": session.manifest,
         "session_path": session_location(session),
@@ -122,17 +140,63 @@ def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig) -> tup
         "stage_times": {},
     }
     markers = {st.name: st.over for st in STAGES}
-    store = ResultStore.create(out_path, layout, attrs=attrs, markers=markers)
+    try:
+        store = ResultStore.create(out_path, layout, attrs=attrs, markers=markers,
+                                   producers=producers(cfg, [s.name for s in layout]))
+    except OSError as exc:  # a full disk or a read-only folder while writing the template
+        raise StoreError(f"cannot write the store ({exc.strerror or exc}); nothing computed is lost, "
+                         "rerun when fixed", file=str(out_path)) from None
     return store, ext, fp[:10]
 
 
-def _done_predicate(store: ResultStore) -> Callable[[str, object], bool]:
-    """Marker lookup for the plan; the tomography geometry counts as done while no
-    tomography task is left (``schlieren clean`` removes it and clears its marker)."""
+def producers(cfg: RunConfig, names) -> dict[str, str]:
+    """Array -> the stage whose completion marker covers its chunks (the task writing them)."""
+    out = {a: st.name for st in STAGES for a in st.outputs if a in names}
+    if cfg.reconstruction == "direct" and "refractivity" in out:
+        out["refractivity"] = "tomography"  # solved directly by the tomography task
+    return out
+
+
+def excluded_frames(store: ResultStore) -> list[tuple[str, int, list[str]]]:
+    """``(camera, capture frame, reasons)`` of every frame flagged dark, saturated or frozen."""
+    import numpy as np
+
+    from schlieren.pipeline.frame_quality import flag_names
+    from schlieren.storage.errors import ChunkError
+
+    if "frame_quality" not in store:
+        return []
+    try:
+        flags = np.asarray(store.array("frame_quality")[..., 3])
+    except ChunkError:
+        return []  # a damaged chunk is reported by the task that reads it
+    names = [str(n) for n in np.asarray(store.array("camera")[...])]
+    raw_first = int(store.attrs["run"]["raw_first"])
+    return [(names[int(c)], raw_first + int(j), flag_names(flags[c, j]))
+            for c, j in zip(*np.nonzero(np.nan_to_num(flags) > 0))]
+
+
+def store_lease(out_path, purpose: str = "run"):
+    """The lease of a folder store (a no-op context for object-store URLs and store objects:
+    one writer per store is not enforced there yet)."""
+    import contextlib
+    import os
+
+    from schlieren.storage.lease import StoreLease
+
+    if isinstance(out_path, (str, os.PathLike)) and not location.is_url(os.fspath(out_path)):
+        return StoreLease(out_path, purpose=purpose)
+    return contextlib.nullcontext()
+
+
+def _done_predicate(done_sets: dict, ext: Extents) -> Callable[[str, object], bool]:
+    """Marker lookup for the plan (the markers verified before planning); the tomography
+    geometry counts as done while no tomography task is left (``schlieren clean`` removes
+    it and clears its marker)."""
     def done(stage: str, index) -> bool:
-        if store.is_done(stage, index):
+        if tuple(index) in done_sets.get(stage, ()):
             return True
-        return stage == "geometry" and bool(store.done("tomography").all())
+        return stage == "geometry" and len(done_sets.get("tomography", ())) == ext.frame
     return done
 
 
@@ -143,7 +207,7 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
                 on_failure: Callable[[str, str], None] | None = None,
                 on_plan: Callable[[Plan], None] | None = None,
                 progress: bool = False, frames_per_task: int | None = None,
-                overwrite: bool = False) -> RunSummary:
+                overwrite: bool = False, verify: bool = False) -> RunSummary:
     """Validate ``session_path``, then compute every missing chunk of ``out_path``.
 
     Parameters
@@ -167,10 +231,29 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
     overwrite : bool
         Replace a store of another configuration at ``out_path`` (only a result store:
         anything else is still refused). A store of this same run is resumed either way.
+    verify : bool
+        Read every chunk of the existing store and check its checksum before trusting the
+        markers (otherwise only a listing checks that the marked chunks exist). Damaged
+        chunks are recomputed with everything downstream of them.
     """
+    from schlieren.workers.preflight import WorkerSlots, preflight, workers_of_client
+
     config = check_config(config or RunConfig())  # a bad value stops here, before the store exists
     session = session_path if isinstance(session_path, Session) else load_session(session_path, frames=frames)
     cfg = bind_medium(config, session.medium.n_ambient)
+    # memory and disk, with the measured model, before anything is written
+    preflight(session, cfg, run_layout(session, cfg)[0], out_path,
+              workers=[WorkerSlots()] if (serial or client is None) else workers_of_client(client))
+    with store_lease(out_path):
+        return _run_leased(session, out_path, cfg, client=client, serial=serial, report=report,
+                           on_receipt=on_receipt, on_failure=on_failure, on_plan=on_plan,
+                           frames_per_task=frames_per_task, overwrite=overwrite, verify=verify)
+
+
+def _run_leased(session, out_path, cfg, *, client, serial, report, on_receipt, on_failure, on_plan,
+                frames_per_task, overwrite, verify) -> RunSummary:
+    from schlieren.workers.verify import verify_store
+
     try:
         store, ext, token = prepare_store(session, out_path, cfg)
     except StoreError as exc:
@@ -181,11 +264,15 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
         store, ext, token = prepare_store(session, out_path, cfg)
     if frames_per_task is None:
         frames_per_task = default_frames_per_task(session.cameras[0].image_size)
-    plan = make_plan(ext, token, done=_done_predicate(store), frames_per_task=int(frames_per_task))
+    try:
+        check = verify_store(store, full=verify, repair=True, ext=ext)
+    except OSError as exc:
+        raise StoreError(f"cannot check the store ({exc.strerror or exc})", file=str(out_path)) from None
+    plan = make_plan(ext, token, done=_done_predicate(check.done, ext), frames_per_task=int(frames_per_task))
     if on_plan:
         on_plan(plan)
     summary = RunSummary(store=str(out_path), executor="serial" if (serial or client is None) else "dask",
-                         tasks=len(plan.tasks), skipped=plan.skipped)
+                         tasks=len(plan.tasks), skipped=plan.skipped, integrity=check)
     t0 = time.time()
     stage_first: dict[str, float] = {}
     stage_last: dict[str, float] = {}
@@ -232,7 +319,13 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
         if s in stage_first:
             times[s] = {"started": stage_first[s], "completed": stage_last[s],
                         "task_seconds": stage_busy.get(s, 0.0), "executor": summary.executor}
-    store.update_attrs({"stage_times": times})
+    summary.bad_frames = excluded_frames(store)
+    try:
+        store.update_attrs({"stage_times": times})
+    except OSError as exc:  # only the timing attributes are lost; every chunk and marker stays
+        from schlieren.workers.tasks import _failure_text
+
+        summary.failures["store-attributes"] = _failure_text(f"recording stage times in {out_path}", exc)
     from schlieren.workers.diagnostics import diagnose
 
     summary.warnings = diagnose(receipts, n_voxels=math.prod(session.grid.shape))

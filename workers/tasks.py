@@ -23,11 +23,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from schlieren.pipeline import derived, flow as flowmod, hull as hullmod, masks as masksmod
+from schlieren.pipeline import derived, flow as flowmod, frame_quality as fq, hull as hullmod, masks as masksmod
 from schlieren.pipeline import poisson, sync, tomography
 from schlieren.pipeline.geometry import Camera, FlowGrid, pixel_footprint
 from schlieren.pipeline.stages import RunConfig, config_from_dict, frame_statistics, kernel_kwargs, stage
 from schlieren.storage import arrays_cache
+from schlieren.storage.errors import SessionError
 from schlieren.storage.frames import open_frames, read_reference
 from schlieren.storage.session import Session, load_session
 from schlieren.storage.store import ResultStore
@@ -74,6 +75,17 @@ class RunContext:
             s = self.session.sources[c]
             src = self._sources[c] = open_frames(s, camera_name=s.name)
         return src
+
+    def frame(self, c: int, f: int) -> np.ndarray:
+        """Capture frame ``f`` of camera ``c``; the last two read per camera are kept (a
+        task over consecutive frames compares each with the one before)."""
+        kept = self._small.setdefault(("frames", c), OrderedDict())
+        img = kept.get(f)
+        if img is None:
+            img = kept[f] = self.frames(c).read(f)
+            while len(kept) > 2:
+                kept.popitem(last=False)
+        return img
 
     def _once(self, key, make):
         if key not in self._small:
@@ -161,6 +173,9 @@ def context(store_path: str, run_token: str = "") -> RunContext:
 @functools.lru_cache(maxsize=2)
 def _geometry(store_path: str, key: str):
     path = arrays_cache.cache_dir(store_path, "geometry", key)
+    bad = arrays_cache.verify_arrays(path)  # once per process: a damaged cache is never used
+    if bad:
+        raise TaskFailed(f"geometry cache {bad[0]}; rerun with `schlieren run ... --verify` to rebuild it")
     return tomography.load_geometry(arrays_cache.load_arrays(path))
 
 
@@ -217,13 +232,41 @@ def _clock(ctx: RunContext) -> dict:
 
 
 def _deflection(ctx: RunContext, c: int, j: int) -> dict:
+    f = ctx.raw_first + j
     src = ctx.frames(c)
-    img = src.read(ctx.raw_first + j)
-    parity = src.parity(ctx.raw_first + j) if hasattr(src, "parity") else None  # interlaced fields
+    img = ctx.frame(c, f)
+    parity = src.parity(f) if hasattr(src, "parity") else None  # interlaced fields
     params = flow_params(ctx, c)
     d = flowmod.deflection_stage(ctx.prepared_reference(c, parity), img, params)
     ctx.store.write("flow_raw", (c, j), d.astype(np.float32))
-    return {"max_px": float(np.nanmax(np.abs(d))) if np.isfinite(d).any() else 0.0, "window": params.window}
+    # dark, saturated or frozen frames: flagged here, excluded by resampling
+    dtype = src.raw_dtype
+    full = float(np.iinfo(dtype).max) if np.issubdtype(dtype, np.integer) else None
+    ref_mean = ctx._once(("reference_mean", c, parity),
+                         lambda: float(np.mean(ctx.reference(c, parity), dtype=np.float64)))
+    try:
+        previous = ctx.frame(c, f - 1) if f > 0 else None
+    except SessionError:  # the previous frame is unreadable (its own task reports it): not frozen
+        previous = None
+    q = fq.frame_quality(img, previous, reference_mean=ref_mean, full_scale=full)
+    ctx.store.write("frame_quality", (c, j), q)
+    out = {"max_px": float(np.nanmax(np.abs(d))) if np.isfinite(d).any() else 0.0, "window": params.window}
+    bad = fq.flag_names(q[3])
+    if bad:
+        out["excluded"] = bad
+        log.warning("camera %s, frame %d: %s; excluded from the reconstruction", ctx.cameras[c].name, f,
+                    ", ".join(bad))
+    return out
+
+
+def bad_frames(ctx: RunContext, c: int, lo: int, hi: int) -> tuple[int, ...]:
+    """Capture frames in ``[lo, hi]`` of camera ``c`` flagged dark, saturated or frozen."""
+    out = []
+    for f in range(max(lo, ctx.raw_first), min(hi, ctx.raw_first + ctx.n_raw - 1) + 1):
+        q = ctx.read_upstream("frame_quality", (c, f - ctx.raw_first))
+        if np.isfinite(q[3]) and int(q[3]):
+            out.append(f)
+    return tuple(out)
 
 
 def flow_params(ctx: RunContext, c: int):
@@ -246,10 +289,14 @@ def _resample(ctx: RunContext, c: int, k: int) -> dict:
     cam = ctx.cameras[c]
     off = ctx.time_offset(c)
     t = float(ctx.times()[k])
-    excluded = ctx.flash_frames(c)
+    # the raw frames this task waits for (the plan's window): never read beyond them
+    centre = ctx.first_frame + k
+    halo = stage("resample").frame_halo
+    window = (max(ctx.raw_first, centre - halo), min(ctx.raw_first + ctx.n_raw, centre + halo + 1))
+    bad = bad_frames(ctx, c, window[0], window[1] - 1)
+    excluded = tuple(sorted(set(ctx.flash_frames(c)) | set(bad)))
     f0, f1 = sync.frames_needed(t, offset=off, frame_rate=s.frame_rate, line_time=cam.line_time,
-                                height=cam.height, excluded_frames=excluded,
-                                frame_range=(ctx.raw_first, ctx.raw_first + ctx.n_raw))
+                                height=cam.height, excluded_frames=excluded, frame_range=window)
     lo = max(ctx.raw_first, min(f0, ctx.raw_first + ctx.n_raw - 1))
     hi = max(lo, min(f1 - 1, ctx.raw_first + ctx.n_raw - 1))
     raw = np.stack([ctx.store.read("flow_raw", (c, f - ctx.raw_first)) for f in range(lo, hi + 1)])
@@ -257,7 +304,7 @@ def _resample(ctx: RunContext, c: int, k: int) -> dict:
                              line_time=cam.line_time, flow_grid=ctx.flow_grid,
                              excluded_frames=excluded, params=ctx.config.resample)
     ctx.store.write("flow", (c, k), np.asarray(out, dtype=np.float32))
-    return {"raw_frames": [lo, hi]}
+    return {"raw_frames": [lo, hi], **({"excluded_frames": list(bad)} if bad else {})}
 
 
 def _potential(ctx: RunContext, c: int, k: int) -> dict:
@@ -275,18 +322,12 @@ def _potential(ctx: RunContext, c: int, k: int) -> dict:
     return {}
 
 
-def _summary(ctx: RunContext, c: int, k: int, kw: dict) -> np.ndarray:
-    s = ctx.store.read("potential_summary", (c, k))
-    if np.isnan(s[0]):  # the pixel count: NaN only where the chunk was never written
-        # potential computed by a version that kept no summary (a resumed older store)
-        s = masksmod.potential_summary(ctx.store.read("potential", (c, k)), **kw)
-    return s
-
-
 def _threshold(ctx: RunContext) -> dict:
     params = ctx.config.masks
-    kw = kernel_kwargs(params, masksmod.potential_summary)
-    summaries = [_summary(ctx, c, k, kw) for c in range(len(ctx.cameras)) for k in range(ctx.n_frames)]
+    # stores of versions that wrote no summaries are not resumed (no chunk checksums), so
+    # every summary under a set potential marker exists (a lost one raises ChunkError)
+    summaries = [ctx.store.read("potential_summary", (c, k))
+                 for c in range(len(ctx.cameras)) for k in range(ctx.n_frames)]
     thr = masksmod.threshold_from_summaries(
         summaries, **kernel_kwargs(params, masksmod.threshold_from_summaries))
     ctx.store.write("mask_threshold", (), np.array([thr], dtype=np.float64))
@@ -308,6 +349,8 @@ def _mask(ctx: RunContext, c: int, k: int) -> dict:
 def _geometry_stage(ctx: RunContext) -> dict:
     key = _geometry_key(ctx)
     path = arrays_cache.cache_dir(ctx.store_path, "geometry", key)
+    if arrays_cache.has_arrays(path) and arrays_cache.verify_arrays(path, read=False):
+        arrays_cache.remove_arrays(path)  # truncated or incomplete: build it again
     if not arrays_cache.has_arrays(path):
         geom = tomography.build_geometry(ctx.cameras, ctx.session.grid, ctx.flow_grid,
                                          params=ctx.config.tomography)
@@ -473,6 +516,25 @@ def flush_writes(store_path: str, run_token: str = "", stage_name: str = "store"
 
 def _run_one(store_path: str, stage_name: str, index: tuple[int, ...], run_token: str) -> dict:
     index = tuple(int(i) for i in index)
+    try:
+        return _run_task(store_path, stage_name, index, run_token)
+    except TaskFailed:
+        raise
+    except Exception as exc:  # the store unreadable, the disk full while marking...: one line
+        raise TaskFailed(_failure_text(f"{stage_name} {list(index)}", exc)) from exc
+
+
+def _failure_text(where: str, exc: BaseException) -> str:
+    """``where: Type: message`` on one line; a full disk says so and that nothing is lost."""
+    import errno
+
+    msg = f"{where}: {type(exc).__name__}: {exc}"
+    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        msg += " (the disk is full: free space and rerun; completed chunks are kept)"
+    return " ".join(msg.split())
+
+
+def _run_task(store_path: str, stage_name: str, index: tuple[int, ...], run_token: str) -> dict:
     t0 = time.perf_counter()
     c0 = time.thread_time()
     ctx = context(str(store_path), str(run_token))
@@ -498,9 +560,11 @@ def _run_one(store_path: str, stage_name: str, index: tuple[int, ...], run_token
     except TaskFailed:
         raise
     except Exception as exc:  # name the camera/frame; the original type stays in the text
-        msg = f"{_describe(stage_name, index, ctx)}: {type(exc).__name__}: {exc}"
-        raise TaskFailed(" ".join(msg.split())) from exc
-    ctx.store.mark_done(stage_name, index)
+        raise TaskFailed(_failure_text(_describe(stage_name, index, ctx), exc)) from exc
+    try:
+        ctx.store.mark_done(stage_name, index)
+    except Exception as exc:  # noqa: BLE001 - e.g. the disk filled up right now
+        raise TaskFailed(_failure_text(_describe(stage_name, index, ctx), exc)) from exc
     receipt.update(extra)
     receipt["seconds"] = time.perf_counter() - t0
     # CPU of this thread only: below ``seconds`` when other processes took the core

@@ -52,7 +52,7 @@ def test_reconstruction_matches_truth(serial_store, tiny_session):
 
 def test_threshold_pools_the_summaries_the_potential_tasks_wrote(serial_store, tmp_path):
     from schlieren.pipeline import masks
-    from schlieren.workers.tasks import run_task
+    from schlieren.workers.tasks import TaskFailed, run_task
 
     g = zarr.open_group(str(serial_store), mode="r")
     pots = np.asarray(g["potential"][...])
@@ -69,16 +69,15 @@ def test_threshold_pools_the_summaries_the_potential_tasks_wrote(serial_store, t
     thr = float(g["mask_threshold"][0])
     lo, hi = np.percentile(pooled, [95.0 - 100.0 / n_q, 95.0 + 100.0 / n_q])
     assert lo <= thr <= hi
-    # a store resumed from a version that wrote no summaries: the threshold task falls
-    # back to summarising the potentials and gets the same value
+    # summaries lost under set potential markers: the threshold task refuses to pool
+    # fill values, naming the array and chunk (the verified resume recomputes them:
+    # tests/e2e/test_lose_nothing.py)
     old = tmp_path / "old.zarr"
     shutil.copytree(serial_store, old)
     shutil.rmtree(old / "potential_summary" / "c")
-    zarr.open_array(old / "status" / "threshold", mode="r+")[...] = 0
-    zarr.open_array(old / "mask_threshold", mode="r+")[...] = np.nan
-    receipt = run_task(str(old), "threshold", (), run_token="old-store")
-    assert not receipt["skipped"] and receipt["threshold"] == thr
-    assert float(zarr.open_group(str(old), mode="r")["mask_threshold"][0]) == thr
+    (old / "status" / "threshold" / "c").unlink()
+    with pytest.raises(TaskFailed, match=r"threshold: ChunkError: .*field potential_summary: chunk \(0, 0, 0\) is missing"):
+        run_task(str(old), "threshold", (), run_token="old-store")
 
 
 def test_dask_executor_gives_the_identical_store(serial_store, tiny_session, tmp_path):
@@ -147,9 +146,21 @@ def test_a_corrupt_frame_fails_only_its_tasks(tiny_session, tmp_path):
     manifest = yaml.safe_load((sess / "session.yaml").read_text())
     first = manifest["frames"][0]
     bad = sess / "cam01" / "frames" / f"{first + 1:05d}.png"
-    data = bad.read_bytes()
-    bad.write_bytes(data[: len(data) // 2])  # header intact, pixel data truncated
+    data = bytearray(bad.read_bytes())
+    good = bytes(data)
+    # a truncated file is refused before any work (one line, no store)...
+    bad.write_bytes(good[: len(good) // 2])
     out = tmp_path / "bad.zarr"
+    proc = subprocess.run([sys.executable, "-m", "schlieren.workers.cli", "run", str(sess), "--out",
+                           str(out), "--serial", "--no-progress"], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+    assert f"camera cam01, field cameras[1].frames[{first + 1}]: frame {first + 1} is truncated" in proc.stderr
+    assert not out.exists()
+    # ...while a frame corrupt inside its pixel data (complete file, intact header) fails its tasks
+    for k in range(len(data) // 2, len(data) // 2 + 16):
+        data[k] ^= 0x5A
+    bad.write_bytes(bytes(data))
     proc = subprocess.run([sys.executable, "-m", "schlieren.workers.cli", "run", str(sess), "--out",
                            str(out), "--serial", "--no-progress", "--log", str(tmp_path / "run.jsonl")],
                           capture_output=True, text=True, timeout=600)

@@ -99,24 +99,43 @@ def test_direct_writes_are_byte_identical_to_zarr_and_read_back_both_ways(two_st
     assert not list(root.rglob("*.partial"))
 
 
-def test_fill_value_chunks_are_not_stored_as_zarr_does(two_stores):
+def test_fill_value_chunks_of_data_arrays_are_stored_as_zarr_does_with_write_empty_chunks(two_stores):
+    """Data arrays store even fill-valued chunks (a set marker then means every chunk has a
+    file); zarr, opened through the store, does the same, with the same bytes."""
     fast, ref, root = two_stores
     f = np.ones((*FLOW, 2), np.float32)
     fast.write("flow", (1, 2), f)
     path = root / "fast.zarr" / "flow" / "c" / "1" / "2" / "0" / "0" / "0"
     assert path.exists()
-    # all NaN (the fill value): the file goes, as zarr's write_empty_chunks=False does
     fast.write("flow", (1, 2), np.full((*FLOW, 2), np.nan, np.float32))
     ref.array("flow")[1, 2] = np.full((*FLOW, 2), np.nan, np.float32)
-    assert not path.exists()
-    assert _files(root / "fast.zarr", "flow") == _files(root / "ref.zarr", "flow") == {}
-    # a never-written chunk reads as the fill value
+    assert path.exists()
+    assert _files(root / "fast.zarr", "flow") == _files(root / "ref.zarr", "flow")
+    assert len(_files(root / "fast.zarr", "flow")) == 1
+    np.testing.assert_array_equal(fast.read("flow", (1, 2)), np.full((*FLOW, 2), np.nan, np.float32))
+    # a never-written chunk (no marker set: no producers here) reads as the fill value
     np.testing.assert_array_equal(fast.read("flow", (0, 0)), np.full((*FLOW, 2), np.nan, np.float32))
     m = fast.read("mask", (2, 1))
     assert m.dtype == bool and not m.any() and m.shape == FLOW
-    # a bool chunk of all False (the fill value) is not stored either
+    # an all-False mask (the fill value) is stored too, as zarr stores it
     fast.write("mask", (0, 0), np.zeros(FLOW, bool))
-    assert _files(root / "fast.zarr", "mask") == {}
+    ref.array("mask")[0, 0] = np.zeros(FLOW, bool)
+    assert _files(root / "fast.zarr", "mask") == _files(root / "ref.zarr", "mask") != {}
+
+
+def test_fill_value_chunks_are_dropped_where_zarr_drops_them(tmp_path):
+    """Markers (and arrays opened with zarr's default write_empty_chunks=False) keep zarr's
+    default: a fill-valued chunk has no file."""
+    g = zarr.open_group(tmp_path / "x.zarr", mode="w", zarr_format=3)
+    a = g.create_array("a", shape=(4, 3), chunks=(1, 3), dtype="float32", fill_value=np.nan,
+                       compressors=(zarr.codecs.ZstdCodec(level=3), zarr.codecs.Crc32cCodec()))
+    lay = chunk_layout(a, tmp_path / "x.zarr", "a")
+    assert lay is not None and lay.checksum and not lay.write_empty
+    lay.write((1, 0), np.arange(3, dtype=np.float32))
+    assert (tmp_path / "x.zarr" / "a" / "c" / "1" / "0").exists()
+    lay.write((1, 0), np.full(3, np.nan, np.float32))
+    assert not (tmp_path / "x.zarr" / "a" / "c" / "1" / "0").exists()
+    np.testing.assert_array_equal(lay.read((1, 0), (1, 3)), np.full((1, 3), np.nan, np.float32))
 
 
 def test_markers_written_directly_are_zarr_markers(two_stores):
@@ -164,8 +183,14 @@ def test_arrays_outside_the_pattern_use_zarr(tmp_path):
                        compressors=(zarr.codecs.ZstdCodec(level=3),))
     summed = g.create_array("checked", shape=(4,), chunks=(2,), dtype="float32",
                             compressors=(zarr.codecs.ZstdCodec(level=3, checksum=True),))
+    crc = g.create_array("crc", shape=(4,), chunks=(2,), dtype="float32",
+                         compressors=(zarr.codecs.ZstdCodec(level=3), zarr.codecs.Crc32cCodec()))
+    crc_first = g.create_array("crc_first", shape=(4,), chunks=(2,), dtype="float32",
+                               compressors=(zarr.codecs.Crc32cCodec(), zarr.codecs.ZstdCodec(level=3)))
     strings = g.create_array("s", shape=(2,), chunks=(2,), dtype=str)
-    assert chunk_layout(z, root, "z") is not None
+    assert chunk_layout(z, root, "z") is not None and not chunk_layout(z, root, "z").checksum
+    assert chunk_layout(crc, root, "crc").checksum
+    assert chunk_layout(crc_first, root, "crc_first") is None
     assert chunk_layout(plain, root, "plain") is None
     assert chunk_layout(blosc, root, "blosc") is None
     assert chunk_layout(summed, root, "checked") is None
@@ -189,3 +214,70 @@ def test_a_killed_write_never_leaves_half_a_chunk(two_stores, monkeypatch):
     monkeypatch.undo()
     np.testing.assert_array_equal(fast.read("flow", (0, 0)), good)
     assert not list(root.rglob("*.partial"))
+
+
+# ---------------------------------------------------------------------------------------
+# checksums: zarr's crc32c codec, byte for byte, and damage refused both ways
+# ---------------------------------------------------------------------------------------
+def test_store_arrays_end_with_zarrs_crc32c_codec(two_stores):
+    fast, _, root = two_stores
+    for name in fast.all_array_names():
+        codecs = fast.array(name).metadata.codecs
+        assert type(codecs[-1]).__name__ == "Crc32cCodec", name
+    # the trailer is the CRC-32C of the compressed bytes, little endian (zarr v3 spec)
+    import google_crc32c
+
+    fast.write("flow", (0, 1), np.ones((*FLOW, 2), np.float32))
+    blob = (root / "fast.zarr" / "flow" / "c" / "0" / "1" / "0" / "0" / "0").read_bytes()
+    assert blob[-4:] == google_crc32c.value(blob[:-4]).to_bytes(4, "little")
+
+
+def _damage(path: Path, how: str) -> None:
+    data = bytearray(path.read_bytes())
+    if how == "flip":
+        data[len(data) // 2] ^= 0x40
+    elif how == "truncate":
+        data = data[: len(data) - 7]
+    elif how == "empty":
+        data = bytearray()
+    path.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize("how", ["flip", "truncate", "empty"])
+def test_a_damaged_chunk_is_an_error_naming_array_and_chunk_on_both_paths(two_stores, how):
+    from schlieren.storage.errors import ChunkError
+
+    fast, _, root = two_stores
+    fast.write("flow", (2, 1), np.arange(np.prod(FLOW) * 2, dtype=np.float32).reshape(*FLOW, 2))
+    _damage(root / "fast.zarr" / "flow" / "c" / "2" / "1" / "0" / "0" / "0", how)
+    with pytest.raises(ChunkError) as direct:
+        fast.read("flow", (2, 1))
+    msg = str(direct.value)
+    assert "field flow" in msg and "chunk (2, 1, 0, 0, 0)" in msg and str(root / "fast.zarr") in msg
+    assert "\n" not in msg and "verify" in msg
+    # zarr's own path (through the store's checking wrapper): the same error
+    with pytest.raises(ChunkError) as via_zarr:
+        fast.array("flow")[2]
+    assert via_zarr.value.chunk == (2, 1, 0, 0, 0) and via_zarr.value.array == "flow"
+    # and a plain zarr reader never gets data from it either (zarr checks the CRC itself)
+    with pytest.raises(ValueError):
+        zarr.open_array(root / "fast.zarr" / "flow", mode="r")[2, 1]
+
+
+def test_chunks_of_older_stores_without_checksum_read_the_same_both_ways(tmp_path):
+    """An array written by the older version (zstd, no crc32c, fill chunks dropped): the
+    direct path reads zarr's files, and writes the bytes zarr writes."""
+    g = zarr.open_group(tmp_path / "old.zarr", mode="w", zarr_format=3)
+    kw = dict(shape=(3, 4, 5), chunks=(1, 4, 5), dtype="float32", fill_value=np.nan,
+              compressors=(zarr.codecs.ZstdCodec(level=3),))
+    a, b = g.create_array("a", **kw), g.create_array("b", **kw)
+    lay = chunk_layout(b, tmp_path / "old.zarr", "b")
+    assert lay is not None and not lay.checksum and not lay.write_empty
+    rng = np.random.default_rng(2)
+    for k in range(3):
+        v = rng.standard_normal((4, 5)).astype(np.float32) if k != 1 else np.full((4, 5), np.nan, np.float32)
+        a[k] = v
+        lay.write((k, 0, 0), v)
+        np.testing.assert_array_equal(lay.read((k, 0, 0), (1, 4, 5))[0], np.asarray(a[k]))
+    assert _files(tmp_path / "old.zarr", "a") == _files(tmp_path / "old.zarr", "b")
+    assert len(_files(tmp_path / "old.zarr", "a")) == 2

@@ -343,3 +343,26 @@ def test_session_with_different_video_lengths(make_builder):
         load_session(b.root)
     assert info.value.camera == "cam01" and info.value.field == "cameras[1].frames"
     assert "has 3 frames but camera cam00 has 4" in info.value.message
+
+
+# ---------------------------------------------------------------------------------------
+# structural completeness (no pixel decoding): truncated files are found before any work
+# ---------------------------------------------------------------------------------------
+@pytest.mark.parametrize("ext", [".png", ".jpg", ".tif"])
+def test_image_incomplete_finds_truncated_files(tmp_path, ext):
+    import cv2
+
+    from schlieren.storage.frames import image_header, image_incomplete
+
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 255, (48, 64), dtype=np.uint8)
+    whole = tmp_path / f"whole{ext}"
+    cv2.imwrite(str(whole), img)
+    assert image_incomplete(whole) is None
+    data = whole.read_bytes()
+    cut = tmp_path / f"cut{ext}"
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    if ext != ".tif":  # (OpenCV writes a TIFF's directory after the pixels: cut, it is gone too)
+        assert image_header(cut) == (64, 48)  # the header alone looks fine
+    why = image_incomplete(cut)
+    assert why is not None and {".png": "PNG", ".jpg": "JPEG", ".tif": "TIFF"}[ext] in why

@@ -182,6 +182,52 @@ def test_external_paths_allowed_when_asked(session_builder, tmp_path):
     assert Path(s.sources[2].reference) == outside / "reference.png"
 
 
+@pytest.mark.parametrize("link", ["reference", "frame", "folder"])
+def test_symlinks_out_of_the_session_folder_are_refused_before_anything_is_read(session_builder, tmp_path,
+                                                                                 monkeypatch, link):
+    """Paths are resolved, symbolic links included, before the containment check: a
+    reference, a frame or a frame folder linked to a file outside is refused, naming the
+    camera and field, and nothing outside is opened."""
+    b = session_builder
+    secret = tmp_path / "secret"
+    secret.mkdir()
+    cam = b.root / "cam01"
+    if link == "reference":
+        target = secret / "passwd.png"
+        os.replace(cam / "reference.png", target)
+        os.symlink(target, cam / "reference.png")
+        field = "cameras[1].reference"
+    elif link == "frame":
+        target = secret / "00003.png"
+        os.replace(cam / "frames" / "00003.png", target)
+        os.symlink(target, cam / "frames" / "00003.png")
+        field = "cameras[1].frames[3]"
+    else:
+        target = secret / "frames"
+        os.replace(cam / "frames", target)
+        os.symlink(target, cam / "frames")
+        field = "cameras[1].frames"
+    opened = []
+    real_imread = cv2.imread
+    monkeypatch.setattr(cv2, "imread", lambda f, *a: opened.append(f) or real_imread(f, *a))
+    err = expect_error(b.root, file=b.root / "session.yaml", camera="cam01", field=field,
+                       match="leads outside the session folder through a symbolic link")
+    assert str(secret) in str(err)
+    assert not any(str(secret) in os.path.realpath(f) for f in opened)
+    # a link that stays inside the folder is fine, and allow_external_paths allows the rest
+    b.manifest["allow_external_paths"] = True
+    b.save()
+    assert load_session(b.root).n_frames_available == 6
+
+
+def test_a_symlink_inside_the_session_folder_is_fine(session_builder):
+    b = session_builder
+    cam = b.root / "cam00"
+    os.replace(cam / "reference.png", cam / "background.png")
+    os.symlink("background.png", cam / "reference.png")
+    assert load_session(b.root).n_frames_available == 6
+
+
 def test_parse_frame_range():
     assert parse_frame_range("3:9") == (3, 9)
     assert parse_frame_range((0, 5)) == (0, 5)
@@ -442,17 +488,20 @@ def test_non_positive_voxel_size(session_builder):
 def test_voxel_size_needing_more_memory_than_the_machine(session_builder, monkeypatch):
     import psutil
 
+    from schlieren.pipeline import resources
+
     class VM:
         total = 8 * 2**30
 
     monkeypatch.setattr(psutil, "virtual_memory", lambda: VM())
     b = session_builder
-    b.manifest["volume"]["voxel_size"] = 1e-4  # 1000^3 voxels * 40 B = 37 GiB > 8 GiB
+    b.manifest["volume"]["voxel_size"] = 1e-4  # 1000^3 voxels * the measured bytes per voxel
     b.save()
     err = expect_error(b.root, file=b.path, field="volume.voxel_size", match="more than this machine")
-    assert "37.3 GiB" in err.message and "8.0 GiB" in err.message
-    assert BYTES_PER_VOXEL == 40
-    b.manifest["volume"]["voxel_size"] = 5e-4  # 200^3 * 40 B = 0.3 GiB: fine
+    need = 1000 ** 3 * BYTES_PER_VOXEL / 2**30
+    assert f"{need:.1f} GiB" in err.message and "8.0 GiB" in err.message and "measured" in err.message
+    assert BYTES_PER_VOXEL == max(a for _, a, _, _ in resources.TASK_MODEL.values()) > 100
+    b.manifest["volume"]["voxel_size"] = 5e-4  # 200^3 voxels: fine
     b.save()
     load_session(b.root)
 
@@ -600,14 +649,30 @@ def test_truncated_last_frame_names_its_index(session_builder):
     data = bad.read_bytes()
     bad.write_bytes(data[: len(data) // 2])
     expect_error(b.root, file=bad, camera="cam00", field="cameras[0].frames[5]",
-                 match="cannot decode")
+                 match="truncated: the PNG ends before its IEND chunk")
+
+
+def test_a_truncated_frame_anywhere_is_refused_before_work(session_builder):
+    """Every frame's file is checked for completeness, not only the first and last."""
+    b = session_builder
+    bad = b.root / "cam02" / "frames" / "00003.png"
+    data = bad.read_bytes()
+    bad.write_bytes(data[: len(data) - 5])
+    expect_error(b.root, file=bad, camera="cam02", field="cameras[2].frames[3]", match="is truncated")
+    bad.write_bytes(data)
+    ref = b.root / "cam01" / "reference.png"
+    ref.write_bytes(ref.read_bytes()[:-3])
+    expect_error(b.root, file=ref, camera="cam01", field="cameras[1].reference", match="reference is truncated")
 
 
 def test_frame_corrupt_past_its_header_needs_decode_all_frames(session_builder):
     b = session_builder
     bad = b.root / "cam01" / "frames" / "00002.png"
     data = bad.read_bytes()
-    bad.write_bytes(data[: len(data) // 2])  # header intact, image data cut
+    broken = bytearray(data)
+    for k in range(len(data) // 2, len(data) // 2 + 8):
+        broken[k] ^= 0x5A  # header intact, file complete, pixel data broken
+    bad.write_bytes(bytes(broken))
     s = load_session(b.root)  # headers only: accepted here, reported when a task reads it
     with pytest.raises(SessionError, match="cannot decode") as info:
         s.sources[1].open_frames().read(2)

@@ -204,3 +204,32 @@ def test_local_cluster_with_tls(tmp_path):
     with pytest.raises(ValueError, match="--tls DIR"):
         with open_client(ClusterOptions(workers=1, tls_ca_file="a", tls_cert="b", tls_key="c")):
             pass
+
+
+@pytest.mark.timeout(180)
+def test_tls_mistakes_are_one_line_errors(tmp_path, external_cluster_factory, tiny_session):
+    """A missing --tls, a tcp:// address for a TLS scheduler, certificates of another CA and
+    a certificate folder that does not exist: one line naming the scheduler, exit code 2."""
+    import subprocess
+    import sys
+
+    certs = make_certificates(tmp_path / "tls")
+    strangers = make_certificates(tmp_path / "strangers")
+    cluster = external_cluster_factory(n_workers=1, tls_dir=certs.directory)
+    addr = cluster.address
+    run = [sys.executable, "-m", "schlieren.workers.cli", "run", str(tiny_session.session),
+           "--out", str(tmp_path / "o.zarr"), "--no-progress"]
+    cases = {
+        "no --tls": (["--scheduler", addr], "--tls DIR"),
+        "tcp:// for a TLS scheduler": (["--scheduler", addr.replace("tls://", "tcp://")], "give its tls:// address"),
+        "another CA": (["--scheduler", addr, "--tls", str(strangers.directory)], "not from this cluster's CA"),
+        "no such folder": (["--scheduler", addr, "--tls", str(tmp_path / "nope")], "nope/ca.pem"),
+    }
+    for name, (extra, hint) in cases.items():
+        proc = subprocess.run(run + extra, capture_output=True, text=True, timeout=120)
+        err = proc.stderr.strip()
+        assert proc.returncode == 2, (name, err)
+        assert "Traceback" not in err and len(err.splitlines()) == 1, (name, err)
+        assert err.startswith("schlieren run: error:") and hint in err, (name, err)
+        assert addr.split("://")[1] in err or name == "no such folder", (name, err)
+    assert not (tmp_path / "o.zarr").exists()

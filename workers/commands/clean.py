@@ -21,9 +21,12 @@ def handler(args) -> int:
     from schlieren.storage.arrays_cache import cache_root, remove_cache
     from schlieren.storage.store import ResultStore
 
+    from schlieren.workers.run import store_lease
+
     store = ResultStore.open(args.store, mode="r+")  # a one-line error if it is not a result store
-    freed = remove_cache(args.store)
-    if "geometry" in store.stages():
-        store.unmark("geometry")
+    with store_lease(args.store, purpose="clean"):  # never under a running run's feet
+        freed = remove_cache(args.store)
+        if "geometry" in store.stages():
+            store.unmark("geometry")
     print(f"removed {cache_root(args.store)} ({freed / 2 ** 20:.1f} MiB); results in {args.store} kept")
     return 0

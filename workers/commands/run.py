@@ -40,6 +40,10 @@ def add_common_run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--frames-per-task", type=positive_int, default=None, metavar="N",
                    help="frames of one camera per task in the cheap 2D stages (default: about 1.4 "
                         "megapixels per task, 8 frames at 480x360; results and resume do not depend on it)")
+    p.add_argument("--verify", action="store_true",
+                   help="before resuming, read every chunk of the existing store and check its checksum "
+                        "(a rerun always checks that the chunks of every completed task exist); damaged "
+                        "chunks are recomputed with everything downstream")
 
 
 def add_log_arg(p: argparse.ArgumentParser) -> None:
@@ -92,11 +96,16 @@ def client_for(args):
     if args.serial or (args.workers is not None and args.workers <= 1 and args.scheduler is None):
         yield None, None
         return
-    from schlieren.workers.cluster import ClusterOptions, open_client
+    from schlieren.workers.cli import CLIError
+    from schlieren.workers.cluster import ClusterOptions, connect_error, open_client
 
     opts = ClusterOptions(workers=args.workers if args.scheduler is None else None,
                           scheduler=args.scheduler, tls_dir=args.tls)
-    with open_client(opts) as (client, info):
+    with contextlib.ExitStack() as stack:
+        try:  # a missing --tls, a wrong CA, a wrong address: one line, not a traceback
+            client, info = stack.enter_context(open_client(opts))
+        except (ValueError, OSError, TimeoutError) as exc:
+            raise CLIError(connect_error(opts, exc)) from None
         yield client, info
 
 
@@ -123,7 +132,8 @@ def execute(session: str, out: str, frames, args, *, console=None):
                                   on_receipt=fan_out(prog.receipt, run_log.receipt),
                                   on_failure=fan_out(prog.failure, run_log.failure),
                                   on_plan=prog.plan, frames_per_task=args.frames_per_task,
-                                  overwrite=getattr(args, "overwrite", False))
+                                  overwrite=getattr(args, "overwrite", False),
+                                  verify=bool(getattr(args, "verify", False)))
             log_finished(run_log, summary)
         summary.dashboard = link
     return summary
@@ -151,6 +161,16 @@ def log_finished(run_log, summary) -> None:
 def print_summary(summary, *, stream=None) -> None:
     stream = stream or sys.stderr
     roots = summary.root_failures()
+    check = getattr(summary, "integrity", None)
+    if check is not None and check.problems:
+        print(f"verify: {check.summary()}:", file=stream)
+        for line in check.lines(10):
+            print(f"  - {line}", file=stream)
+    bad = getattr(summary, "bad_frames", None) or []
+    if bad:
+        shown = "; ".join(f"{cam} frame {f} ({', '.join(why)})" for cam, f, why in bad[:20])
+        more = f"; and {len(bad) - 20} more" if len(bad) > 20 else ""
+        print(f"excluded from the reconstruction: {shown}{more}", file=stream)
     print(f"store: {summary.store}  ({summary.tasks} tasks run, {summary.skipped} already complete, "
           f"{summary.seconds:.1f} s, {summary.executor} executor)", file=stream)
     if summary.failures:

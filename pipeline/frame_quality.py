@@ -1,0 +1,87 @@
+"""Frames a reconstruction must not use: dark, saturated and frozen (repeated) frames.
+
+Cheap camcorders and real labs produce them: a frame taken while the lights flickered or
+the lens cap was on (dark), a frame blown out by a reflection or the strobe of another
+rig (saturated), and a frame the camera repeated because it dropped the real one
+(frozen: identical to the previous frame, which sensor noise never is). Each would put a
+false deflection field into the tomography (an all-black frame cost its frame 3.6 dB).
+:func:`frame_quality` measures a frame against its camera's reference and the previous
+frame; the run excludes flagged frames from rolling-shutter resampling exactly like the
+strobe flash frames (``excluded_frames`` of :func:`schlieren.pipeline.sync.resample_flow`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["DARK", "SATURATED", "FROZEN", "QUALITY_NAMES", "FrameQualityParams", "frame_quality", "flag_names"]
+
+DARK, SATURATED, FROZEN = 1, 2, 4
+#: Entries of the vector :func:`frame_quality` returns.
+QUALITY_NAMES = ("mean", "saturated_fraction", "mean_abs_change", "flags")
+_NAMES = {DARK: "dark", SATURATED: "saturated", FROZEN: "frozen (repeats the previous frame)"}
+
+
+@dataclass(frozen=True)
+class FrameQualityParams:
+    """Thresholds of :func:`frame_quality`.
+
+    Attributes
+    ----------
+    dark_fraction : float
+        Dark: the frame's mean grey level is below this fraction of the reference's.
+    saturated_fraction : float
+        Saturated: more than this fraction of the pixels sit at the sensor's full scale.
+    frozen_level : float
+        Frozen: the mean absolute change from the previous frame is at most this fraction
+        of full scale (0.026 grey levels at 8 bits; sensor noise alone gives about 1).
+    """
+
+    dark_fraction: float = 0.25
+    saturated_fraction: float = 0.25
+    frozen_level: float = 1e-4
+
+
+def frame_quality(frame: np.ndarray, previous: np.ndarray | None, *, reference_mean: float,
+                  full_scale: float | None, params: FrameQualityParams = FrameQualityParams()) -> np.ndarray:
+    """Statistics and flags of one frame.
+
+    Parameters
+    ----------
+    frame : ndarray, shape (H, W)
+        Grey levels.
+    previous : ndarray, shape (H, W), or None
+        The camera's previous frame in capture order (None for the first frame).
+    reference_mean : float
+        Mean grey level of the camera's reference (background) image.
+    full_scale : float or None
+        The sensor's largest value (255, 65535); None (floating-point frames) skips the
+        saturation test.
+
+    Returns
+    -------
+    ndarray, shape (4,), float32
+        ``mean``, ``saturated_fraction``, ``mean_abs_change`` (NaN without a previous
+        frame) and ``flags`` (bit sum of :data:`DARK`, :data:`SATURATED`, :data:`FROZEN`).
+    """
+    f = np.asarray(frame, dtype=np.float64)
+    mean = float(f.mean())
+    sat = float(np.mean(f >= full_scale)) if full_scale is not None else 0.0
+    change = float(np.mean(np.abs(f - np.asarray(previous, dtype=np.float64)))) if previous is not None else np.nan
+    flags = 0
+    if mean < params.dark_fraction * float(reference_mean):
+        flags |= DARK
+    if sat > params.saturated_fraction:
+        flags |= SATURATED
+    if previous is not None and change <= params.frozen_level * float(full_scale or max(f.max(), 1.0)):
+        flags |= FROZEN
+    return np.array([mean, sat, change, flags], dtype=np.float32)
+
+
+def flag_names(flags: float) -> list[str]:
+    """``["dark", ...]`` for a flags value (NaN or 0: none)."""
+    if not np.isfinite(flags):
+        return []
+    return [name for bit, name in _NAMES.items() if int(flags) & bit]

@@ -1,0 +1,188 @@
+"""One writer per result store: a lease file beside the store.
+
+A run (and ``schlieren verify --repair``) holds ``<store>.lease`` (next to the store
+folder, not inside it: zarr and xarray warn about non-Zarr files in the hierarchy) while
+it writes. The file records the holder's host, pid, process start time and a random
+token; the holder touches it every ``heartbeat`` seconds from a daemon thread. Another
+writer is refused with one line naming the holder, unless the lease is *stale*:
+
+* the holder ran on this host and its process is gone (or its pid now belongs to a
+  process started at another time): a run killed with ``kill -9`` is resumed at once;
+* or the lease has not been touched for ``timeout`` seconds (a holder on another host
+  that died).
+
+The lease is taken atomically (``link`` of a complete file, which fails if one exists)
+and a stale one is moved aside before the new one is linked, so two writers racing for
+a stale lease cannot both win.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import socket
+import threading
+import time
+import uuid
+from pathlib import Path
+
+from schlieren.storage.errors import StoreError
+
+__all__ = ["StoreLease", "LeaseError", "lease_path", "HEARTBEAT_SECONDS", "STALE_SECONDS"]
+
+log = logging.getLogger(__name__)
+
+HEARTBEAT_SECONDS = 10.0
+STALE_SECONDS = 60.0
+
+
+class LeaseError(StoreError):
+    """Another live run holds the store's lease."""
+
+
+def lease_path(store_path: str | os.PathLike) -> Path:
+    p = Path(os.fspath(store_path)).absolute()
+    return p.with_name(p.name + ".lease")
+
+
+def _process_start(pid: int) -> float | None:
+    try:
+        import psutil
+
+        return float(psutil.Process(pid).create_time())
+    except Exception:  # noqa: BLE001 - gone, or no permission
+        return None
+
+
+def _alive(info: dict) -> bool:
+    """Is the holder recorded in ``info`` (on this host) still running?"""
+    try:
+        pid = int(info["pid"])
+    except (KeyError, TypeError, ValueError):
+        return False
+    started = _process_start(pid)
+    if started is None:
+        return False
+    want = info.get("process_start")
+    return want is None or abs(float(want) - started) < 1.0
+
+
+class StoreLease:
+    """The lease of one store; use as a context manager or call :meth:`acquire`/:meth:`release`."""
+
+    def __init__(self, store_path: str | os.PathLike, *, purpose: str = "run",
+                 heartbeat: float = HEARTBEAT_SECONDS, timeout: float = STALE_SECONDS):
+        self.path = lease_path(store_path)
+        self.store = os.fspath(store_path)
+        self.purpose = purpose
+        self.heartbeat = float(heartbeat)
+        self.timeout = float(timeout)
+        self.token = uuid.uuid4().hex
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.held = False
+
+    # -- reading -------------------------------------------------------------------
+    def holder(self) -> tuple[dict, float] | None:
+        """``(recorded info, seconds since the last heartbeat)`` of the current lease, or None."""
+        try:
+            age = max(time.time() - self.path.stat().st_mtime, 0.0)
+            info = json.loads(self.path.read_text())
+        except FileNotFoundError:
+            return None
+        except (OSError, ValueError):
+            return {}, age  # unreadable: held until it is older than the timeout
+        return (info if isinstance(info, dict) else {}), age
+
+    def _stale(self, info: dict, age: float) -> str | None:
+        if info.get("host") == socket.gethostname() and info.get("pid") is not None:
+            if not _alive(info):
+                return f"its process {info.get('pid')} on this host is gone"
+            return None
+        if age > self.timeout:
+            return f"no heartbeat for {age:.0f} s"
+        return None
+
+    # -- taking and giving back -------------------------------------------------------
+    def acquire(self) -> "StoreLease":
+        """Take the lease, or raise :class:`LeaseError` naming the live holder."""
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        info = {"host": socket.gethostname(), "pid": os.getpid(), "process_start": _process_start(os.getpid()),
+                "token": self.token, "purpose": self.purpose, "store": self.store,
+                "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+        tmp = self.path.with_name(f".{self.path.name}.{self.token}.tmp")
+        try:
+            tmp.write_text(json.dumps(info))
+        except OSError as exc:
+            raise StoreError(f"cannot write the store's lease file ({exc.strerror or exc})",
+                             file=str(self.path)) from None
+        try:
+            for _ in range(20):
+                try:
+                    os.link(tmp, self.path)
+                    self.held = True
+                    break
+                except FileExistsError:
+                    pass
+                got = self.holder()
+                if got is None:
+                    continue  # released meanwhile: try again
+                other, age = got
+                why = self._stale(other, age)
+                if why is None:
+                    raise LeaseError(
+                        f"another {other.get('purpose', 'run')} is writing this store (host "
+                        f"{other.get('host', '?')}, pid {other.get('pid', '?')}, since {other.get('started', '?')}, "
+                        f"heartbeat {age:.0f} s ago); wait for it to finish, or stop it (a lease without "
+                        f"heartbeat for {self.timeout:.0f} s is taken over)", file=self.store, field="lease")
+                log.warning("taking over the lease of %s: %s", self.store, why)
+                aside = self.path.with_name(f".{self.path.name}.{uuid.uuid4().hex}.stale")
+                try:
+                    os.rename(self.path, aside)  # only one of several takers moves it
+                    os.remove(aside)
+                except FileNotFoundError:
+                    pass
+            else:  # pragma: no cover - twenty lost races in a row
+                raise LeaseError("could not take the store's lease (contended)", file=self.store, field="lease")
+        finally:
+            try:
+                tmp.unlink()
+            except FileNotFoundError:
+                pass
+        self._thread = threading.Thread(target=self._beat, name="schlieren-lease", daemon=True)
+        self._thread.start()
+        return self
+
+    def _beat(self) -> None:
+        while not self._stop.wait(self.heartbeat):
+            try:
+                info = json.loads(self.path.read_text())
+                if info.get("token") != self.token:
+                    log.error("the lease of %s was taken over by %s (pid %s)", self.store, info.get("host"),
+                              info.get("pid"))
+                    return
+                os.utime(self.path)
+            except (OSError, ValueError) as exc:
+                log.warning("lease heartbeat of %s failed: %s", self.store, exc)
+
+    def release(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+            self._thread = None
+        if not self.held:
+            return
+        self.held = False
+        try:
+            info = json.loads(self.path.read_text())
+            if info.get("token") == self.token:
+                self.path.unlink()
+        except (OSError, ValueError):
+            pass
+
+    def __enter__(self) -> "StoreLease":
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()

@@ -1,0 +1,56 @@
+"""Dark, saturated and frozen frames (pipeline/frame_quality.py) against frames built to be each."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from schlieren.pipeline.frame_quality import DARK, FROZEN, SATURATED, flag_names, frame_quality
+
+
+@pytest.fixture
+def frames():
+    rng = np.random.default_rng(4)
+    background = rng.uniform(40, 200, (60, 80))
+    noisy = lambda: np.clip(np.round(background + rng.normal(0, 1.5, background.shape)), 0, 255)  # noqa: E731
+    return background, noisy
+
+
+def test_ordinary_frames_with_sensor_noise_are_not_flagged(frames):
+    background, noisy = frames
+    a, b = noisy(), noisy()
+    q = frame_quality(b, a, reference_mean=background.mean(), full_scale=255)
+    assert q[3] == 0 and flag_names(q[3]) == []
+    assert q[0] == pytest.approx(b.mean(), rel=1e-6) and 1.0 < q[2] < 2.5  # noise: mean |change| ~ 1.7
+    # the first frame has no previous one: no change measured, not frozen
+    first = frame_quality(a, None, reference_mean=background.mean(), full_scale=255)
+    assert np.isnan(first[2]) and first[3] == 0
+
+
+def test_dark_saturated_and_frozen_frames_are_flagged(frames):
+    background, noisy = frames
+    ref = background.mean()
+    prev = noisy()
+    dark = frame_quality(0.1 * noisy(), prev, reference_mean=ref, full_scale=255)
+    assert int(dark[3]) == DARK and flag_names(dark[3]) == ["dark"]
+    blown = np.where(np.arange(background.size).reshape(background.shape) % 3 == 0, 120.0, 255.0)
+    sat = frame_quality(blown, prev, reference_mean=ref, full_scale=255)
+    assert int(sat[3]) == SATURATED and sat[1] == pytest.approx(2 / 3, abs=1e-3)
+    frozen = frame_quality(prev.copy(), prev, reference_mean=ref, full_scale=255)
+    assert int(frozen[3]) == FROZEN and frozen[2] == 0 and "frozen" in flag_names(frozen[3])[0]
+    # black and repeated at once: both flags
+    black = np.zeros_like(prev)
+    both = frame_quality(black, black, reference_mean=ref, full_scale=255)
+    assert int(both[3]) == DARK | FROZEN
+
+
+def test_sixteen_bit_and_floating_point_frames(frames):
+    background, noisy = frames
+    a16, b16 = 257.0 * noisy(), 257.0 * noisy()
+    assert frame_quality(b16, a16, reference_mean=257 * background.mean(), full_scale=65535)[3] == 0
+    full = np.full_like(a16, 65535.0)
+    assert int(frame_quality(full, a16, reference_mean=257 * background.mean(), full_scale=65535)[3]) == SATURATED
+    # float frames: no full scale, no saturation test; frozen relative to the frame's range
+    f = noisy() / 255.0
+    q = frame_quality(np.ones_like(f), f, reference_mean=f.mean(), full_scale=None)
+    assert q[1] == 0 and int(q[3]) == 0
