@@ -59,7 +59,7 @@ __all__ = ["StageCosts", "Prediction", "fit_costs", "predict", "ready_gaps", "ta
 
 PHASE_A = ("frames", "sync", "clock", "deflection", "resample", "potential", "geometry")
 BARRIER = "threshold"
-PHASE_C = ("mask", "hull", "tomography", "integrate")
+PHASE_C = ("mask", "regularisation", "hull", "tomography", "integrate")
 _OVER = {s.name: s.over for s in STAGES}
 _BATCH = {s.name: s.batch for s in STAGES}
 
@@ -212,20 +212,24 @@ def predict(costs: StageCosts, *, cameras: int, frames: int, workers: int, warm_
     L_A = max(t["sync"] + t["clock"], k("deflection") * t["deflection"]) \
         + k("resample") * t["resample"] + k("potential") * t["potential"]
     T_B = work[BARRIER]
-    L_C = k("mask") * t["mask"] + t["hull"] + costs.tomography_cold + (B - 1) * costs.tomography_warm \
-        + t["integrate"]
+    # after the masks: the frame's hull and the run's regularisation weight (one task, on
+    # every chain: each solve waits for it), then the block of solves and the integration
+    L_C = k("mask") * t["mask"] + max(t["hull"], t["regularisation"]) + costs.tomography_cold \
+        + (B - 1) * costs.tomography_warm + t["integrate"]
     W_A = sum(work[s] for s in PHASE_A)
     W_C = sum(work[s] for s in PHASE_C)
     shrink = 1.0 - 1.0 / n
-    geometry_wait = max(0.0, t["geometry"] - max(W_A / n, L_A) - T_B - k("mask") * t["mask"] - t["hull"])
+    geometry_wait = max(0.0, t["geometry"] - max(W_A / n, L_A) - T_B - k("mask") * t["mask"]
+                        - max(t["hull"], t["regularisation"]))
     counts = task_counts(cameras, frames, raw_margin=raw_margin, frames_per_task=fpt)
     n_tasks = sum(counts.values())
-    chain_tasks = 4 + 1 + 2 + B + 1  # sync, clock, resample, potential | threshold | mask, hull, B solves, integrate
+    chain_tasks = 4 + 1 + 2 + B + 1  # sync, clock, resample, potential | threshold | mask, hull or
+    # regularisation, B solves, integrate
     overhead = costs.overhead_per_task * (n_tasks / n + chain_tasks)
     terms = {f"{s}: work / N": work[s] / n for s in PHASE_A + PHASE_C}
     terms["2D chain before the barrier (x (1 - 1/N))"] = shrink * L_A
     terms["threshold barrier (one task)"] = T_B
-    terms["warm-start chain: mask, hull, block of solves, integrate (x (1 - 1/N))"] = shrink * L_C
+    terms["warm-start chain: mask, hull / regularisation, block of solves, integrate (x (1 - 1/N))"] = shrink * L_C
     terms["geometry wait"] = geometry_wait
     terms["per-task overhead"] = overhead
     terms["planning (client, before any task)"] = float(planning)
@@ -234,7 +238,8 @@ def predict(costs: StageCosts, *, cameras: int, frames: int, workers: int, warm_
     # frame statistics and geometry need not finish before the barrier (nothing in A waits
     # for them), so the rigorous lower bound counts them only in the total work
     W_A_needed = W_A - work["frames"] - work["geometry"]
-    geometry_path = t["geometry"] + costs.tomography_cold + (B - 1) * costs.tomography_warm + t["integrate"]
+    geometry_path = t["geometry"] + t["regularisation"] + costs.tomography_cold + (B - 1) * costs.tomography_warm \
+        + t["integrate"]
     lower = planning + max(max(W_A_needed / n, L_A) + T_B + max(W_C / n, L_C), sum(work.values()) / n,
                            geometry_path, floor)
     if planning + floor > total:  # the scheduler binds: the run is planning, then the scheduler's pace

@@ -12,7 +12,7 @@ from schlieren.workers.plan import Extents, critical_path_priorities, make_plan
 
 # known seconds per index of each stage
 COST = {"frames": 0.1, "sync": 0.05, "clock": 0.01, "deflection": 0.2, "resample": 0.1, "potential": 0.1,
-        "mask": 0.1, "geometry": 10.0, "hull": 1.0, "integrate": 0.5}
+        "mask": 0.1, "geometry": 10.0, "hull": 1.0, "integrate": 0.5, "regularisation": 0.5}
 COLD, WARM, PER_SUMMARY = 3.0, 2.0, 0.001
 
 
@@ -26,7 +26,7 @@ def synthetic_receipts(cameras: int, frames: int, *, block: int = 4, margin: int
     def add(stage, index, seconds):
         nonlocal sign
         sign = -sign
-        jitter = 0.0 if stage in ("clock", "geometry", "threshold") else sign * noise  # one receipt each
+        jitter = 0.0 if stage in ("clock", "geometry", "threshold", "regularisation") else sign * noise  # one each
         out.append({"stage": stage, "index": list(index), "seconds": seconds + jitter,
                     "cpu_seconds": 0.5 * seconds, "skipped": False})
 
@@ -40,6 +40,7 @@ def synthetic_receipts(cameras: int, frames: int, *, block: int = 4, margin: int
     add("clock", (), COST["clock"])
     add("geometry", (), COST["geometry"])
     add("threshold", (), PER_SUMMARY * cameras * frames)
+    add("regularisation", (), COST["regularisation"])
     for k in range(frames):
         add("hull", (k,), COST["hull"])
         add("tomography", (k,), COLD if k % block == 0 else WARM)
@@ -74,8 +75,8 @@ def test_fit_refuses_an_incomplete_run():
 def test_task_counts():
     n = tp.task_counts(16, 1000, raw_margin=2, frames_per_task=1)
     assert n["deflection"] == 16 * 1004 and n["mask"] == 16000 and n["tomography"] == 1000
-    assert n["threshold"] == n["clock"] == n["geometry"] == 1 and n["sync"] == 16
-    assert sum(n.values()) == 83083
+    assert n["threshold"] == n["clock"] == n["geometry"] == n["regularisation"] == 1 and n["sync"] == 16
+    assert sum(n.values()) == 83084
     b = tp.task_counts(8, 16, raw_margin=2, frames_per_task=8)
     assert b["frames"] == 8 * 2 and b["deflection"] == 8 * 3 and b["hull"] == 16
 
@@ -85,17 +86,17 @@ def test_prediction_by_hand():
     costs = tp.fit_costs(synthetic_receipts(2, 8), cameras=2, frames=8).with_overheads(0.005, 0.0)
     p = tp.predict(costs, cameras=16, frames=1000, workers=8, warm_start_block=4, raw_margin=2)
     W_A = 16000 * 0.1 + 16 * 0.05 + 0.01 + 16 * 1004 * 0.2 + 16000 * 0.1 + 16000 * 0.1 + 10.0  # 8023.61
-    W_C = 16000 * 0.1 + 1000 * 1.0 + (250 * 3.0 + 750 * 2.0) + 1000 * 0.5  # 5350
+    W_C = 16000 * 0.1 + 0.5 + 1000 * 1.0 + (250 * 3.0 + 750 * 2.0) + 1000 * 0.5  # 5350.5
     L_A = max(0.05 + 0.01, 0.2) + 0.1 + 0.1
-    L_C = 0.1 + 1.0 + 3.0 + 3 * 2.0 + 0.5
+    L_C = 0.1 + max(1.0, 0.5) + 3.0 + 3 * 2.0 + 0.5   # mask, hull or regularisation, solves, integrate
     T_B = 16000 * 0.001
-    overhead = 0.005 * (83083 / 8 + 12)
+    overhead = 0.005 * (83084 / 8 + 12)
     assert p.seconds == pytest.approx(W_A / 8 + W_C / 8 + (1 - 1 / 8) * (L_A + L_C) + T_B + overhead)
-    assert p.seconds == pytest.approx(1697.32625 + 0.005 * (83083 / 8 + 12))
+    assert p.seconds == pytest.approx(1697.38875 + 0.005 * (83084 / 8 + 12))
     W_A_needed = W_A - 16000 * 0.1 - 10.0  # frame statistics and geometry may run after the barrier
     assert W_A_needed / 8 + T_B + W_C / 8 < (W_A + T_B + W_C) / 8  # here the total work binds
     assert p.lower == pytest.approx((W_A + T_B + W_C) / 8)
-    assert p.tasks == 83083
+    assert p.tasks == 83084
     assert p.limiting == "deflection: work / N"
     assert p.terms["geometry wait"] == 0.0
     assert sum(v for k, v in p.terms.items() if "not added" not in k) == pytest.approx(p.seconds)
@@ -108,9 +109,9 @@ def test_limiting_terms():
     base = tp.fit_costs(synthetic_receipts(2, 8), cameras=2, frames=8)
     # one scheduler for ~83k tasks at 5 ms each outlasts 128 workers' share of the work
     p = tp.predict(base.with_overheads(0.0, 0.005), cameras=16, frames=1000, workers=128)
-    assert p.limiting.startswith("scheduler throughput") and p.seconds == pytest.approx(0.005 * 83083)
+    assert p.limiting.startswith("scheduler throughput") and p.seconds == pytest.approx(0.005 * 83084)
     q = tp.predict(base.with_overheads(0.0, 0.005), cameras=16, frames=1000, workers=128, planning=1000.0)
-    assert q.limiting.startswith("planning") and q.seconds == pytest.approx(1000.0 + 0.005 * 83083)
+    assert q.limiting.startswith("planning") and q.seconds == pytest.approx(1000.0 + 0.005 * 83084)
     # a slow barrier dominates once the work is spread thin
     slow = tp.StageCosts(per_index=base.per_index, tomography_cold=COLD, tomography_warm=WARM,
                          threshold_per_summary=0.01)
@@ -178,7 +179,8 @@ def test_bounds_hold_on_the_real_plan(workers):
     p = tp.predict(costs, cameras=C, frames=F, workers=workers, warm_start_block=B, raw_margin=m)
     assert p.lower - 1e-9 <= sim <= p.seconds + 1e-9
     if workers == 40:  # plenty of workers: the geometry task and one block's chain are the run
-        assert p.lower == pytest.approx(COST["geometry"] + COLD + (B - 1) * WARM + COST["integrate"])
+        assert p.lower == pytest.approx(COST["geometry"] + COST["regularisation"] + COLD + (B - 1) * WARM
+                                        + COST["integrate"])
         assert sim == pytest.approx(p.lower)
     if workers == 1:  # one worker: the sum of all work, whatever the order
         total = sum(task_seconds(t) for t in plan.tasks)
