@@ -56,6 +56,26 @@ def test_dropped_frame_is_reported_and_kept_in_time(tiny_session, serial_store, 
     assert kept > clean - 0.3, (kept, clean)
 
 
+def test_dropped_frame_in_the_strobe_search_window(tiny_session, serial_store, tmp_path):
+    """A drop among the frames searched for the sync flash (not the flash frame itself):
+    the offsets are found as without it, and the drop is left out of the reconstruction."""
+    import zarr
+
+    manifest = yaml.safe_load(tiny_session.session.read_text())
+    a, b = manifest["sync"]["strobe"]["search_frames"]
+    k = b - 2  # in the search window, after the flash (raw frame 1), before the output frames
+    sess = _copy(tiny_session, tmp_path / "s")
+    (sess / "cam01" / "frames" / f"{k:05d}.png").unlink()
+    summary = run_session(sess, tmp_path / "s.zarr", serial=True)
+    assert not summary.failures and [(c, f) for c, f, _ in summary.bad_frames] == [("cam01", k)]
+    offsets = [np.asarray(zarr.open_group(str(p), mode="r")["time_offset"]) for p in (tmp_path / "s.zarr",
+                                                                                       serial_store)]
+    np.testing.assert_array_equal(*offsets)
+    truth = tiny_session.session.parent / "truth.zarr"
+    assert evaluate(tmp_path / "s.zarr", truth)["overall"]["psnr"] > \
+        evaluate(serial_store, truth)["overall"]["psnr"] - 0.3
+
+
 @pytest.fixture(scope="module")
 def moving_session(tmp_path_factory):
     """The tiny rig on a rising plume filmed at 10 frames/s: the flow changes enough from
