@@ -400,17 +400,11 @@ class FrameSource:
         if not 0 <= i < n:
             raise SessionError(f"frame index {i} is outside the {n} frames available",
                                file=self.path, camera=self.camera_name, field=f"frames[{i}]")
-        if self.dropped and i in self._dropped_set():
+        if i in self.dropped:
             raise DroppedFrame("the camera dropped this frame (a gap in the numbered files or the video's "
                                "timestamps); it is excluded from the reconstruction",
                                file=self.file_of(i), camera=self.camera_name, field=f"frames[{i}]")
         return i
-
-    def _dropped_set(self) -> frozenset:
-        got = getattr(self, "_dropped_cache", None)
-        if got is None or got[0] is not self.dropped:
-            got = self._dropped_cache = (self.dropped, frozenset(self.dropped))
-        return got[1]
 
     def __iter__(self):
         for i in range(len(self)):
@@ -687,10 +681,7 @@ class InterlacedFields(FrameSource):
     @property
     def dropped(self) -> tuple[int, ...]:
         """Both fields of every frame the camera dropped."""
-        inner = getattr(self.frames, "dropped", ())
-        if getattr(self, "_dropped_of", (None,))[0] is not inner:
-            self._dropped_of = (inner, tuple(2 * d + k for d in inner for k in (0, 1)))
-        return self._dropped_of[1]
+        return tuple(2 * d + k for d in getattr(self.frames, "dropped", ()) for k in (0, 1))
 
     def file_of(self, i: int) -> str:
         return self.frames.file_of(int(i) // 2)
