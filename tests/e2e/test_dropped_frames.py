@@ -80,9 +80,16 @@ def test_dropped_frame_in_the_strobe_search_window(tiny_session, serial_store, t
 def moving_session(tmp_path_factory):
     """The tiny rig on a rising plume filmed at 10 frames/s: the flow changes enough from
     one frame to the next that a frame's time matters (the tiny blob barely moves)."""
-    from conftest import TINY
+    import importlib.util
+    from pathlib import Path
 
     from schlieren.workers.synth import synthesize
+
+    # the tiny session's parameters (tests/conftest.py; "conftest" names another module in a full run)
+    spec = importlib.util.spec_from_file_location("tests_root_conftest", Path(__file__).parents[1] / "conftest.py")
+    root_conftest = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(root_conftest)
+    TINY = root_conftest.TINY
 
     return synthesize(tmp_path_factory.mktemp("moving") / "session", **{**TINY, "phantom": "plume",
                                                                          "frame_rate": 10.0})
