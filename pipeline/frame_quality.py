@@ -1,10 +1,14 @@
-"""Frames a reconstruction must not use: dark, saturated and frozen (repeated) frames.
+"""Frames a reconstruction must not use: dark, saturated, frozen (repeated) and dropped frames.
 
 Cheap camcorders and real labs produce them: a frame taken while the lights flickered or
 the lens cap was on (dark), a frame blown out by a reflection or the strobe of another
 rig (saturated), and a frame the camera repeated because it dropped the real one
 (frozen: identical to the previous frame, which sensor noise never is). Each would put a
 false deflection field into the tomography (an all-black frame cost its frame 3.6 dB).
+A camera that dropped a frame without repeating one leaves a time slot with no frame
+(a gap in the numbered file names or in a video's timestamps, found by
+:mod:`schlieren.storage.frames`): the slot is flagged :data:`DROPPED`, so frame indices
+stay time indices and the frames after the gap keep their true capture times.
 :func:`frame_quality` measures a frame against its camera's reference and the previous
 frame; the run excludes flagged frames from rolling-shutter resampling exactly like the
 strobe flash frames (``excluded_frames`` of :func:`schlieren.pipeline.sync.resample_flow`).
@@ -16,12 +20,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["DARK", "SATURATED", "FROZEN", "QUALITY_NAMES", "FrameQualityParams", "frame_quality", "flag_names"]
+__all__ = ["DARK", "SATURATED", "FROZEN", "DROPPED", "QUALITY_NAMES", "FrameQualityParams", "frame_quality",
+           "dropped_quality", "flag_names"]
 
-DARK, SATURATED, FROZEN = 1, 2, 4
+DARK, SATURATED, FROZEN, DROPPED = 1, 2, 4, 8
 #: Entries of the vector :func:`frame_quality` returns.
 QUALITY_NAMES = ("mean", "saturated_fraction", "mean_abs_change", "flags")
-_NAMES = {DARK: "dark", SATURATED: "saturated", FROZEN: "frozen (repeats the previous frame)"}
+_NAMES = {DARK: "dark", SATURATED: "saturated", FROZEN: "frozen (repeats the previous frame)",
+          DROPPED: "dropped by the camera (no frame at this time)"}
 
 
 @dataclass(frozen=True)
@@ -83,6 +89,11 @@ def frame_quality(frame: np.ndarray, previous: np.ndarray | None, *, reference_m
     if previous is not None and change <= params.frozen_level * float(full_scale or max(f.max(), 1.0)):
         flags |= FROZEN
     return np.array([mean, sat, change, flags], dtype=np.float32)
+
+
+def dropped_quality() -> np.ndarray:
+    """The :func:`frame_quality` vector of a time slot with no frame (statistics NaN)."""
+    return np.array([np.nan, np.nan, np.nan, DROPPED], dtype=np.float32)
 
 
 def flag_names(flags: float) -> list[str]:

@@ -42,6 +42,11 @@ class SessionError(SchlierenInputError):
     """The capture session (manifest or its files) is invalid."""
 
 
+class DroppedFrame(SessionError):
+    """The camera dropped this frame: its time slot holds no frame (a gap in the numbered
+    file names or in a video's timestamps). Readers skip it; the run excludes it."""
+
+
 class StoreError(SchlierenInputError):
     """The result store cannot be created, opened or resumed."""
 

@@ -18,6 +18,15 @@ for files), and a video is staged once per machine into a local file that OpenCV
 
 Errors are :class:`~schlieren.storage.errors.SessionError` naming the file, the camera
 and the frame index (as ``frames[i]``, 0-based within the source).
+
+Dropped frames: a camera that drops a frame leaves a time slot without one. A source's
+index is the time slot (frame ``i`` was exposed at ``i / frame_rate`` after frame 0), and
+:attr:`FrameSource.dropped` lists the slots that hold no frame: the missing numbers of a
+printf-numbered image sequence (``00041.png`` absent between ``00040.png`` and
+``00042.png``) and the gaps in a video's presentation timestamps (a step of more than
+1.5 frame intervals, :func:`slots_of_timestamps`). Reading a dropped slot raises
+:class:`~schlieren.storage.errors.DroppedFrame`; the run excludes it from the
+reconstruction and the frames after the gap keep their true times.
 """
 
 from __future__ import annotations
@@ -34,10 +43,12 @@ import cv2
 import numpy as np
 
 from schlieren.storage import location
-from schlieren.storage.errors import SessionError
+from schlieren.storage.errors import DroppedFrame, SessionError
 
 __all__ = [
     "FrameSource",
+    "slots_of_timestamps",
+    "format_ranges",
     "ImageSequence",
     "ImageFiles",
     "MultiPageTiff",
@@ -115,6 +126,49 @@ def _is_remote_folder(text: str) -> bool:
     """A URL without a file suffix under which objects exist (a folder on object storage)."""
     return location.is_url(text) and not Path(text).suffix and location.exists(text) \
         and not location.isfile(text)
+
+
+def format_ranges(indices) -> str:
+    """``"5, 9-11"`` for indices 5, 9, 10, 11 (sorted)."""
+    out: list[list[int]] = []
+    for k in sorted(int(i) for i in indices):
+        if out and k == out[-1][1] + 1:
+            out[-1][1] = k
+        else:
+            out.append([k, k])
+    return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in out)
+
+
+def slots_of_timestamps(ms, *, gap: float = 1.5) -> np.ndarray:
+    """The time slot of every decoded frame of a video, from its presentation timestamps.
+
+    A step between consecutive timestamps of more than ``gap`` frame intervals means the
+    camera dropped frames there: ``round(step / interval) - 1`` of them. The interval is
+    the mean of the steps below ``gap`` times their median (robust to containers that
+    round timestamps to milliseconds, such as Matroska at 29.97 frames/s).
+
+    Parameters
+    ----------
+    ms : sequence of float
+        Presentation time of each decoded frame, milliseconds, in decoding order.
+
+    Returns
+    -------
+    ndarray of int64
+        Slot of each frame (``arange(n)`` without gaps, or when the timestamps are not
+        increasing, so carry no timing).
+    """
+    t = np.asarray(ms, dtype=np.float64)
+    n = t.size
+    if n < 3:
+        return np.arange(n, dtype=np.int64)
+    step = np.diff(t)
+    if not np.all(np.isfinite(step)) or np.any(step <= 0):
+        return np.arange(n, dtype=np.int64)
+    med = float(np.median(step))
+    period = float(np.mean(step[step <= gap * med]))
+    inc = np.where(step > gap * period, np.maximum(np.rint(step / period), 1), 1).astype(np.int64)
+    return np.concatenate([[0], np.cumsum(inc)]).astype(np.int64)
 
 
 def _natural_key(path: str):
@@ -330,12 +384,26 @@ class FrameSource:
         if getattr(self, "_size", None) is None:
             self.read(0)
 
+    @property
+    def dropped(self) -> tuple[int, ...]:
+        """Time slots (frame indices) the camera dropped: no frame was stored for them."""
+        return getattr(self, "_dropped", ())
+
+    def present(self) -> list[int]:
+        """The indices that hold a frame (every index but the :attr:`dropped` ones)."""
+        gone = set(self.dropped)
+        return [i for i in range(len(self)) if i not in gone]
+
     def _check_index(self, i: int) -> int:
         i = int(i)
         n = len(self)
         if not 0 <= i < n:
             raise SessionError(f"frame index {i} is outside the {n} frames available",
                                file=self.path, camera=self.camera_name, field=f"frames[{i}]")
+        if i in self.dropped:
+            raise DroppedFrame("the camera dropped this frame (a gap in the numbered files or the video's "
+                               "timestamps); it is excluded from the reconstruction",
+                               file=self.file_of(i), camera=self.camera_name, field=f"frames[{i}]")
         return i
 
     def __iter__(self):
@@ -347,9 +415,9 @@ class ImageSequence(FrameSource):
     """Frames stored one file each, named by a printf pattern.
 
     The first file index is detected: ``0`` if that file exists, else ``1``. Frame ``i``
-    of the source is file ``pattern % (first + i)``. The frame count is the number of
-    consecutive files from the first; a gap followed by more files is an error naming
-    the missing index.
+    of the source is file ``pattern % (first + i)``, up to the last numbered file. A
+    missing number between existing files is a frame the camera dropped
+    (:attr:`dropped`): its slot is kept, so the index stays the capture time.
     """
 
     def __init__(self, pattern: str | os.PathLike, *, camera_name: str | None = None):
@@ -358,6 +426,7 @@ class ImageSequence(FrameSource):
         if not is_pattern(self.path):
             raise SessionError("not a printf pattern with one integer directive such as %05d",
                                file=self.path, camera=camera_name)
+        self._dropped: tuple[int, ...] = ()
         self.first, self._count = self._scan()
         self._size = None
         self._raw_dtype = None
@@ -424,15 +493,11 @@ class ImageSequence(FrameSource):
             raise SessionError(
                 f"no frame file found: neither {self.path % 0} nor {self.path % 1} exists",
                 file=self.path, camera=self.camera_name, field="frames[0]")
-        n = 0
-        while first + n in indices:
-            n += 1
-        later = [k for k in indices if k > first + n]
-        if later:
-            raise SessionError(
-                f"frame file {self.path % (first + n)} is missing while {len(later)} later "
-                f"frame file(s) exist", file=self.path % (first + n), camera=self.camera_name,
-                field=f"frames[{n}]")
+        n = max(indices) - first + 1
+        self._dropped = tuple(k - first for k in range(first, first + n) if k not in indices)
+        if self._dropped:
+            log.info("camera %s: frame file(s) %s missing between the numbered frames of %s: taken as "
+                        "frames the camera dropped", self.camera_name, format_ranges(self._dropped), self.path)
         return first, n
 
     def _scan_by_stat(self) -> tuple[int, int]:
@@ -521,6 +586,7 @@ class ImageFiles(ImageSequence):
         if not files:
             raise SessionError(what, file=self.path, camera=camera_name, field="frames[0]")
         self.files = sorted(files, key=_natural_key)
+        self._dropped = ()
         self.first, self._count = 0, len(self.files)
         self._size = None
         self._raw_dtype = None
@@ -612,6 +678,11 @@ class InterlacedFields(FrameSource):
     def __len__(self) -> int:
         return 2 * len(self.frames)
 
+    @property
+    def dropped(self) -> tuple[int, ...]:
+        """Both fields of every frame the camera dropped."""
+        return tuple(2 * d + k for d in getattr(self.frames, "dropped", ()) for k in (0, 1))
+
     def file_of(self, i: int) -> str:
         return self.frames.file_of(int(i) // 2)
 
@@ -665,23 +736,88 @@ class VideoFrames(FrameSource):
     the frame. A frame that cannot be decoded raises
     :class:`SessionError` naming the file, the camera and the frame index. A video at a
     URL is decoded from a local copy staged once per machine.
+
+    Indices are time slots: the first use of the length, :attr:`dropped` or a frame
+    decodes the whole video once (:meth:`scan`) to read every frame's presentation
+    timestamp, and a gap in them is a dropped frame (:func:`slots_of_timestamps`). A run
+    scans each video once before scheduling and hands the result (``slots``) to its
+    workers, which then decode only the frames they use.
+
+    Parameters
+    ----------
+    slots : (int, tuple of int), optional
+        ``(number of slots, dropped slots)`` from an earlier :meth:`scan` of this file.
     """
 
-    def __init__(self, path: str | os.PathLike, *, camera_name: str | None = None):
+    def __init__(self, path: str | os.PathLike, *, camera_name: str | None = None,
+                 slots: tuple[int, tuple[int, ...]] | None = None):
         self.path = os.fspath(path)
         self.camera_name = camera_name
         self._file = None  # the local file OpenCV reads (a staged copy for a URL)
         if not location.isfile(self.path):
             raise SessionError("video file not found", file=self.path, camera=camera_name)
         self._cap = None
-        self._next = 0  # index of the frame the open decoder returns next
+        self._next = 0  # index of the decoded frame the open decoder returns next
         self._size = None
         self._raw_dtype = None
         cap = self._open()
-        n = int(round(cap.get(cv2.CAP_PROP_FRAME_COUNT)))
-        if n <= 0:
-            n = self._count_sequentially()
+        #: Frames the container's header announces (its duration times its rate).
+        self.header_count = int(round(cap.get(cv2.CAP_PROP_FRAME_COUNT)))
+        self._slots: tuple[int, tuple[int, ...]] | None = None
+        if slots is not None:
+            self._set_slots(int(slots[0]), tuple(int(k) for k in slots[1]))
+
+    def _set_slots(self, n: int, dropped: tuple[int, ...]) -> None:
+        self._slots = (n, dropped)
         self._count = n
+        self._dropped_sorted = np.asarray(dropped, dtype=np.int64)
+
+    def scan(self) -> tuple[int, tuple[int, ...]]:
+        """Decode every frame once for its timestamp: ``(number of slots, dropped slots)``.
+
+        If decoding stops before the frames the header announces (a corrupt or truncated
+        video), drops are looked for among the frames that decode, and the slots after
+        them are taken as present: reading one raises the decoding error naming it.
+        """
+        if self._slots is None:
+            self.close()
+            cap = self._open()
+            ms = []
+            while cap.grab():
+                ms.append(float(cap.get(cv2.CAP_PROP_POS_MSEC)))
+            self.close()
+            self._finish_scan(ms)
+        return self._slots
+
+    def _finish_scan(self, ms: list[float]) -> None:
+        slot = slots_of_timestamps(ms)
+        n = int(slot[-1]) + 1 if len(ms) else 0
+        have = set(int(k) for k in slot)
+        dropped = tuple(k for k in range(n) if k not in have)
+        if n < self.header_count:
+            log.warning("camera %s: %s: decoding stops after %d of the %d frames its header announces",
+                        self.camera_name, self.path, len(ms), self.header_count)
+            n = self.header_count
+        if dropped:
+            log.warning("camera %s: the timestamps of %s skip frame(s) %s: taken as frames the camera "
+                        "dropped", self.camera_name, self.path, format_ranges(dropped))
+        self._set_slots(n, dropped)
+
+    @property
+    def dropped(self) -> tuple[int, ...]:
+        return self.scan()[1]
+
+    def _check_index(self, i: int) -> int:
+        if int(i) == 0 and self._slots is None and self.header_count > 0:
+            return 0  # slot 0 holds the first decoded frame: no scan needed (a reference's size)
+        return super()._check_index(i)
+
+    def _decoded_index(self, i: int) -> int:
+        """The decoding-order index of the frame in slot ``i`` (not a dropped one)."""
+        if i == 0:
+            return 0
+        self.scan()
+        return i - int(np.searchsorted(self._dropped_sorted, i))
 
     # -- handle management ------------------------------------------------------
     def _local(self) -> str:
@@ -722,17 +858,8 @@ class VideoFrames(FrameSource):
         except Exception:  # noqa: BLE001 - interpreter shutdown
             pass
 
-    def _count_sequentially(self) -> int:
-        self.close()
-        cap = self._open()
-        n = 0
-        while cap.grab():
-            n += 1
-        self.close()
-        return n
-
     def __len__(self) -> int:
-        return self._count
+        return self.scan()[0]
 
     # -- reading --------------------------------------------------------------
     def _decode_error(self, i: int, wanted: int | None = None) -> SessionError:
@@ -780,27 +907,45 @@ class VideoFrames(FrameSource):
     def read_raw(self, i: int) -> np.ndarray:
         """Frame ``i`` as decoded (BGR or grey, 8/16-bit), for lossless copies."""
         i = self._check_index(i)
-        self._seek(i)
+        j = self._decoded_index(i)
+        self._seek(j)
         ok, img = self._cap.read()
         if not ok or img is None or img.size == 0:
             raise self._decode_error(i)
-        self._next = i + 1
+        self._next = j + 1
         return img
 
     def iter_sequential(self):
-        """Decode every frame in order (faster than random access), as float32 grey."""
+        """Decode every frame in order (faster than random access), as float32 grey: the
+        frames of :meth:`present`, one per slot that holds a frame. Not yet scanned, the
+        pass also reads the timestamps (:meth:`scan`), so the video is decoded once."""
+        known = self._slots is not None
+        present = self.present() if known else None
         self.close()
         cap = self._open()
-        for i in range(len(self)):
+        ms: list[float] = []
+        j = 0
+        while present is None or j < len(present):
             ok, img = cap.read()
             if not ok or img is None:
-                raise self._decode_error(i)
-            self._next = i + 1
+                if present is None:
+                    break
+                raise self._decode_error(present[j])
+            ms.append(float(cap.get(cv2.CAP_PROP_POS_MSEC)))
+            i = present[j] if present is not None else j
+            j += 1
+            self._next = j
             yield _grey_of_raw(img, file=self.path, camera=self.camera_name, field=f"frames[{i}]")
         self.close()
+        if not known:
+            self._finish_scan(ms)
+            present = self.present()
+            if len(ms) < len(present):
+                raise self._decode_error(present[len(ms)])
 
     def __repr__(self) -> str:
-        return f"VideoFrames({self.path!r}, n={self._count})"
+        n = self._slots[0] if self._slots is not None else self.header_count
+        return f"VideoFrames({self.path!r}, n={n})"
 
 
 def _source_path_and_name(source, camera_name):
@@ -810,7 +955,8 @@ def _source_path_and_name(source, camera_name):
     return os.fspath(source), camera_name
 
 
-def open_frames(source, *, camera_name: str | None = None) -> FrameSource:
+def open_frames(source, *, camera_name: str | None = None,
+                slots: tuple[int, tuple[int, ...]] | None = None) -> FrameSource:
     """Open a camera's frames for random access.
 
     Parameters
@@ -821,6 +967,9 @@ def open_frames(source, *, camera_name: str | None = None) -> FrameSource:
         (split into fields when its ``interlaced`` is set).
     camera_name : str, optional
         Named in error messages (defaults to the CameraSource's name).
+    slots : (int, tuple of int), optional
+        A video's :meth:`VideoFrames.scan` result, known from an earlier scan (it is not
+        decoded again).
 
     Returns
     -------
@@ -835,7 +984,7 @@ def open_frames(source, *, camera_name: str | None = None) -> FrameSource:
     elif kind in ("glob", "folder"):
         src = ImageFiles(path, camera_name=name)
     elif kind == "video":
-        src = VideoFrames(path, camera_name=name)
+        src = VideoFrames(path, camera_name=name, slots=slots)
     elif kind == "tiff":
         src = MultiPageTiff(path, camera_name=name)
     else:
@@ -877,7 +1026,7 @@ def read_reference(source, *, camera_name: str | None = None, parity: int | None
     if order and parity is not None:
         if kind in ("sequence", "glob", "folder", "tiff", "video"):
             src = open_frames(path, camera_name=name)
-            return _average((bob_field(src.read(i), parity) for i in range(len(src))), path, name)
+            return _average((bob_field(src.read(i), parity) for i in src.present()), path, name)
         img, _ = read_image(path, camera_name=name, field="reference")
         return bob_field(img, parity)
     if kind == "video" and not order:
@@ -887,7 +1036,7 @@ def read_reference(source, *, camera_name: str | None = None, parity: int | None
         src = open_frames(path, camera_name=name)
         if order:  # the mean of both fields of every reference frame, like the frames
             src = InterlacedFields(src, order)
-        return _average((src.read(i) for i in range(len(src))), path, name)
+        return _average((src.read(i) for i in src.present()), path, name)
     img, _ = read_image(path, camera_name=name, field="reference")
     return img
 

@@ -293,7 +293,9 @@ class Problem:
     ``kind``: ``missing`` (no file under a set marker or in a static array), ``corrupt``
     (fails its checksum or does not decode), ``corrupt-marker`` (a completion marker that
     does not decode: its task is recomputed), ``stray`` (a corrupt chunk no set marker
-    covers: removed, its task is not done anyway). ``stage``/``index`` name the task
+    covers: removed, its task is not done anyway), ``corrupt-metadata`` (an array's or
+    group's ``zarr.json`` missing, corrupt or changed: rewritten from the root's
+    consolidated copy, no data is recomputed). ``stage``/``index`` name the task
     whose recomputation repairs it (None for static arrays and stray chunks).
     """
 
@@ -347,6 +349,11 @@ def scan_store(store: "ResultStore", *, full: bool = False) -> ScanResult:
     producers = dict((info or {}).get("producers") or {})
     static = set((info or {}).get("static") or ())
     listed: dict[str, set] = {}
+    # metadata: every array's and group's zarr.json against the root's consolidated copy
+    # (a few small reads; on object storage only with ``full``)
+    if full or not store.remote:
+        for name, why in store.check_metadata():
+            res.problems.append(Problem(name, (), "corrupt-metadata", why))
 
     def listing(name: str) -> set:
         if name not in listed:

@@ -40,6 +40,7 @@ from schlieren.storage.frames import (
     InterlacedFields,
     VIDEO_EXTENSIONS,
     VideoFrames,
+    format_ranges,
     frames_kind,
     image_header,
     image_headers,
@@ -491,6 +492,13 @@ class Session:
         Frames every camera has (None with ``check_files=False``).
     manifest_path : Path
     allow_external_paths : bool
+    dropped_frames : dict of str to tuple of int
+        Frames (time slots) each camera dropped, by camera name (cameras with none are
+        left out; empty with ``check_files=False``). They are excluded from the
+        reconstruction; every other frame keeps its index = its capture time.
+    video_slots : dict of str to (int, tuple of int)
+        The timestamp scan (:meth:`~schlieren.storage.frames.VideoFrames.scan`) of each
+        camera whose frames are a video, handed to the run's workers.
     """
 
     name: str
@@ -507,6 +515,8 @@ class Session:
     n_frames_available: int | None
     manifest_path: Path | str = field(default=Path(MANIFEST_NAME))
     allow_external_paths: bool = False
+    dropped_frames: dict = field(default_factory=dict)
+    video_slots: dict = field(default_factory=dict)
 
     @property
     def camera_names(self) -> list[str]:
@@ -611,6 +621,7 @@ def _check_files_contained(i: int, cam: Camera, src: CameraSource, fs: FrameSour
     """Every frame and reference file a run will open, symlinks resolved, is in the session folder."""
     if location.is_url(str(root)):
         return  # object stores have no symbolic links
+    indices = [k for k in indices if k not in set(fs.dropped)] if isinstance(fs, ImageSequence) else indices
     frames = [fs.file_of(k) for k in indices] if isinstance(fs, ImageSequence) else [fs.path]
     for k, f in zip(indices if isinstance(fs, ImageSequence) else [None], frames):
         _check_contained(f, root, file=mfile, camera=cam.name,
@@ -620,7 +631,7 @@ def _check_files_contained(i: int, cam: Camera, src: CameraSource, fs: FrameSour
         with _qualified(i, "reference"):
             seq = open_frames(src.reference, camera_name=cam.name)
         if isinstance(seq, ImageSequence):
-            refs = [seq.file_of(k) for k in range(len(seq))]
+            refs = [seq.file_of(k) for k in seq.present()]
     for f in refs:
         _check_contained(f, root, file=mfile, camera=cam.name, field=f"cameras[{i}].reference", what=f)
 
@@ -779,10 +790,14 @@ def _check_camera_files(i: int, cam: Camera, source: CameraSource, *, contained=
 def _check_frames_content(i: int, cam: Camera, fs: FrameSource, indices: list[int], *,
                           decode_all: bool = False) -> None:
     W, H = cam.image_size
+    gone = set(fs.dropped)
+    indices = [k for k in indices if k not in gone]  # dropped by the camera: nothing to check
     if decode_all:
         wanted = set(indices)
+        if not wanted:
+            return
         frames = fs.iter_sequential() if isinstance(fs, VideoFrames) else (fs.read(k) for k in sorted(wanted))
-        order = range(len(fs)) if isinstance(fs, VideoFrames) else sorted(wanted)
+        order = fs.present() if isinstance(fs, VideoFrames) else sorted(wanted)
         for k, img in zip(order, frames):
             if k in wanted and (img.shape[1], img.shape[0]) != (W, H):
                 raise SessionError(f"frame {k} is {img.shape[1]}x{img.shape[0]} pixels but image_size is "
@@ -827,15 +842,19 @@ def _check_reference(i: int, cam: Camera, source: CameraSource) -> None:
         sizes = [size]
     elif source.reference_kind == "video":
         vid = VideoFrames(ref, camera_name=cam.name)
-        if len(vid) == 0:
+        if (vid.header_count if vid.header_count > 0 else len(vid)) == 0:
             raise SessionError("the reference video holds no frames", file=ref, camera=cam.name, field=fld)
         files = [ref]
         sizes = [vid.size]
         vid.close()
     else:  # an image sequence (pattern, glob, folder) or a multi-page TIFF
         seq = open_frames(ref, camera_name=cam.name)
+        if seq.dropped:  # references are not a capture with drops: a lost file
+            k = seq.dropped[0]
+            raise SessionError(f"reference file {seq.file_of(k)} is missing while later reference files exist",
+                               file=seq.file_of(k), camera=cam.name, field=f"frames[{k}]")
         if isinstance(seq, ImageSequence):
-            files = [seq.file_of(k) for k in range(len(seq))]
+            files = [seq.file_of(k) for k in seq.present()]
             sizes = []
             for f in files:
                 size = image_header(f)
@@ -1018,6 +1037,8 @@ def load_session(path: str | os.PathLike, *, frames: tuple[int, int] | None = No
 
     # ---- files --------------------------------------------------------------------
     n_avail: int | None = None
+    dropped: dict[str, tuple[int, ...]] = {}
+    video_slots: dict[str, tuple[int, tuple[int, ...]]] = {}
     if check_files:
         opened: list[FrameSource] = []
         for i, (cam, src) in enumerate(zip(cameras, sources)):
@@ -1044,8 +1065,16 @@ def load_session(path: str | os.PathLike, *, frames: tuple[int, int] | None = No
                 _check_frames_content(i, cam, fs, sorted(wanted), decode_all=decode_all_frames)
             with _qualified(i, "reference"):
                 _check_reference(i, cam, src)
+            inner = getattr(fs, "frames", fs)  # the video under interlaced fields
+            if isinstance(inner, VideoFrames):
+                video_slots[cam.name] = inner.scan()
+            if fs.dropped:
+                dropped[cam.name] = tuple(fs.dropped)
             if hasattr(fs, "close"):
                 fs.close()
+        if dropped:
+            log.warning("frames dropped by the cameras (never used; the other frames keep their capture "
+                        "times): %s", "; ".join(f"{c} frame(s) {format_ranges(v)}" for c, v in dropped.items()))
 
     # after the file checks (which name the frame whose size differs from its camera's)
     sizes = {tuple(c.image_size) for c in m.cameras}
@@ -1072,4 +1101,6 @@ def load_session(path: str | os.PathLike, *, frames: tuple[int, int] | None = No
         n_frames_available=n_avail,
         manifest_path=manifest_path,
         allow_external_paths=m.allow_external_paths,
+        dropped_frames=dropped,
+        video_slots=video_slots,
     )

@@ -262,6 +262,8 @@ class ResultStore:
 
         existing = cls._try_open_existing(path, loc)
         if existing is not None:
+            if existing._remote is None:  # before zarr re-reads them to consolidate
+                existing.check_metadata(repair=True)
             members = existing._members()
             existing._check_resume(root_attrs, specs, members)
             if existing._remote is not None and any(sp.name not in members for sp in specs):
@@ -702,6 +704,48 @@ class ResultStore:
         if isinstance(self._store_arg, (str, os.PathLike)) and not location.is_url(self._location):
             return os.fspath(self._store_arg)
         return None
+
+    def check_metadata(self, *, repair: bool = False) -> list[tuple[str, str]]:
+        """``(node, reason)`` of every array or group whose ``zarr.json`` is missing, does not
+        parse or differs from the root's consolidated copy of it; ``repair`` rewrites each
+        from that copy (byte for byte what zarr wrote: the arrays' metadata never changes
+        after the template). Readers open the store through the consolidated metadata, so
+        a damaged ``zarr.json`` goes unseen until zarr re-reads it (re-consolidation on the
+        next run, readers without consolidated metadata). Nothing for store objects or a
+        store without consolidated metadata.
+        """
+        import dataclasses as _dc
+
+        from zarr.core.buffer import default_buffer_prototype
+
+        cm = self._group.metadata.consolidated_metadata
+        if cm is None or not isinstance(self._store_arg, (str, os.PathLike)):
+            return []
+        want = {}
+        for name, meta in cm.flattened_metadata.items():
+            if hasattr(meta, "consolidated_metadata"):  # a group: its own file holds no children
+                meta = _dc.replace(meta, consolidated_metadata=None)
+            want[name] = meta.to_buffer_dict(default_buffer_prototype())["zarr.json"].to_bytes()
+        files = {name: location.join(self._location, *name.split("/"), "zarr.json") for name in want}
+        found = dict(zip(want, location.read_many(list(files.values()))))
+        bad = []
+        for name, blob in want.items():
+            have = found[name]
+            if have == blob:
+                continue
+            if have is None:
+                why = "its zarr.json is missing"
+            else:
+                try:
+                    json.loads(have)
+                    why = "its zarr.json differs from the root's consolidated metadata"
+                except ValueError:
+                    why = "its zarr.json does not parse (truncated or corrupt)"
+            bad.append((name, why))
+            if repair:
+                location.write_bytes(files[name], blob)
+                log.warning("%s: %s; rewritten from the root's consolidated metadata", name, why)
+        return bad
 
     def all_array_names(self) -> list[str]:
         """Every array of the store, markers (``status/<stage>``) included."""

@@ -136,7 +136,10 @@ def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig) -> tup
         "fingerprint": fp,
         "run": {"frames": [a, b], "n_frames": n_frames, "raw_first": raw_first,
                 "n_raw": ext.raw_frame, "flow_factor": cfg.flow_factor,
-                "flow_shape": list(fg.shape)},
+                "flow_shape": list(fg.shape),
+                # each video's timestamp scan (frames it dropped): the workers do not decode it again
+                "video_slots": {name: [int(n), [int(k) for k in gone]]
+                                for name, (n, gone) in session.video_slots.items()}},
         "stage_times": {},
     }
     markers = {st.name: st.over for st in STAGES}
@@ -158,7 +161,8 @@ def producers(cfg: RunConfig, names) -> dict[str, str]:
 
 
 def excluded_frames(store: ResultStore) -> list[tuple[str, int, list[str]]]:
-    """``(camera, capture frame, reasons)`` of every frame flagged dark, saturated or frozen."""
+    """``(camera, capture frame, reasons)`` of every frame flagged dark, saturated, frozen or
+    dropped by the camera."""
     import numpy as np
 
     from schlieren.pipeline.frame_quality import flag_names

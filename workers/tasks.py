@@ -56,6 +56,7 @@ class RunContext:
     n_frames: int
     raw_first: int  # session frame of flow_raw index 0
     n_raw: int
+    video_slots: dict = field(default_factory=dict)  # camera -> VideoFrames.scan() made before the run
 
     @property
     def cameras(self) -> list[Camera]:
@@ -73,7 +74,9 @@ class RunContext:
         src = self._sources.get(c)
         if src is None:
             s = self.session.sources[c]
-            src = self._sources[c] = open_frames(s, camera_name=s.name)
+            slots = self.video_slots.get(s.name)
+            src = self._sources[c] = open_frames(s, camera_name=s.name,
+                                                 slots=(slots[0], tuple(slots[1])) if slots else None)
         return src
 
     def frame(self, c: int, f: int) -> np.ndarray:
@@ -167,7 +170,8 @@ def context(store_path: str, run_token: str = "") -> RunContext:
     return RunContext(store_path=store_path, store=store, session=session, config=cfg,
                       flow_grid=FlowGrid(session.cameras[0].image_size, cfg.flow_factor),
                       first_frame=int(run["frames"][0]), n_frames=int(run["n_frames"]),
-                      raw_first=int(run["raw_first"]), n_raw=int(run["n_raw"]))
+                      raw_first=int(run["raw_first"]), n_raw=int(run["n_raw"]),
+                      video_slots=dict(run.get("video_slots") or {}))
 
 
 @functools.lru_cache(maxsize=2)
@@ -189,7 +193,12 @@ def _geometry_key(ctx: RunContext) -> str:
 # --------------------------------------------------------------------------------------
 
 def _frames(ctx: RunContext, c: int, k: int) -> dict:
-    img = ctx.frames(c).read(ctx.first_frame + k)
+    f = ctx.first_frame + k
+    if f in ctx.frames(c).dropped:  # no frame at this time: no statistics
+        n_stats = int(ctx.store.array("frame_stats").shape[-1])
+        ctx.store.write("frame_stats", (c, k), np.full(n_stats, np.nan, np.float32))
+        return {"dropped": True}
+    img = ctx.frames(c).read(f)
     ctx.store.write("frame_stats", (c, k), frame_statistics(img))
     return {}
 
@@ -202,7 +211,11 @@ def _sync(ctx: RunContext, c: int) -> dict:
         src = ctx.frames(c)
         b = min(b, len(src))
         src.prefetch(range(a, b))
-        rows = np.stack([src.read(f).mean(axis=1) for f in range(a, b)])
+        gone = set(src.dropped)
+        rows = np.stack([src.read(f).mean(axis=1) if f not in gone else np.full(cam.height, np.nan)
+                         for f in range(a, b)])
+        if gone & set(range(a, b)):  # a dropped frame holds no flash: its rows at their median
+            rows = np.where(np.isnan(rows), np.nanmedian(rows, axis=0, keepdims=True), rows)
         try:
             det = sync.detect_flash(rows, **kernel_kwargs(ctx.config.flash, sync.detect_flash))
         except ValueError as exc:
@@ -234,6 +247,12 @@ def _clock(ctx: RunContext) -> dict:
 def _deflection(ctx: RunContext, c: int, j: int) -> dict:
     f = ctx.raw_first + j
     src = ctx.frames(c)
+    if f in src.dropped:  # no frame at this time: excluded by resampling, like a dark frame
+        ctx.store.write("flow_raw", (c, j), np.full(tuple(ctx.flow_grid.shape) + (2,), np.nan, np.float32))
+        ctx.store.write("frame_quality", (c, j), fq.dropped_quality())
+        log.warning("camera %s, frame %d: dropped by the camera; excluded from the reconstruction",
+                    ctx.cameras[c].name, f)
+        return {"max_px": 0.0, "excluded": fq.flag_names(fq.DROPPED)}
     img = ctx.frame(c, f)
     parity = src.parity(f) if hasattr(src, "parity") else None  # interlaced fields
     params = flow_params(ctx, c)

@@ -40,6 +40,7 @@ class VerifyReport:
     scan: ScanResult
     invalidated: dict[str, int] = field(default_factory=dict)  # stage -> markers cleared
     removed_files: int = 0
+    rewritten_metadata: int = 0
     repaired: bool = False
 
     @property
@@ -67,6 +68,8 @@ class VerifyReport:
             n = sum(self.invalidated.values())
             per = ", ".join(f"{s} {k}" for s, k in self.invalidated.items())
             text += f"; {n} task(s) to recompute ({per})"
+        if self.repaired and self.rewritten_metadata:
+            text += f"; {self.rewritten_metadata} metadata file(s) rewritten from the consolidated metadata"
         return text
 
 
@@ -155,6 +158,8 @@ def verify_store(store: ResultStore, *, full: bool = False, repair: bool = False
             store.unmark(stage, idx)
             scan.done.get(stage, set()).discard(idx)
             report.invalidated[stage] = report.invalidated.get(stage, 0) + 1
+    if any(p.kind == "corrupt-metadata" for p in scan.problems):
+        report.rewritten_metadata = len(store.check_metadata(repair=True))
     for p in scan.problems:
         if p.kind in ("corrupt", "stray") and p.array != "geometry cache":
             store.remove_chunk(p.array, p.chunk)

@@ -104,6 +104,40 @@ def test_a_rerun_notices_a_lost_chunk_and_recomputes_everything_downstream(copy_
     assert_same_store(serial_store, out)
 
 
+def _damage_metadata(out: Path) -> None:
+    """A truncated array zarr.json, a flipped byte in another, a marker's deleted."""
+    meta = out / "flow" / "zarr.json"
+    meta.write_bytes(meta.read_bytes()[: len(meta.read_bytes()) // 2])
+    _flip(out / "refractivity" / "zarr.json", at=0.3)
+    (out / "status" / "tomography" / "zarr.json").unlink()
+
+
+def _files(root: Path) -> dict[str, bytes]:
+    return {str(f.relative_to(root)): f.read_bytes() for f in sorted(root.rglob("*")) if f.is_file()}
+
+
+def test_corrupt_array_metadata_is_rewritten_from_the_consolidated_copy(copy_of, serial_store, tiny_session):
+    out = copy_of()
+    _damage_metadata(out)
+    found = _cli("verify", out)
+    assert found.returncode == 1, found.stderr
+    for line in ("flow: corrupt-metadata: its zarr.json does not parse",
+                 "refractivity: corrupt-metadata: its zarr.json",
+                 "status/tomography: corrupt-metadata: its zarr.json is missing"):
+        assert line in found.stdout, found.stdout
+    fixed = _cli("verify", out, "--repair")
+    assert fixed.returncode == 1 and "3 metadata file(s) rewritten" in fixed.stdout, fixed.stdout
+    assert _files(out) == _files(serial_store)  # every file, bit for bit: nothing to recompute
+    assert _cli("verify", out).returncode == 0
+    # a plain rerun repairs it too (zarr would re-read it to consolidate: a raw JSON traceback before)
+    again = copy_of("again.zarr")
+    _damage_metadata(again)
+    summary = run_session(tiny_session.session, again, serial=True)
+    assert summary.ok and summary.tasks == 0, summary.failures
+    assert_same_store(serial_store, again)
+    assert _cli("verify", again).returncode == 0
+
+
 def test_run_refuses_a_store_of_the_older_version_and_a_store_held_by_another_run(copy_of, tiny_session):
     from schlieren.storage.lease import StoreLease
 

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from schlieren.storage import frames as frames_module
-from schlieren.storage.errors import SessionError
+from schlieren.storage.errors import DroppedFrame, SessionError
 from schlieren.storage.frames import (
     ImageSequence,
     VideoFrames,
@@ -108,14 +108,67 @@ def test_first_index_one_is_detected(tmp_path, grey8):
     assert src.file_of(0).endswith("00001.png")
 
 
-def test_sequence_with_a_gap_names_the_missing_index(tmp_path, grey8):
+def test_sequence_with_a_gap_is_a_dropped_frame(tmp_path, grey8):
+    """A missing number between numbered files: the camera dropped that frame. Its slot is
+    kept (index = capture time), reading it says so naming the file, camera and frame."""
     pattern = write_sequence(tmp_path / "f", grey8)
     Path(pattern % 4).unlink()
-    with pytest.raises(SessionError) as info:
-        open_frames(pattern, camera_name="cam03")
+    Path(pattern % 5).unlink()
+    src = open_frames(pattern, camera_name="cam03")
+    assert len(src) == 7 and src.dropped == (4, 5) and src.present() == [0, 1, 2, 3, 6]
+    np.testing.assert_array_equal(src.read(6), grey8[6])  # after the gap: still frame 6
+    with pytest.raises(DroppedFrame) as info:
+        src.read(4)
     err = info.value
     assert err.file == pattern % 4 and err.camera == "cam03" and err.field == "frames[4]"
-    assert "\n" not in str(err)
+    assert "\n" not in str(err) and "dropped" in str(err)
+    # the reference of such a sequence averages the frames that exist
+    ref = read_reference(pattern)
+    np.testing.assert_allclose(ref, grey8[[0, 1, 2, 3, 6]].astype(np.float64).mean(axis=0), atol=1e-4)
+
+
+@pytest.mark.parametrize("steps, slots", [
+    ([40] * 5, [0, 1, 2, 3, 4, 5]),
+    ([40, 40, 80, 40, 120, 40], [0, 1, 2, 4, 5, 8, 9]),  # one, then two frames dropped
+    ([33, 34, 33, 67, 33, 34, 33], [0, 1, 2, 3, 5, 6, 7, 8]),  # 29.97 frames/s in milliseconds
+    ([40, 59, 41, 40], [0, 1, 2, 3, 4]),  # jitter below 1.5 intervals is no drop
+    ([0, 0, 0, 0], [0, 1, 2, 3, 4]),  # no timestamps: no timing to tell drops by
+])
+def test_slots_of_timestamps(steps, slots):
+    ms = np.concatenate([[0.0], np.cumsum(steps)])
+    assert frames_module.slots_of_timestamps(ms).tolist() == slots
+
+
+def _video_with_a_gap(tmp_path, stack, drop: int, fps: int = 25) -> str:
+    """A lossless video of ``stack`` whose frame ``drop`` is missing: the frames after it
+    keep their presentation times (``setpts``), as a camera that dropped it writes them."""
+    imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg")  # the ffmpeg binary (extra bench)
+    import subprocess
+
+    kept = [k for k in range(len(stack)) if k != drop]
+    pattern = write_sequence(tmp_path / "kept", stack[kept])
+    out = tmp_path / "gap.mkv"
+    subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-loglevel", "error", "-framerate", str(fps),
+                    "-i", pattern, "-vf", f"setpts='(N+gte(N,{drop}))/({fps}*TB)'", "-fps_mode", "passthrough",
+                    "-c:v", "ffv1", "-pix_fmt", "gray", str(out)], check=True)
+    return str(out)
+
+
+def test_video_timestamp_gap_is_a_dropped_frame(tmp_path, grey8):
+    path = _video_with_a_gap(tmp_path, grey8, drop=3)
+    src = VideoFrames(path, camera_name="cam02")
+    assert len(src) == 7 and src.dropped == (3,)
+    for k in (6, 2, 4, 5, 0):  # random access: each slot's own frame
+        np.testing.assert_array_equal(src.read(k), grey8[k])
+    with pytest.raises(DroppedFrame, match="dropped") as info:
+        src.read(3)
+    assert info.value.camera == "cam02" and info.value.field == "frames[3]"
+    got = list(VideoFrames(path).iter_sequential())
+    np.testing.assert_array_equal(np.stack(got), grey8[[0, 1, 2, 4, 5, 6]])
+    # a worker given the scan does not decode the video for it, and agrees
+    again = VideoFrames(path, slots=src.scan())
+    np.testing.assert_array_equal(again.read(5), grey8[5])
+    assert pickle.loads(pickle.dumps(again)).dropped == (3,)
 
 
 def test_sequence_without_first_frame(tmp_path, grey8):

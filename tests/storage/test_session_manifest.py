@@ -628,11 +628,14 @@ def test_missing_frames_folder(session_builder):
                  field="cameras[2].frames", match="cannot be listed")
 
 
-def test_missing_frame_in_the_middle(session_builder):
+def test_missing_frame_in_the_middle_is_a_dropped_frame(session_builder, caplog):
     b = session_builder
-    missing = b.root / "cam01" / "frames" / "00003.png"
-    missing.unlink()
-    expect_error(b.root, file=missing, camera="cam01", field="cameras[1].frames[3]", match="missing")
+    (b.root / "cam01" / "frames" / "00003.png").unlink()
+    with caplog.at_level("WARNING"):
+        s = load_session(b.root)
+    assert s.dropped_frames == {"cam01": (3,)}
+    assert s.n_frames_available == len(s.sources[0].open_frames())  # the slot is kept
+    assert "cam01 frame(s) 3" in caplog.text
 
 
 def test_corrupt_frame_names_its_index(session_builder):

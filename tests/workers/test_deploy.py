@@ -324,7 +324,7 @@ def test_submit_runs_the_session_on_the_cluster_it_creates(tiny_session, tmp_pat
     calls: list = []
 
     def run_session(session, out, *, client, config, report, on_receipt, **callbacks):
-        calls.append((session.name, out, session.frames))
+        calls.append((session.name, out, session.frames, callbacks["verify"], callbacks["overwrite"]))
         threads = client.run(worker_thread_report)  # the worker setup plugin was registered
         assert {r["cv2_threads"] for r in threads.values()} == {1}
         value = client.submit(sum, [1, 2, 3], key="tomography-submit-000000", resources={TOMO: 1}).result(timeout=30)
@@ -342,7 +342,7 @@ def test_submit_runs_the_session_on_the_cluster_it_creates(tiny_session, tmp_pat
     try:
         code = cli_main(["submit", str(tiny_session.session), "--out", str(tmp_path / "store"), "--cluster", "slurm",
                          "--config", str(cfg_path), "--scale", "3", "--frames", "1:3", "--no-progress",
-                         "--log", str(tmp_path / "run.jsonl")])
+                         "--log", str(tmp_path / "run.jsonl"), "--verify"])
     finally:
         for k, v in saved.items():
             if v is None:
@@ -352,7 +352,7 @@ def test_submit_runs_the_session_on_the_cluster_it_creates(tiny_session, tmp_pat
     assert code == 0
     assert made["kind"] == "slurm" and made["scale"] == 3
     name = yaml.safe_load(Path(tiny_session.session).read_text())["name"]
-    assert calls == [(name, str(tmp_path / "store"), (1, 3))]
+    assert calls == [(name, str(tmp_path / "store"), (1, 3), True, False)]  # --verify reaches the run
     lines = [json.loads(x) for x in (tmp_path / "run.jsonl").read_text().splitlines()]
     assert [x["message"] for x in lines] == ["task receipt", "run finished"]
     assert lines[0]["session"] == name and lines[0]["iterations"] == 7 and lines[0]["frame"] == 2

@@ -47,6 +47,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--frames-per-task", type=positive_int, default=None, metavar="N",
                    help="frames of one camera per task in the cheap 2D stages "
                         "(default: about 1.4 megapixels per task)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace a result store of another session or configuration at --out (a store of "
+                        "this same run is resumed either way)")
+    p.add_argument("--verify", action="store_true",
+                   help="before resuming, read every chunk of the existing store and check its checksum "
+                        "(as `schlieren run --verify`); damaged chunks are recomputed with everything downstream")
     p.add_argument("--dry-run", action="store_true", help="print the job script / manifest and exit")
     p.set_defaults(func=handler)
 
@@ -162,7 +168,8 @@ def handler(args: argparse.Namespace) -> int:
                     on_failure=fan_out(prog.failure, run_log.failure),
                     on_plan=prog.plan,
                     frames_per_task=args.frames_per_task,
-                    overwrite=getattr(args, "overwrite", False),
+                    overwrite=bool(args.overwrite),
+                    verify=bool(args.verify),
                 )
             log_finished(run_log, summary)
             summary.dashboard = info.dashboard_link
