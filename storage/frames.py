@@ -434,10 +434,11 @@ class ImageSequence(FrameSource):
         directory = directory or "."
         if _DIRECTIVE.search(directory):
             return self._scan_by_stat()
+        sizes = None
         try:
             if location.is_url(directory):  # sizes come with the listing: kept for integrity checks
-                self._listed_sizes = location.listdir_sizes(directory)
-                names = list(self._listed_sizes)
+                sizes = location.listdir_sizes(directory)
+                names = list(sizes)
             else:
                 names = location.listdir(directory)
         except OSError:
@@ -469,6 +470,8 @@ class ImageSequence(FrameSource):
                 f"frame file {self.path % (first + n)} is missing while {len(later)} later "
                 f"frame file(s) exist", file=self.path % (first + n), camera=self.camera_name,
                 field=f"frames[{n}]")
+        if sizes is not None:  # 8 bytes a frame, not the listing's names
+            self._listed_sizes = np.fromiter((sizes[base % (first + i)] for i in range(n)), np.int64, n)
         return first, n
 
     def _scan_by_stat(self) -> tuple[int, int]:
@@ -495,7 +498,7 @@ class ImageSequence(FrameSource):
         """Size in bytes of frame ``i``'s file as listed when the source was opened on an
         object store (None for folders or if unknown)."""
         sizes = getattr(self, "_listed_sizes", None)
-        return None if sizes is None else sizes.get(posixpath.basename(self.file_of(i)))
+        return int(sizes[i]) if sizes is not None and 0 <= int(i) < len(sizes) else None
 
     def read(self, i: int) -> np.ndarray:
         i = self._check_index(i)

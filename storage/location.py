@@ -240,23 +240,15 @@ def read_many(locs: list[str], start: int | None = None, end: int | None = None)
     """:func:`read_bytes` of each of ``locs`` (all local, or all on one object store), the
     remote ones in one concurrent batch; None for a file that does not exist."""
     locs = [normalize(x) for x in locs]
-    if not locs or not is_url(locs[0]):
-        out: list[bytes | None] = []
-        for loc in locs:
-            try:
-                out.append(read_bytes(loc, start, end))
-            except OSError:
-                out.append(None)
-        return out
-    if start is not None or end is not None:
-        return read_ranges(locs, [start or 0] * len(locs), [end] * len(locs))
+    if not locs or not is_url(locs[0]) or start is not None or end is not None:
+        return read_ranges(locs, [start] * len(locs), [end] * len(locs))
     fs, _ = filesystem(locs[0])
     paths = [filesystem(x)[1] for x in locs]
     got = fs.cat(paths, on_error="return")
     return [v if isinstance(v, (bytes, bytearray)) else None for v in (got.get(p) for p in paths)]
 
 
-def read_ranges(locs: list[str], starts: list[int], ends: list[int | None]) -> list[bytes | None]:
+def read_ranges(locs: list[str], starts: list[int | None], ends: list[int | None]) -> list[bytes | None]:
     """Bytes ``[starts[i], ends[i])`` of each of ``locs`` (a location may repeat), the remote
     ones in one concurrent batch; None where the file does not exist."""
     locs = [normalize(x) for x in locs]
@@ -269,7 +261,7 @@ def read_ranges(locs: list[str], starts: list[int], ends: list[int | None]) -> l
                 out.append(None)
         return out
     fs, _ = filesystem(locs[0])
-    got = fs.cat_ranges([filesystem(x)[1] for x in locs], list(starts), list(ends), on_error="return")
+    got = fs.cat_ranges([filesystem(x)[1] for x in locs], [a or 0 for a in starts], list(ends), on_error="return")
     return [v if isinstance(v, (bytes, bytearray)) else None for v in got]
 
 
