@@ -36,12 +36,17 @@ class FrameQualityParams:
         Saturated: more than this fraction of the pixels sit at the sensor's full scale.
     frozen_level : float
         Frozen: the mean absolute change from the previous frame is at most this fraction
-        of full scale (0.026 grey levels at 8 bits; sensor noise alone gives about 1).
+        of full scale (0.0026 grey levels at 8 bits: fewer than one pixel in 400 changed by
+        one level). Sensor noise alone gives about 1 grey level on raw frames, but lossy
+        video removes it: H.264 frames of a weak, slowly moving plume at camcorder bitrates
+        (0.16 bit/pixel) change by only 0.02-0.12 grey levels from frame to frame, and the
+        former default (1e-4, 0.026 levels) excluded such genuine frames. A repeated frame
+        that the codec re-encoded with changes above this level is not caught here.
     """
 
     dark_fraction: float = 0.25
     saturated_fraction: float = 0.25
-    frozen_level: float = 1e-4
+    frozen_level: float = 1e-5
 
 
 def frame_quality(frame: np.ndarray, previous: np.ndarray | None, *, reference_mean: float,
