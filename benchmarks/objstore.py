@@ -93,13 +93,13 @@ def main(argv=None) -> int:
                       AWS_ENDPOINT_URL=endpoint)
     os.environ.setdefault("SCHLIEREN_CACHE_DIR", str(work / "stage-cache"))
     try:
-        return _run(args, work, log_path)
+        return _run(args, work, log_path, proc.pid)
     finally:
         proc.terminate()
         proc.wait(10)
 
 
-def _run(args, work: Path, log_path: Path) -> int:
+def _run(args, work: Path, log_path: Path, proc_pid: int) -> int:
     import fsspec
 
     from schlieren.workers.synth import synthesize
@@ -107,6 +107,7 @@ def _run(args, work: Path, log_path: Path) -> int:
     fs = fsspec.filesystem("s3", endpoint_url=os.environ["AWS_ENDPOINT_URL"])
     fs.mkdir("bench")
     results: dict[str, dict] = {}
+    floors: dict[str, dict] = {}
     for name in [n.strip() for n in args.sessions.split(",") if n.strip()]:
         session = work / f"session-{name}"
         if not (session / "session.yaml").exists():
@@ -114,7 +115,37 @@ def _run(args, work: Path, log_path: Path) -> int:
         fs.put(f"{session}/", f"bench/session-{name}/", recursive=True)
         for mode, r in _modes(args, work, log_path, session, f"s3://bench/session-{name}").items():
             results[f"{name} {mode}"] = r
-    return _write(args, results)
+        puts = max(r["requests_per_s3_run"].get("PUT", 0) for m, r in results.items() if m.startswith(name + " "))
+        floors[name] = bare_puts(fs, f"bench/bare-{name}", puts, fs.glob(f"bench/run-{session.name}-*.zarr")[0],
+                                 args.repeats, proc_pid)
+    return _write(args, results, floors)
+
+
+def bare_puts(fs, prefix: str, n: int, like: str, repeats: int, server_pid: int) -> dict:
+    """The server's price of a run's PUTs alone: ``n`` objects of the mean size of the objects
+    of store ``like``, sent one after another and 8 at a time, with nothing else running
+    (best of ``repeats``); the client's and the server's CPU seconds."""
+    import psutil
+
+    found = fs.find(like, detail=True)
+    size = int(sum(int(v.get("size") or 0) for v in found.values()) / max(1, len(found)))
+    blob = os.urandom(size)
+    server = psutil.Process(server_pid)
+    out: dict = {"objects": n, "bytes_each": size}
+    for kind in ("sequential", "concurrent"):
+        best = None
+        for r in range(repeats):
+            c0, s0, t0 = time.process_time(), sum(server.cpu_times()[:2]), time.perf_counter()
+            if kind == "sequential":
+                for i in range(n):
+                    fs.pipe_file(f"{prefix}/{kind}{r}/{i}", blob)
+            else:
+                fs.pipe({f"{prefix}/{kind}{r}/{i}": blob for i in range(n)}, batch_size=8)
+            got = (time.perf_counter() - t0, time.process_time() - c0, sum(server.cpu_times()[:2]) - s0)
+            best = got if best is None or got[0] < best[0] else best
+        out[kind] = {"wall_s": round(best[0], 3), "client_cpu_s": round(best[1], 3),
+                     "server_cpu_s": round(best[2], 3)}
+    return out
 
 
 def _modes(args, work: Path, log_path: Path, session: Path, s3_session: str) -> dict[str, dict]:
@@ -172,13 +203,14 @@ def _modes(args, work: Path, log_path: Path, session: Path, s3_session: str) -> 
     return results
 
 
-def _write(args, results: dict[str, dict]) -> int:
+def _write(args, results: dict[str, dict], floors: dict[str, dict]) -> int:
     out = {
         "sessions": {k: {kk: list(v) if isinstance(v, tuple) else v for kk, v in d.items()}
                      for k, d in SESSIONS.items() if k in args.sessions},
         "server": "moto (Python S3 server) on 127.0.0.1, sharing the machine's cores",
         "repeats": args.repeats,
         "results": results,
+        "bare_puts": floors,
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
                     "load_average_after": list(os.getloadavg())},
         "command": "python benchmarks/objstore.py " + " ".join(argv_or_default(args)),
@@ -199,6 +231,19 @@ def _write(args, results: dict[str, dict]) -> int:
         req = ", ".join(f"{k} {v}" for k, v in sorted(r["requests_per_s3_run"].items()))
         lines.append(f"| {mode} | {r['best_s']['folder']:.2f} | {r['best_s']['s3']:.2f} | {r['ratio_best']:.2f} | "
                      f"{r['ratio_median']:.2f} | {req} |")
+    lines += ["", "The server's price of those PUTs alone (the store's objects cannot be fewer: an S3 store "
+              "holds the folder store's files, one object each): as many objects of the store's mean size, "
+              "sent with nothing else running, one after another and 8 at a time (best of "
+              f"{args.repeats}), and the CPU seconds of this process (botocore) and of the server.", "",
+              "| session | PUTs x bytes | one by one (s) | 8 at a time (s) | client CPU (s) | server CPU (s) "
+              "| 8 at a time / folder run (serial) |",
+              "| --- | --- | --- | --- | --- | --- | --- |"]
+    for name, f in floors.items():
+        folder = results.get(f"{name} serial", next(iter(results.values())))["best_s"]["folder"]
+        c = f["concurrent"]
+        lines.append(f"| {name} | {f['objects']} x {f['bytes_each']} | {f['sequential']['wall_s']:.2f} | "
+                     f"{c['wall_s']:.2f} | {c['client_cpu_s']:.2f} | {c['server_cpu_s']:.2f} | "
+                     f"{c['wall_s'] / folder:.2f} |")
     lines += ["", f"Command: `{out['command']}`", ""]
     (RESULTS / "objstore.md").write_text("\n".join(lines))
     print("\n".join(lines))

@@ -313,16 +313,33 @@ def image_incomplete(path: str | os.PathLike) -> str | None:
     return _incomplete(head, tail, size, tags)
 
 
-def images_incomplete(paths: list[str]) -> list[str | None]:
-    """:func:`image_incomplete` of each file; on an object store the PNG and JPEG ends are
-    fetched in two concurrent batches (TIFF strips are not checked there)."""
+def images_incomplete(paths: list[str], sizes: list[int | None] | None = None,
+                      heads: list[bytes | None] | None = None) -> list[str | None]:
+    """:func:`image_incomplete` of each file; on an object store the PNG and JPEG starts and
+    ends are fetched in one concurrent batch (TIFF strips are not checked there).
+
+    ``sizes``: the files' sizes if known (e.g. from a folder listing), else asked per file;
+    ``heads``: their leading bytes if already fetched (a head as long as its file's size is
+    the whole file: its end needs no request either)."""
     if not paths or not location.is_url(os.fspath(paths[0])):
         return [image_incomplete(p) for p in paths]
+    locs = [os.fspath(p) for p in paths]
     try:
-        fs, _ = location.filesystem(os.fspath(paths[0]))
-        sizes = [int(fs.size(location.filesystem(os.fspath(p))[1])) for p in paths]
-        heads = location.read_many([os.fspath(p) for p in paths], 0, 8)
-        tails = [location.read_bytes(os.fspath(p), max(0, n - 64), n) for p, n in zip(paths, sizes)]
+        sizes = list(sizes) if sizes is not None else [None] * len(locs)
+        if any(n is None for n in sizes):
+            fs, _ = location.filesystem(locs[0])
+            sizes = [int(fs.size(location.filesystem(p)[1])) if n is None else int(n) for p, n in zip(locs, sizes)]
+        heads = list(heads) if heads is not None else [None] * len(locs)
+        tails = [h[-64:] if h is not None and len(h) == n else None for h, n in zip(heads, sizes)]
+        need_head = [j for j, h in enumerate(heads) if h is None]
+        need_tail = [j for j, t in enumerate(tails) if t is None]
+        got = location.read_ranges([locs[j] for j in need_head + need_tail],
+                                   [0] * len(need_head) + [max(0, sizes[j] - 64) for j in need_tail],
+                                   [8] * len(need_head) + [sizes[j] for j in need_tail])
+        for j, blob in zip(need_head, got):
+            heads[j] = blob
+        for j, blob in zip(need_tail, got[len(need_head):]):
+            tails[j] = blob
     except Exception as exc:  # noqa: BLE001 - a store that cannot answer: decoding will tell
         log.debug("completeness of %d remote frames not checked: %s", len(paths), exc)
         return [None] * len(paths)
@@ -333,11 +350,13 @@ def images_incomplete(paths: list[str]) -> list[str | None]:
 HEADER_BYTES = 1 << 16
 
 
-def image_headers(paths: list[str]) -> list[tuple[int, int] | None]:
-    """:func:`image_header` of each file; from an object store in one concurrent batch."""
+def image_headers(paths: list[str], heads: list[bytes | None] | None = None) -> list[tuple[int, int] | None]:
+    """:func:`image_header` of each file; from an object store in one concurrent batch
+    (``heads``: their first :data:`HEADER_BYTES`, if already fetched)."""
     if not paths or not location.is_url(os.fspath(paths[0])):
         return [image_header(p) for p in paths]
-    heads = location.read_many([os.fspath(p) for p in paths], 0, HEADER_BYTES)
+    if heads is None:
+        heads = location.read_many([os.fspath(p) for p in paths], 0, HEADER_BYTES)
     return [image_header(p, h) if h is not None else None for p, h in zip(paths, heads)]
 
 
@@ -450,6 +469,19 @@ class ImageSequence(FrameSource):
         while sum(len(b) for b in self._blobs.values()) > self.BLOB_CACHE_BYTES and len(self._blobs) > 1:
             self._blobs.popitem(last=False)
 
+    def file_heads(self, indices) -> list[bytes | None]:
+        """The first :data:`HEADER_BYTES` of the files of frames ``indices`` at a URL, in one
+        concurrent batch (None for a missing file); a file no longer than that is whole
+        and kept for the reads that follow. Only for URLs."""
+        urls = [self.file_of(k) for k in indices]
+        heads = {u: self._blobs[u] for u in urls if u in self._blobs}
+        todo = sorted(set(u for u in urls if u not in heads))
+        for url, blob in zip(todo, location.read_many(todo, 0, HEADER_BYTES)):
+            heads[url] = blob
+            if blob is not None and len(blob) < HEADER_BYTES:
+                self._keep(url, blob)
+        return [heads[u] if heads[u] is None else heads[u][:HEADER_BYTES] for u in urls]
+
     def prefetch(self, indices) -> None:
         """Fetch the files of frames ``indices`` from a URL in one concurrent batch (kept
         for the reads that follow, within :attr:`BLOB_CACHE_BYTES`); nothing for folders."""
@@ -471,8 +503,13 @@ class ImageSequence(FrameSource):
         directory = directory or "."
         if _DIRECTIVE.search(directory):
             return self._scan_by_stat()
+        sizes = None
         try:
-            names = location.listdir(directory)
+            if location.is_url(directory):  # sizes come with the listing: kept for integrity checks
+                sizes = location.listdir_sizes(directory)
+                names = list(sizes)
+            else:
+                names = location.listdir(directory)
         except OSError:
             raise SessionError("the frame folder does not exist or cannot be listed",
                                file=self.path, camera=self.camera_name) from None
@@ -498,6 +535,8 @@ class ImageSequence(FrameSource):
         if self._dropped:
             log.info("camera %s: frame file(s) %s missing between the numbered frames of %s: taken as "
                         "frames the camera dropped", self.camera_name, format_ranges(self._dropped), self.path)
+        if sizes is not None:  # 8 bytes a frame, not the listing's names (-1: a dropped frame)
+            self._listed_sizes = np.fromiter((sizes.get(base % (first + i), -1) for i in range(n)), np.int64, n)
         return first, n
 
     def _scan_by_stat(self) -> tuple[int, int]:
@@ -519,6 +558,14 @@ class ImageSequence(FrameSource):
 
     def file_of(self, i: int) -> str:
         return self.path % (self.first + int(i))
+
+    def listed_size(self, i: int) -> int | None:
+        """Size in bytes of frame ``i``'s file as listed when the source was opened on an
+        object store (None for folders or if unknown)."""
+        sizes = getattr(self, "_listed_sizes", None)
+        if sizes is None or not 0 <= int(i) < len(sizes) or sizes[int(i)] < 0:
+            return None
+        return int(sizes[int(i)])
 
     def read(self, i: int) -> np.ndarray:
         i = self._check_index(i)

@@ -354,8 +354,15 @@ def scan_store(store: "ResultStore", *, full: bool = False) -> ScanResult:
     if full or not store.remote:
         for name, why in store.check_metadata():
             res.problems.append(Problem(name, (), "corrupt-metadata", why))
+    everything = store.list_all_chunks()  # object stores: one listing, not one per array
 
     def listing(name: str) -> set:
+        if everything is not None:
+            keys = everything.get(name, set())
+            if name not in listed:
+                listed[name] = keys
+                res.chunks_listed += len(keys)
+            return keys
         if name not in listed:
             keys, partial = store.list_chunks(name)
             listed[name] = keys

@@ -184,6 +184,25 @@ def listdir(loc: str | os.PathLike) -> list[str]:
     return [posixpath.basename(e.rstrip("/")) for e in entries]
 
 
+def listdir_sizes(loc: str | os.PathLike) -> dict[str, int]:
+    """``{name: size in bytes}`` of the files directly in folder ``loc`` (one listing: on
+    an object store the sizes come with the names, no request per file).
+
+    Raises
+    ------
+    OSError
+        As :func:`listdir`.
+    """
+    loc = normalize(loc)
+    if not is_url(loc):
+        with os.scandir(loc) as it:
+            return {e.name: e.stat().st_size for e in it if e.is_file()}
+    fs, path = filesystem(loc)
+    fs.invalidate_cache(path)
+    return {posixpath.basename(e["name"].rstrip("/")): int(e.get("size") or 0)
+            for e in fs.ls(path, detail=True) if e.get("type") != "directory"}
+
+
 def find(loc: str | os.PathLike) -> list[str]:
     """Paths, relative to folder ``loc`` and ``/``-separated, of every file below it
     (one listing request per 1000 objects in an object store); empty if it does not exist."""
@@ -221,22 +240,29 @@ def read_many(locs: list[str], start: int | None = None, end: int | None = None)
     """:func:`read_bytes` of each of ``locs`` (all local, or all on one object store), the
     remote ones in one concurrent batch; None for a file that does not exist."""
     locs = [normalize(x) for x in locs]
+    if not locs or not is_url(locs[0]) or start is not None or end is not None:
+        return read_ranges(locs, [start] * len(locs), [end] * len(locs))
+    fs, _ = filesystem(locs[0])
+    paths = [filesystem(x)[1] for x in locs]
+    got = fs.cat(paths, on_error="return")
+    return [v if isinstance(v, (bytes, bytearray)) else None for v in (got.get(p) for p in paths)]
+
+
+def read_ranges(locs: list[str], starts: list[int | None], ends: list[int | None]) -> list[bytes | None]:
+    """Bytes ``[starts[i], ends[i])`` of each of ``locs`` (a location may repeat), the remote
+    ones in one concurrent batch; None where the file does not exist."""
+    locs = [normalize(x) for x in locs]
     if not locs or not is_url(locs[0]):
         out: list[bytes | None] = []
-        for loc in locs:
+        for loc, a, b in zip(locs, starts, ends):
             try:
-                out.append(read_bytes(loc, start, end))
+                out.append(read_bytes(loc, a, b))
             except OSError:
                 out.append(None)
         return out
     fs, _ = filesystem(locs[0])
-    paths = [filesystem(x)[1] for x in locs]
-    if start is None and end is None:
-        got = fs.cat(paths, on_error="return")
-    else:
-        got = dict(zip(paths, fs.cat_ranges(paths, [start or 0] * len(paths), [end] * len(paths),
-                                            on_error="return")))
-    return [v if isinstance(v, (bytes, bytearray)) else None for v in (got.get(p) for p in paths)]
+    got = fs.cat_ranges([filesystem(x)[1] for x in locs], [a or 0 for a in starts], list(ends), on_error="return")
+    return [v if isinstance(v, (bytes, bytearray)) else None for v in got]
 
 
 def write_bytes(loc: str | os.PathLike, data: bytes) -> None:

@@ -24,7 +24,7 @@ import re
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import yaml
@@ -35,6 +35,7 @@ from schlieren.pipeline.geometry import Camera, Grid, Medium, auto_voxel_size, r
 from schlieren.storage import location
 from schlieren.storage.errors import SessionError
 from schlieren.storage.frames import (
+    HEADER_BYTES,
     FrameSource,
     ImageSequence,
     InterlacedFields,
@@ -768,6 +769,17 @@ class _qualified:
         raise SessionError(exc.message, file=exc.file, camera=exc.camera, field=f) from None
 
 
+def _per_camera(fn: Callable[[int], Any], n: int, concurrent: bool) -> list:
+    """``[fn(i) for i in range(n)]``; with ``concurrent`` (files on an object store) in
+    threads, raising the error of the first camera that has one, as the loop would."""
+    if not concurrent or n < 2:
+        return [fn(i) for i in range(n)]
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(min(8, n), thread_name_prefix="schlieren-session") as pool:
+        return list(pool.map(fn, range(n)))
+
+
 def _check_camera_files(i: int, cam: Camera, source: CameraSource, *, contained=None) -> FrameSource:
     """Open the frames, decode frame 0 and compare its size with ``image_size``.
 
@@ -807,8 +819,10 @@ def _check_frames_content(i: int, cam: Camera, fs: FrameSource, indices: list[in
                 break
         return
     if isinstance(fs, ImageSequence):
-        incomplete = images_incomplete([fs.file_of(k) for k in indices])
-        for k, size, why in zip(indices, image_headers([fs.file_of(k) for k in indices]), incomplete):
+        files = [fs.file_of(k) for k in indices]
+        heads = fs.file_heads(indices) if files and location.is_url(files[0]) else None  # one batch serves both
+        incomplete = images_incomplete(files, [fs.listed_size(k) for k in indices], heads)
+        for k, size, why in zip(indices, image_headers(files, heads), incomplete):
             if size is None:  # a format Pillow does not know, or a corrupt file: decode it
                 img, _ = read_image(fs.file_of(k), camera_name=cam.name, field=f"frames[{k}]")
                 size = (img.shape[1], img.shape[0])
@@ -831,10 +845,18 @@ def _check_reference(i: int, cam: Camera, source: CameraSource) -> None:
     W, H = cam.image_size
     ref = source.reference
     fld = f"cameras[{i}].reference"
+    head = None  # at a URL: its first bytes (the whole file if shorter), one request for the checks
     if source.reference_kind == "image":
-        if not location.isfile(ref):
+        if location.is_url(ref):
+            try:
+                head = location.read_bytes(ref, 0, HEADER_BYTES)
+            except (FileNotFoundError, IsADirectoryError):
+                head = None
+            if head is None or (len(head) == 0 and not location.isfile(ref)):
+                raise SessionError("reference image not found", file=ref, camera=cam.name, field=fld)
+        elif not location.isfile(ref):
             raise SessionError("reference image not found", file=ref, camera=cam.name, field=fld)
-        size = image_header(ref)
+        size = image_header(ref, head)
         if size is None:
             img, _ = read_image(ref, camera_name=cam.name, field=fld)
             size = (img.shape[1], img.shape[0])
@@ -868,7 +890,9 @@ def _check_reference(i: int, cam: Camera, source: CameraSource) -> None:
         if size != (W, H):
             raise SessionError(f"reference is {size[0]}x{size[1]} pixels but image_size is [{W}, {H}]",
                                file=f, camera=cam.name, field=fld)
-        why = images_incomplete([f])[0] if source.reference_kind != "video" else None
+        whole = head is not None and len(head) < HEADER_BYTES  # its size is known: no request for it
+        why = images_incomplete([f], [len(head)] if whole else None, [head] if whole else None)[0] \
+            if source.reference_kind != "video" else None
         if why is not None:
             raise SessionError(f"the reference is truncated: {why}", file=f, camera=cam.name, field=fld)
 
@@ -1040,12 +1064,16 @@ def load_session(path: str | os.PathLike, *, frames: tuple[int, int] | None = No
     dropped: dict[str, tuple[int, ...]] = {}
     video_slots: dict[str, tuple[int, tuple[int, ...]]] = {}
     if check_files:
-        opened: list[FrameSource] = []
-        for i, (cam, src) in enumerate(zip(cameras, sources)):
+        def open_camera(i: int) -> FrameSource:
+            cam, src = cameras[i], sources[i]
             check = None if m.allow_external_paths else (
-                lambda fs, i=i, cam=cam, src=src: _check_files_contained(i, cam, src, fs, range(len(fs)), root, mfile))
+                lambda fs: _check_files_contained(i, cam, src, fs, range(len(fs)), root, mfile))
             with _qualified(i, "frames"):
-                fs = _check_camera_files(i, cam, src, contained=check)
+                return _check_camera_files(i, cam, src, contained=check)
+
+        remote = location.is_url(root)  # each check waits for requests: the cameras' together
+        opened: list[FrameSource] = []
+        for i, (cam, src, fs) in enumerate(zip(cameras, sources, _per_camera(open_camera, len(cameras), remote))):
             if n_avail is None:
                 n_avail = len(fs)
             elif len(fs) != n_avail:
@@ -1060,7 +1088,9 @@ def load_session(path: str | os.PathLike, *, frames: tuple[int, int] | None = No
             _check_range(strobe, n_avail, file=mfile, field="sync.strobe.search_frames",
                          what="search_frames")
         wanted = set(range(*rng)) | (set(range(*strobe)) if strobe else set())
-        for i, (cam, src, fs) in enumerate(zip(cameras, sources, opened)):
+
+        def check_content(i: int) -> None:
+            cam, src, fs = cameras[i], sources[i], opened[i]
             with _qualified(i, "frames"):
                 _check_frames_content(i, cam, fs, sorted(wanted), decode_all=decode_all_frames)
             with _qualified(i, "reference"):
@@ -1075,6 +1105,8 @@ def load_session(path: str | os.PathLike, *, frames: tuple[int, int] | None = No
         if dropped:
             log.warning("frames dropped by the cameras (never used; the other frames keep their capture "
                         "times): %s", "; ".join(f"{c} frame(s) {format_ranges(v)}" for c, v in dropped.items()))
+
+        _per_camera(check_content, len(cameras), remote)
 
     # after the file checks (which name the frame whose size differs from its camera's)
     sizes = {tuple(c.image_size) for c in m.cameras}

@@ -793,6 +793,30 @@ class ResultStore:
                 keys.add(tuple(int(p) for p in rest[1:].split("/")))
         return keys, partial
 
+    def list_all_chunks(self) -> dict[str, set[tuple[int, ...]]] | None:
+        """Grid coordinates of the stored chunks of every array, by array name, from one
+        listing of the whole store (an object store answers 1000 keys per request, where
+        :meth:`list_chunks` of each array costs a request per array); None for folder
+        stores and store objects, which :meth:`list_chunks` lists locally."""
+        if self._remote is None:
+            return None
+        from zarr.core.sync import sync
+
+        inner = self._group.store
+
+        async def collect():
+            return [k async for k in inner.list_prefix("")]
+
+        out: dict[str, set[tuple[int, ...]]] = {}
+        for key in sync(collect()):
+            parts = key.split("/")
+            # <array>/c[/<i>...]: a "c" followed by grid indices only (an array may be named "c")
+            for i in range(1, len(parts)):
+                if parts[i] == "c" and all(p.isdigit() for p in parts[i + 1:]):
+                    out.setdefault("/".join(parts[:i]), set()).add(tuple(int(p) for p in parts[i + 1:]))
+                    break
+        return out
+
     def check_chunk(self, name: str, coords) -> str | None:
         """Read the stored chunk ``name[coords]``: None if it decodes and passes its
         checksum, else the reason."""

@@ -261,6 +261,10 @@ def test_object_store_chunks_are_checked_the_same_way(s3_server):
     with pytest.raises(ChunkError, match=r"field refractivity"):
         open_dataset(url)["refractivity"].values
     np.testing.assert_array_equal(s.read("refractivity", (0,)), _vol(0))
+    # the scans list the whole bucket prefix once: the same chunks as a listing per array
+    per_array = {n: s.list_chunks(n)[0] for n in s.all_array_names()}
+    assert s.list_all_chunks() == {n: k for n, k in per_array.items() if k}
+    assert (0, 2, 0, 0, 0) not in per_array["flow"] and (1, 0, 0, 0) in per_array["refractivity"]
     quick, full = scan_store(s), scan_store(s, full=True)
     assert [(p.array, p.kind) for p in quick.problems] == [("flow", "missing")]
     assert sorted((p.array, p.kind, p.stage) for p in full.problems) == \

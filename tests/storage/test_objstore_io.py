@@ -121,6 +121,37 @@ def test_bad_sessions_at_urls_are_one_line_naming_the_url(s3_server, session_bui
     assert info.value.field == "cameras[0].frames"
 
 
+@pytest.mark.parametrize("head_bytes", [None, 100], ids=["whole-files", "ranged-ends"])
+def test_truncated_frames_and_references_at_urls_are_refused(s3_server, session_builder, monkeypatch, head_bytes):
+    """As in a folder (test_session_manifest): a frame or a reference cut short anywhere is
+    refused before work, naming it. Small files come whole in the header batch; with a
+    header window shorter than the files their ends are fetched by ranged requests."""
+    from schlieren.storage import frames as frames_mod
+    from schlieren.storage import session as session_mod
+
+    if head_bytes is not None:
+        monkeypatch.setattr(frames_mod, "HEADER_BYTES", head_bytes)
+        monkeypatch.setattr(session_mod, "HEADER_BYTES", head_bytes)
+    b = session_builder
+    bucket = s3_server.bucket()
+    frame = b.root / "cam02" / "frames" / "00003.png"
+    good = frame.read_bytes()
+    frame.write_bytes(good[:-5])
+    url = s3_server.upload(b.root, bucket + "/cut-frame")
+    with pytest.raises(SessionError, match="is truncated") as info:
+        load_session(url)
+    assert (info.value.file, info.value.camera, info.value.field) == \
+        (url + "/cam02/frames/00003.png", "cam02", "cameras[2].frames[3]")
+    frame.write_bytes(good)
+    ref = b.root / "cam01" / "reference.png"
+    ref.write_bytes(ref.read_bytes()[:-3])
+    url = s3_server.upload(b.root, bucket + "/cut-reference")
+    with pytest.raises(SessionError, match="reference is truncated") as info:
+        load_session(url)
+    assert (info.value.file, info.value.camera, info.value.field) == \
+        (url + "/cam01/reference.png", "cam01", "cameras[1].reference")
+
+
 # ---------------------------------------------------------------------------------------
 # stores
 # ---------------------------------------------------------------------------------------
