@@ -1102,11 +1102,11 @@ def load_session(path: str | os.PathLike, *, frames: tuple[int, int] | None = No
                 dropped[cam.name] = tuple(fs.dropped)
             if hasattr(fs, "close"):
                 fs.close()
+        _per_camera(check_content, len(cameras), remote)
         if dropped:
+            dropped = {c.name: dropped[c.name] for c in cameras if c.name in dropped}  # camera order
             log.warning("frames dropped by the cameras (never used; the other frames keep their capture "
                         "times): %s", "; ".join(f"{c} frame(s) {format_ranges(v)}" for c, v in dropped.items()))
-
-        _per_camera(check_content, len(cameras), remote)
 
     # after the file checks (which name the frame whose size differs from its camera's)
     sizes = {tuple(c.image_size) for c in m.cameras}
