@@ -181,16 +181,11 @@ def excluded_frames(store: ResultStore) -> list[tuple[str, int, list[str]]]:
 
 
 def store_lease(out_path, purpose: str = "run"):
-    """The lease of a folder store (a no-op context for object-store URLs and store objects:
-    one writer per store is not enforced there yet)."""
-    import contextlib
-    import os
+    """The lease of the store (:func:`schlieren.storage.lease.lease_for`): a folder's lease
+    file or an S3 store's lease object; a no-op context for other stores."""
+    from schlieren.storage.lease import lease_for
 
-    from schlieren.storage.lease import StoreLease
-
-    if isinstance(out_path, (str, os.PathLike)) and not location.is_url(os.fspath(out_path)):
-        return StoreLease(out_path, purpose=purpose)
-    return contextlib.nullcontext()
+    return lease_for(out_path, purpose)
 
 
 def _done_predicate(done_sets: dict, ext: Extents) -> Callable[[str, object], bool]:

@@ -130,3 +130,15 @@ def test_evaluate_report_export_and_xarray_read_the_store_in_the_bucket(s3_run, 
     assert [p.name for p in res.files] == [p.name for p in ref_res.files]
     for a, b in zip(res.files, ref_res.files):
         assert a.read_bytes() == b.read_bytes() or a.suffix == ".mhd"
+
+
+def test_a_second_writer_on_a_store_in_the_bucket_is_refused(s3_server, s3_session):
+    """One writer per store on S3 too: the lease object beside the store."""
+    from schlieren.storage.errors import StoreError
+    from schlieren.storage.lease import ObjectStoreLease
+
+    out = s3_server.bucket("store") + "/leased.zarr"
+    with ObjectStoreLease(out):
+        with pytest.raises(StoreError, match="another run is writing this store"):
+            run_session(s3_session, out, serial=True)
+        assert not location.exists(out + "/zarr.json")  # refused before the store was created
