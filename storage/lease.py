@@ -85,6 +85,9 @@ class StoreLease:
                  heartbeat: float = HEARTBEAT_SECONDS, timeout: float = STALE_SECONDS):
         self.path = lease_path(store_path)
         self.store = os.fspath(store_path)
+        self._setup(purpose, heartbeat, timeout)
+
+    def _setup(self, purpose: str, heartbeat: float, timeout: float) -> None:
         self.purpose = purpose
         self.heartbeat = float(heartbeat)
         self.timeout = float(timeout)
@@ -176,14 +179,18 @@ class StoreLease:
             except (OSError, ValueError) as exc:
                 log.warning("lease heartbeat of %s failed: %s", self.store, exc)
 
-    def release(self) -> None:
+    def _give_up(self) -> bool:
+        """Stop the heartbeat; True if the lease was held (and is to be removed now)."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=5)
             self._thread = None
-        if not self.held:
+        held, self.held = self.held, False
+        return held
+
+    def release(self) -> None:
+        if not self._give_up():
             return
-        self.held = False
         try:
             info = json.loads(self.path.read_text())
             if info.get("token") == self.token:
@@ -225,13 +232,7 @@ class ObjectStoreLease(StoreLease):
                  timeout: float = STALE_SECONDS):
         from schlieren.storage import location
 
-        self.purpose = purpose
-        self.heartbeat = float(heartbeat)
-        self.timeout = float(timeout)
-        self.token = uuid.uuid4().hex
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self.held = False
+        self._setup(purpose, heartbeat, timeout)
         self.store = location.normalize(store_url).rstrip("/")
         self.url = self.store + ".lease"
         self.path = self.url  # what messages and callers show
@@ -334,13 +335,8 @@ class ObjectStoreLease(StoreLease):
                 log.warning("lease heartbeat of %s failed: %s", self.store, exc)
 
     def release(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5)
-            self._thread = None
-        if not self.held:
+        if not self._give_up():
             return
-        self.held = False
         try:  # only our own lease: a conditional DELETE on the ETag we last wrote
             self.fs.call_s3("delete_object", Bucket=self._bucket, Key=self._object, IfMatch=self._etag)
         except Exception as exc:  # noqa: BLE001 - taken over meanwhile (412), or already gone
