@@ -11,6 +11,13 @@ world position of voxel ``[0, 0, 0]``'s centre and ``Spacing`` the voxel size, m
   directly, and one JSON sidecar describing every frame.
 * ``nrrd``: NRRD with an attached header: ``space origin`` and ``space directions`` in
   world metres (``space units: "m"``), raw little-endian data.
+* ``ome-zarr``: one multiscale OME-Zarr 0.5 image ``<quantity>.ome.zarr`` (Zarr v3) with
+  every frame, axes ``t, [c,] z, y, x`` (seconds, metres), levels halved by 2x2x2 block
+  means (block maxima for ``hull``) down to 8 voxels a side, scale and translation from the
+  store's time and grid, written to the NGFF 0.5 specification that napari's OME-Zarr
+  reader plugin and other NGFF viewers read (tested here against the specification's
+  rules and the world coordinates, not with napari itself). Frames not complete yet are
+  left at the fill value.
 
 ``hull`` (bool) is written as UInt8; ``gradient`` as a 3-component vector.
 """
@@ -34,7 +41,7 @@ __all__ = ["export", "ExportResult", "FORMATS", "QUANTITIES"]
 
 log = logging.getLogger(__name__)
 
-FORMATS = ("vti", "raw", "nrrd")
+FORMATS = ("vti", "raw", "nrrd", "ome-zarr")
 STAGE_OF = {"refractivity": "integrate", "density": "integrate", "temperature": "integrate",
             "gradient": "tomography", "hull": "hull"}
 QUANTITIES = {  # name -> (units, components)
@@ -87,7 +94,7 @@ def export(store_path: str | os.PathLike, out_path: str | os.PathLike, *, format
     out_path : path
         Output folder (created). Files are named ``<quantity>_<frame:05d>.<ext>`` with the
         capture frame index (the store's ``frame`` coordinate).
-    format : {"vti", "raw", "nrrd"}
+    format : {"vti", "raw", "nrrd", "ome-zarr"}
     quantity : {"refractivity", "density", "temperature", "gradient", "hull"}
     frames : (a, b), optional
         Half-open range of capture frames (default: all). Frames whose stage is not complete
@@ -127,6 +134,8 @@ def export(store_path: str | os.PathLike, out_path: str | os.PathLike, *, format
         done = np.asarray(group[f"status/{STAGE_OF[quantity]}"][...]).reshape(-1) == 1
     except KeyError:  # a store without completion markers: take every frame
         done = np.ones(int(arr.shape[0]), bool)
+    if format == "ome-zarr":
+        return _export_ome_zarr(out, arr, quantity, sel, done, first, times, origin, h, ncomp, str(store_path))
     records = []
     dtype_name = ""
     for f in sel:
@@ -249,3 +258,72 @@ def _write_nrrd(path: Path, data: np.ndarray, name: str, units: str, origin, h: 
     with open(path, "wb") as fh:
         fh.write(header)
         fh.write(data.tobytes(order="C"))
+
+
+def _halve(v: np.ndarray, quantity: str) -> np.ndarray:
+    """2x2x2 block means (maxima for the hull) of ``v`` (z, y, x[, c]); odd edges dropped."""
+    nz, ny, nx = (d // 2 for d in v.shape[:3])
+    b = v[:2 * nz, :2 * ny, :2 * nx].reshape(nz, 2, ny, 2, nx, 2, *v.shape[3:])
+    return b.max(axis=(1, 3, 5)) if quantity == "hull" else b.mean(axis=(1, 3, 5), dtype=np.float64).astype(v.dtype)
+
+
+def _export_ome_zarr(out: Path, arr, quantity: str, sel: range, done: np.ndarray, first: int, times,
+                     origin, h: float, ncomp: int, store_name: str) -> ExportResult:
+    """Every frame of ``sel`` as one multiscale OME-Zarr 0.5 image (see the module docstring)."""
+    import zarr
+
+    result = ExportResult()
+    todo = [f for f in sel if done[f]]
+    result.skipped.extend(first + f for f in sel if not done[f])
+    if not todo:
+        raise StoreError(f"no frame of {quantity!r} in {first + sel.start}:{first + sel.stop} is complete yet",
+                         file=store_name, field=quantity)
+    shape = tuple(int(d) for d in arr.shape[1:4])
+    levels = [shape]
+    while min(levels[-1]) // 2 >= 8 and len(levels) < 8:
+        levels.append(tuple(d // 2 for d in levels[-1]))
+    units, _ = QUANTITIES[quantity]
+    dt = float(np.median(np.diff(times[list(sel)]))) if times is not None and len(sel) > 1 else 1.0
+    t0 = float(times[sel.start]) if times is not None else 0.0
+    axes = [{"name": "t", "type": "time", "unit": "second"}]
+    if ncomp > 1:
+        axes.append({"name": "c", "type": "channel"})
+    axes += [{"name": n, "type": "space", "unit": "meter"} for n in ("z", "y", "x")]
+    datasets = []
+    for k in range(len(levels)):
+        step = h * 2 ** k
+        # a level-k voxel is the mean of 2^k voxels: its centre sits half its width minus half a voxel further
+        centre = [o + 0.5 * (step - h) for o in (origin[2], origin[1], origin[0])]
+        lead = [dt] + ([1.0] if ncomp > 1 else [])
+        shift = [t0] + ([0.0] if ncomp > 1 else [])
+        datasets.append({"path": str(k), "coordinateTransformations": [
+            {"type": "scale", "scale": lead + [step] * 3},
+            {"type": "translation", "translation": shift + centre}]})
+    path = out / f"{quantity}.ome.zarr"
+    root = zarr.open_group(str(path), mode="w", zarr_format=3)
+    root.attrs["ome"] = {"version": "0.5", "multiscales": [{
+        "name": quantity, "axes": axes, "datasets": datasets,
+        "type": "max (2x2x2 blocks)" if quantity == "hull" else "mean (2x2x2 blocks)",
+        "metadata": {"units": units, "source": store_name,
+                     "frames": [first + f for f in sel], "frames_not_complete": result.skipped}}]}
+    dtype = np.uint8 if quantity == "hull" else np.float32
+    fill = 0 if quantity == "hull" else float("nan")
+    arrays = []
+    for k, lv in enumerate(levels):
+        full = (len(sel),) + ((ncomp,) if ncomp > 1 else ()) + lv
+        chunks = (1,) + ((ncomp,) if ncomp > 1 else ()) + tuple(min(d, 64) for d in lv)
+        arrays.append(root.create_array(str(k), shape=full, chunks=chunks, dtype=dtype, fill_value=fill,
+                                        dimension_names=[a["name"] for a in axes]))
+    for f in todo:
+        v = _frame_values(arr, f, quantity)  # (z, y, x[, c])
+        for k, a in enumerate(arrays):
+            if k:
+                v = _halve(v, quantity)
+            a[f - sel.start] = np.moveaxis(v, -1, 0) if ncomp > 1 else v
+    result.files.append(path)
+    result.entry_points.append(path)
+    if result.skipped:
+        log.warning("%s: frames %s are not complete yet and were left at the fill value", quantity,
+                    ", ".join(map(str, result.skipped)))
+    log.info("exported %d frame(s) of %s as OME-Zarr (%d levels) to %s", len(todo), quantity, len(levels), path)
+    return result

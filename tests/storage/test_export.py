@@ -215,3 +215,74 @@ def test_report_and_export_modules_do_not_import_dask():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == ""
+
+
+def _ome_world(ds: dict, index) -> np.ndarray:
+    """World coordinates (per axis) of array index ``index`` from an NGFF dataset's transformations."""
+    (scale,), (shift,) = ([t["scale"]] for t in ds["coordinateTransformations"][:1]), \
+        ([t["translation"]] for t in ds["coordinateTransformations"][1:])
+    return np.asarray(index, dtype=float) * np.asarray(scale) + np.asarray(shift)
+
+
+def _check_ngff(meta: dict, ndim: int) -> None:
+    """The NGFF 0.5 rules the export must follow (specification, "multiscales")."""
+    assert meta["version"] == "0.5"
+    (ms,) = meta["multiscales"]
+    axes = ms["axes"]
+    kinds = [a.get("type") for a in axes]
+    assert len(axes) == ndim and kinds[0] == "time" and kinds[-3:] == ["space"] * 3
+    assert kinds == sorted(kinds, key=["time", "channel", "space"].index)  # time, channel, then space
+    assert all(a["unit"] == "meter" for a in axes if a["type"] == "space") and axes[0]["unit"] == "second"
+    scales = []
+    for ds in ms["datasets"]:
+        kinds_t = [t["type"] for t in ds["coordinateTransformations"]]
+        assert kinds_t in (["scale"], ["scale", "translation"])  # exactly one scale, first
+        for t in ds["coordinateTransformations"]:
+            assert len(t.get("scale", t.get("translation"))) == ndim
+        scales.append(ds["coordinateTransformations"][0]["scale"])
+    spatial = np.asarray(scales)[:, -3:]
+    assert np.all(np.diff(spatial, axis=0) > 0)  # ordered from the highest resolution down
+
+
+def test_ome_zarr_multiscale_image_in_world_coordinates(store, tmp_path):
+    res = export(store, tmp_path / "o", format="ome-zarr", quantity="refractivity")
+    (path,) = res.entry_points
+    assert path.name == "refractivity.ome.zarr"
+    root = zarr.open_group(str(path), mode="r")
+    meta = root.attrs["ome"]
+    _check_ngff(meta, 4)
+    datasets = meta["multiscales"][0]["datasets"]
+    assert [tuple(root[d["path"]].shape) for d in datasets] == [(FX.N_FRAMES, 16, 20, 24), (FX.N_FRAMES, 8, 10, 12)]
+    g = zarr.open_group(str(store), mode="r")
+    lvl0, lvl1 = (np.asarray(root[d["path"]][:]) for d in datasets)
+    np.testing.assert_array_equal(lvl0, g["refractivity"][:])
+    # every level-0 sample is the analytic blob at the world point and time the metadata declare
+    t_idx, iz, iy, ix = np.meshgrid(*(np.arange(n) for n in lvl0.shape), indexing="ij")
+    w = _ome_world(datasets[0], np.stack([t_idx, iz, iy, ix], axis=-1))
+    assert w[:, 0, 0, 0, 0] == pytest.approx((1 + np.arange(FX.N_FRAMES)) / FX.FRAME_RATE)
+    for f in range(FX.N_FRAMES):
+        want = analytic(w[f][..., [3, 2, 1]], f)  # (x, y, z) world points
+        assert np.abs(lvl0[f] - want).max() < 1e-9
+    # level 1: 2x2x2 means, each placed at the centre of the eight voxels it averages
+    np.testing.assert_allclose(lvl1, lvl0.reshape(FX.N_FRAMES, 8, 2, 10, 2, 12, 2).mean(axis=(2, 4, 6)), rtol=1e-6)
+    c1 = _ome_world(datasets[1], [0, 3, 4, 5])[1:]
+    c0 = np.mean([_ome_world(datasets[0], [0, 6 + a, 8 + b, 10 + c])[1:]
+                  for a in (0, 1) for b in (0, 1) for c in (0, 1)], axis=0)
+    np.testing.assert_allclose(c1, c0, atol=1e-15)
+
+
+def test_ome_zarr_vectors_hull_and_unfinished_frames(store, tmp_path):
+    g = zarr.open_group(str(store), mode="r")
+    grad = zarr.open_group(str(export(store, tmp_path / "g", format="ome-zarr", quantity="gradient").entry_points[0]))
+    _check_ngff(grad.attrs["ome"], 5)
+    assert [a["name"] for a in grad.attrs["ome"]["multiscales"][0]["axes"]] == ["t", "c", "z", "y", "x"]
+    np.testing.assert_array_equal(grad["0"][:], np.moveaxis(g["gradient"][:], -1, 1))
+    hull = zarr.open_group(str(export(store, tmp_path / "h", format="ome-zarr", quantity="hull").entry_points[0]))
+    h0, h1 = hull["0"][:], hull["1"][:]
+    assert h0.dtype == np.uint8 and np.array_equal(h0.astype(bool), g["hull"][:])
+    np.testing.assert_array_equal(h1, h0.reshape(FX.N_FRAMES, 8, 2, 10, 2, 12, 2).max(axis=(2, 4, 6)))
+    partial = FX.make_store(tmp_path / "p", partial="unfinished")  # frame 2 not integrated
+    res = export(partial, tmp_path / "u", format="ome-zarr", quantity="temperature")
+    assert res.skipped == [3]
+    t = zarr.open_group(str(res.entry_points[0]))["0"][:]
+    assert np.isfinite(t[:2]).all() and np.isnan(t[2]).all()

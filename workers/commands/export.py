@@ -1,4 +1,4 @@
-"""``schlieren export STORE --format vti|raw|nrrd [--quantity Q] [--out DIR] [--frames A:B]``."""
+"""``schlieren export STORE --format vti|raw|nrrd|ome-zarr [--quantity Q] [--out DIR] [--frames A:B]``."""
 
 from __future__ import annotations
 
