@@ -115,16 +115,22 @@ def test_warp_image_is_exact_for_smooth_images():
     np.testing.assert_array_equal(F.warp_coefficients(F.spline_coefficients(img), flow), out)
 
 
-@pytest.fixture(scope="module")
-def plume_case():
-    rng = np.random.default_rng(5)
-    shape = (150, 201)
+def _synthetic_plume(seed: int, shape: tuple[int, int], peak: float, width: float):
+    """A noisy background rendered without and with a plume's deflection (px), and the true
+    flow on the factor-3 flow grid: ``(reference, frame, truth, grid)``."""
+    rng = np.random.default_rng(seed)
     bg = NoiseBackground(shape, rng=rng, feature_px=1.0)
-    defl = plume_deflection(shape, peak=0.8, width=shape[1] / 6)
+    defl = plume_deflection(shape, peak=peak, width=width)
     ref = render(bg, shape, noise=1.0, rng=rng)
     frm = render(bg, shape, defl, noise=1.0, rng=rng)
     grid = FlowGrid((shape[1], shape[0]), 3)
     truth = F.downsample_flow(pixel_truth(defl, shape).astype(np.float32), grid)
+    return ref, frm, truth, grid
+
+
+@pytest.fixture(scope="module")
+def plume_case():
+    ref, frm, truth, grid = _synthetic_plume(5, (150, 201), peak=0.8, width=201 / 6)
     inside = np.linalg.norm(truth, axis=-1) > 0.02
     inside[:3], inside[-3:], inside[:, :3], inside[:, -3:] = False, False, False, False
     return ref, frm, truth, inside, grid
@@ -250,15 +256,7 @@ def test_bad_inputs_are_rejected(reference):
 # ---------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def big_plume_case():
-    rng = np.random.default_rng(21)
-    shape = (300, 420)
-    bg = NoiseBackground(shape, rng=rng, feature_px=1.0)
-    defl = plume_deflection(shape, peak=0.6, width=shape[1] / 5)
-    ref = render(bg, shape, noise=1.0, rng=rng)
-    frm = render(bg, shape, defl, noise=1.0, rng=rng)
-    grid = FlowGrid((shape[1], shape[0]), 3)
-    truth = F.downsample_flow(pixel_truth(defl, shape).astype(np.float32), grid)
-    return ref, frm, truth, grid
+    return _synthetic_plume(21, (300, 420), peak=0.6, width=420 / 5)
 
 
 def _cells_near(grid, r0, r1, c0, c1, margin_px):
