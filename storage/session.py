@@ -622,7 +622,9 @@ def _check_files_contained(i: int, cam: Camera, src: CameraSource, fs: FrameSour
     """Every frame and reference file a run will open, symlinks resolved, is in the session folder."""
     if location.is_url(str(root)):
         return  # object stores have no symbolic links
-    indices = [k for k in indices if k not in set(fs.dropped)] if isinstance(fs, ImageSequence) else indices
+    if isinstance(fs, ImageSequence) and fs.dropped:
+        gone = set(fs.dropped)
+        indices = [k for k in indices if k not in gone]
     frames = [fs.file_of(k) for k in indices] if isinstance(fs, ImageSequence) else [fs.path]
     for k, f in zip(indices if isinstance(fs, ImageSequence) else [None], frames):
         _check_contained(f, root, file=mfile, camera=cam.name,
