@@ -273,9 +273,10 @@ def _restrict_row(indptr, indices, data, r, colmap, new_indices, new_data, q):
 
 @nb.njit(cache=True, fastmath=True, inline="always")
 def _row_setup(indptr, indices, data, r, b, x, with_x, s_, ab, ax):
-    """One row's share of ``diag(S^T S)``, ``S^T b`` and (if ``with_x``) ``S^T S x``."""
+    """One row's share of ``diag(S^T S)``, ``S^T b`` and (if ``with_x``) ``S^T S x``
+    (``x`` float32 as in :func:`_normal3`, accumulated in float64)."""
     if with_x:
-        t0, t1, t2 = row_dot3(indptr, indices, data, x, r)
+        t0, t1, t2 = row_dot3_f32(indptr, indices, data, x, r)
         row_scatter3(indptr, indices, data, r, t0, t1, t2, ax)
     b0 = b[r, 0]
     b1 = b[r, 1]
@@ -429,7 +430,8 @@ def restrict_with_setup(S: sp.csr_matrix, colmap: np.ndarray, n: int, rhs, x: np
         new_data = np.empty(nnz, np.float32)
     b = np.ascontiguousarray(rhs(rows_k), dtype=np.float64).reshape(len(rows_k), 3)
     with_x = x is not None
-    xx = np.ascontiguousarray(x, dtype=np.float64).reshape(n, 3) if with_x else np.zeros((0, 3))
+    xx = (np.ascontiguousarray(x, dtype=np.float32).reshape(n, 3) if with_x
+          else np.zeros((0, 3), np.float32))
     prods = _restrict_setup3(S.indptr, S.indices, S.data, rows_k, colmap, new_indptr, new_indices, new_data,
                              b, xx, int(n), ADJOINT_CHUNKS, with_x)
     return RestrictedOperator(new_indptr, new_indices, new_data, n, rows_k), b, prods
@@ -500,16 +502,60 @@ def _rmatvec3(indptr, indices, data, y, n, nchunks):
     return _reduce_chunks3(acc)
 
 
+@nb.njit(cache=True, fastmath=True, inline="always")
+def row_dot3_f32(indptr, indices, data, x, r):
+    """:func:`row_dot3` in float32 with two interleaved partial sums per column.
+
+    The single-accumulator loop is bound by the latency of its chain of fused
+    multiply-adds (about 4 cycles per entry); two independent chains halve that. The
+    summation order is fixed (even and odd entries, then their sum), so results stay
+    deterministic.
+    """
+    a0 = np.float32(0.0)
+    a1 = np.float32(0.0)
+    a2 = np.float32(0.0)
+    b0 = np.float32(0.0)
+    b1 = np.float32(0.0)
+    b2 = np.float32(0.0)
+    p = indptr[r]
+    end = indptr[r + 1]
+    while p + 1 < end:
+        j = indices[p]
+        v = data[p]
+        k = indices[p + 1]
+        w = data[p + 1]
+        a0 += v * x[j, 0]
+        a1 += v * x[j, 1]
+        a2 += v * x[j, 2]
+        b0 += w * x[k, 0]
+        b1 += w * x[k, 1]
+        b2 += w * x[k, 2]
+        p += 2
+    if p < end:
+        j = indices[p]
+        v = data[p]
+        a0 += v * x[j, 0]
+        a1 += v * x[j, 1]
+        a2 += v * x[j, 2]
+    return a0 + b0, a1 + b1, a2 + b2
+
+
 @nb.njit(parallel=True, cache=True, fastmath=True)
 def _normal3(indptr, indices, data, x, n, nchunks):
-    """``S^T S x`` for three columns in one pass over ``S`` (each row read once)."""
+    """``S^T S x`` for three columns in one pass over ``S`` (each row read once).
+
+    ``x`` is float32 (n, 3); the row products and the per-block partial sums are float32
+    (the matrix itself is float32, so this keeps about 6 significant digits, far below
+    the solver's tolerance) and the blocks are summed in float64. Measured at paper scale
+    (69M non-zeros, 2 cores): 0.138 s per product in float64, 0.079 s like this.
+    """
     m = indptr.shape[0] - 1
-    acc = np.zeros((nchunks, n, 3))
+    acc = np.zeros((nchunks, n, 3), np.float32)
     bounds = np.linspace(0, m, nchunks + 1).astype(np.int64)
     for c in nb.prange(nchunks):
         a = acc[c]
         for r in range(bounds[c], bounds[c + 1]):
-            t0, t1, t2 = row_dot3(indptr, indices, data, x, r)
+            t0, t1, t2 = row_dot3_f32(indptr, indices, data, x, r)
             row_scatter3(indptr, indices, data, r, t0, t1, t2, a)
     return _reduce_chunks3(acc)
 
@@ -591,7 +637,7 @@ class RestrictedOperator:
 
     def normal3(self, x: np.ndarray) -> np.ndarray:
         """``S^T S x`` for x of shape (n, 3) in a single pass over the matrix."""
-        x = np.ascontiguousarray(x, dtype=np.float64).reshape(self.n, 3)
+        x = np.ascontiguousarray(x, dtype=np.float32).reshape(self.n, 3)
         return _normal3(self.indptr, self.indices, self.data, x, self.n, self._nchunks)
 
     def column_sumsq(self) -> np.ndarray:
@@ -614,8 +660,8 @@ class RestrictedOperator:
         """
         b = np.ascontiguousarray(b, dtype=np.float64).reshape(self.m, 3)
         with_x = x is not None
-        x = (np.ascontiguousarray(x, dtype=np.float64).reshape(self.n, 3) if with_x
-             else np.zeros((0, 3)))
+        x = (np.ascontiguousarray(x, dtype=np.float32).reshape(self.n, 3) if with_x
+             else np.zeros((0, 3), np.float32))
         return _setup3(self.indptr, self.indices, self.data, b, x, self.n, self._nchunks, with_x)
 
     def to_scipy(self) -> sp.csr_matrix:

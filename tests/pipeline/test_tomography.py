@@ -106,7 +106,11 @@ def test_dot_test_restricted_operator(setup):
     S = fs.op.to_scipy()
     np.testing.assert_allclose(fs.op.matvec3(x), S @ x, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(fs.op.rmatvec3(y), S.T @ y, rtol=1e-9, atol=1e-12)
-    np.testing.assert_allclose(fs.op.normal3(x), S.T @ (S @ x), rtol=1e-9, atol=1e-12)
+    # normal3 works in float32 (x rounded to float32, float32 row sums and partial sums):
+    # about 1e-6 of the result's scale, far below the solver's tolerance
+    ref = S.T @ (S @ x)
+    scale = np.abs(ref).max(axis=0)
+    assert np.all(np.abs(fs.op.normal3(x) - ref).max(axis=0) <= 2e-6 * scale)
     np.testing.assert_allclose(fs.op.column_sumsq(), np.asarray(S.multiply(S).sum(0)).ravel(), rtol=1e-6)
     # Restriction keeps exactly the hull-set columns of the full matrix.
     full = geom.S[fs.op.rows][:, np.flatnonzero(fs.inset.ravel())]
@@ -115,7 +119,7 @@ def test_dot_test_restricted_operator(setup):
     cs, stb, stsx = fs.op.setup_products(y, x)
     np.testing.assert_allclose(cs, np.asarray(S.multiply(S).sum(0)).ravel(), rtol=1e-6)
     np.testing.assert_allclose(stb, S.T @ y, rtol=1e-9, atol=1e-12)
-    np.testing.assert_allclose(stsx, S.T @ (S @ x), rtol=1e-9, atol=1e-12)
+    assert np.all(np.abs(stsx - ref).max(axis=0) <= 2e-6 * scale)  # x in float32 here too
     cs2, stb2, stsx2 = fs.op.setup_products(y)
     assert np.array_equal(cs2, cs) and np.array_equal(stb2, stb) and not stsx2.any()
 
