@@ -64,19 +64,23 @@ def visual_hull(masks: np.ndarray, cameras: list[Camera], grid: Grid, flow_grid:
     X = grid.centres().reshape(-1, 3)
     h_rows, h_cols = flow_grid.shape
     f = flow_grid.factor
-    keep = np.ones(len(X), bool)
+    # Only the voxels every earlier camera kept are tested (the result is the same: a
+    # carved voxel stays carved, and a kept voxel has been seen by all earlier cameras),
+    # so the later cameras project a hull-sized set instead of the whole grid.
+    cand = np.arange(len(X))
     views = np.zeros(len(X), np.int32)
     rad_world = 0.5 * np.sqrt(3.0) * grid.voxel_size
     for c, cam in enumerate(cameras):
-        uv = cam.project(X)
-        depth = (X @ cam.R.T + cam.t)[:, 2]
+        Xk = X[cand]
+        uv = cam.project(Xk)
+        depth = (Xk @ cam.R.T + cam.t)[:, 2]
         col = (uv[:, 0] - (f - 1) / 2.0) / f
         row = (uv[:, 1] - (f - 1) / 2.0) / f
         finite = np.isfinite(col) & np.isfinite(row) & (depth > 0)
         inside = finite & (col >= -0.5) & (col <= h_cols - 0.5) & (row >= -0.5) & (row <= h_rows - 0.5)
-        views += inside
+        views[cand] += inside
         if not masks[c].any():
-            keep &= ~inside
+            cand = cand[~inside]
             continue
         # Distance (flow pixels) from every pixel centre to the nearest mask pixel centre.
         dist = ndi.distance_transform_edt(~masks[c])
@@ -87,8 +91,10 @@ def visual_hull(masks: np.ndarray, cameras: list[Camera], grid: Grid, flow_grid:
         fpx = 0.5 * (cam.K[0, 0] + cam.K[1, 1])
         r_px = rad_world * fpx / depth[inside] / f
         tol = r_px + np.sqrt(0.5) + params.margin_px
-        ok = dist[ri, ci] <= tol
-        idx = np.flatnonzero(inside)
-        keep[idx[~ok]] = False
+        ok = np.ones(len(cand), bool)
+        ok[inside] = dist[ri, ci] <= tol
+        cand = cand[ok]
+    keep = np.zeros(len(X), bool)
+    keep[cand] = True
     keep &= views >= params.min_views
     return keep.reshape(grid.shape)
