@@ -48,6 +48,7 @@ __all__ = [
     "warp_image",
     "spline_coefficients",
     "warp_coefficients",
+    "warp_coefficient_rows",
     "endpoint_error",
     "invalid_pixels",
     "window_for_voxel",
@@ -265,6 +266,18 @@ def _warp_kernel(cp, u, v, out):
         fr = _F32(r)
         for c in range(W):
             out[r, c] = _bspline_at(cp, _F32(c) + u[r, c], fr + v[r, c], Wm, Hm)
+
+
+@nb.njit(fastmath=True, cache=True, nogil=True)
+def _warp_rows_kernel(cp, rows, u, v, out):
+    """:func:`_warp_kernel` for the image rows ``rows`` only (``u``, ``v``, ``out``: one row each)."""
+    W = out.shape[1]
+    Wm = _F32(W - 1)
+    Hm = _F32(cp.shape[0] - 2 * _PAD - 1)
+    for q in range(rows.shape[0]):
+        fr = _F32(rows[q])
+        for c in range(W):
+            out[q, c] = _bspline_at(cp, _F32(c) + u[q, c], fr + v[q, c], Wm, Hm)
 
 
 @nb.njit(fastmath=True, cache=True, nogil=True)
@@ -833,6 +846,33 @@ def warp_coefficients(coefficients: np.ndarray, flow: np.ndarray) -> np.ndarray:
         raise ValueError(f"flow shape {flow.shape} does not match the image ({H}, {W})")
     out = np.empty((H, W), np.float32)
     _warp_kernel(coefficients, np.ascontiguousarray(flow[..., 0]), np.ascontiguousarray(flow[..., 1]), out)
+    return out
+
+
+def warp_coefficient_rows(coefficients: np.ndarray, rows: np.ndarray, flow: np.ndarray) -> np.ndarray:
+    """:func:`warp_coefficients` evaluated on the image rows ``rows`` only.
+
+    Parameters
+    ----------
+    coefficients : ndarray, shape (H + 4, W + 4)
+    rows : ndarray of int, shape (R,)
+    flow : ndarray, shape (R, W, 2)
+        Displacements of those rows.
+
+    Returns
+    -------
+    ndarray, shape (R, W), float32: the same values as ``warp_coefficients(...)[rows]``.
+    """
+    flow = np.asarray(flow, dtype=np.float32)
+    rows = np.ascontiguousarray(rows, dtype=np.int64)
+    H, W = coefficients.shape[0] - 2 * _PAD, coefficients.shape[1] - 2 * _PAD
+    if flow.shape != (len(rows), W, 2):
+        raise ValueError(f"flow shape {flow.shape} does not match {len(rows)} rows of width {W}")
+    if len(rows) and (rows.min() < 0 or rows.max() >= H):
+        raise ValueError(f"rows must lie in [0, {H})")
+    out = np.empty((len(rows), W), np.float32)
+    _warp_rows_kernel(coefficients, rows, np.ascontiguousarray(flow[..., 0]), np.ascontiguousarray(flow[..., 1]),
+                      out)
     return out
 
 

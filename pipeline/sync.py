@@ -18,13 +18,16 @@ row ``r`` of frame ``f`` of a camera starts its exposure at
 
 from __future__ import annotations
 
+import hashlib
 import logging
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
-from schlieren.pipeline.flow import spline_coefficients, warp_coefficients
+from schlieren.pipeline.flow import spline_coefficients, warp_coefficient_rows, warp_coefficients
 from schlieren.pipeline.geometry import FlowGrid
 from schlieren.pipeline.params import param
 
@@ -393,6 +396,41 @@ def _warp_channels(coefs: list, disp: np.ndarray) -> np.ndarray:
     return np.stack([warp_coefficients(c, disp) for c in coefs], axis=-1)
 
 
+def _warp_channel_rows(coefs: list, rows: np.ndarray, disp: np.ndarray) -> np.ndarray:
+    return np.stack([warp_coefficient_rows(c, rows, disp) for c in coefs], axis=-1)
+
+
+#: Motions between frame pairs recently computed in this process, keyed by the two
+#: fields' contents and the parameters: successive output instants of a rolling-shutter
+#: camera share a frame pair, so a task (or the next task of the camera on this worker)
+#: finds the motion of the pair it shares with the previous instant here. Keyed by
+#: content, so a hit returns exactly what :func:`field_motion` would.
+_MOTION_CACHE: OrderedDict = OrderedDict()
+_MOTION_CACHE_SIZE = 8
+_MOTION_LOCK = threading.Lock()
+
+
+def _digest(a: np.ndarray) -> bytes:
+    a = np.ascontiguousarray(a, dtype=np.float32)
+    return hashlib.blake2b(memoryview(a).cast("B"), digest_size=16).digest() + repr(a.shape).encode()
+
+
+def cached_field_motion(source: np.ndarray, target: np.ndarray, **kwargs) -> np.ndarray:
+    """:func:`field_motion`, remembered for the last few frame pairs of this process."""
+    key = (_digest(source), _digest(target), tuple(sorted(kwargs.items())))
+    with _MOTION_LOCK:
+        hit = _MOTION_CACHE.get(key)
+        if hit is not None:
+            _MOTION_CACHE.move_to_end(key)
+            return hit.copy()
+    m = field_motion(source, target, **kwargs)
+    with _MOTION_LOCK:
+        _MOTION_CACHE[key] = m.copy()
+        while len(_MOTION_CACHE) > _MOTION_CACHE_SIZE:
+            _MOTION_CACHE.popitem(last=False)
+    return m
+
+
 def field_motion(source: np.ndarray, target: np.ndarray, *, window: int = 15, levels: int = 3,
                  iterations: int = 4, regularisation: float = 1e-2) -> np.ndarray:
     """Motion ``m`` between two multi-channel fields: ``source(p) ~= target(p + m(p))``.
@@ -530,6 +568,13 @@ def resample_flow(raw: np.ndarray, first_frame: int, target_time: float, *, offs
         log.debug("resample_flow: %d of %d rows clamped to the ends of frames %d..%d",
                   n_clamped, h, first_frame + usable[0], first_frame + usable[-1])
     out = np.empty((h, w, 2), np.float32)
+    coef_memo: dict = {}
+
+    def coefs(j):  # a frame can be the end of one pair and the start of the next
+        if j not in coef_memo:
+            coef_memo[j] = _coefficients(raw[j])
+        return coef_memo[j]
+
     for a, b in sorted(set(zip(j0.tolist(), j1.tolist()))):
         rows = np.flatnonzero((j0 == a) & (j1 == b))
         al = alpha[rows].astype(np.float32)[:, None, None]
@@ -541,12 +586,11 @@ def resample_flow(raw: np.ndarray, first_frame: int, target_time: float, *, offs
         if params.method == "linear":
             out[rows] = (1 - al) * fa[rows] + al * fb[rows]
             continue
-        m = field_motion(fa, fb, window=params.window, levels=params.levels,
-                         iterations=params.iterations, regularisation=params.regularisation)
-        # per-row displacement fields (only the rows that use this frame pair)
-        alpha_rows = np.zeros((h, 1, 1), np.float32)
-        alpha_rows[rows] = al
-        wa = _warp_channels(_coefficients(fa), -alpha_rows * m)
-        wb = _warp_channels(_coefficients(fb), (1 - alpha_rows) * m)
-        out[rows] = ((1 - alpha_rows) * wa + alpha_rows * wb)[rows]
+        m = cached_field_motion(fa, fb, window=params.window, levels=params.levels,
+                                iterations=params.iterations, regularisation=params.regularisation)
+        # only the rows that use this frame pair are warped
+        mr = m[rows]
+        wa = _warp_channel_rows(coefs(a), rows, -al * mr)
+        wb = _warp_channel_rows(coefs(b), rows, (1 - al) * mr)
+        out[rows] = (1 - al) * wa + al * wb
     return out

@@ -255,3 +255,36 @@ def test_row_means_of_flashed_frames_feed_detection():
     assert det.frame == 3 and det.last_row == 77
     est = S.offset_from_flash(det, first_frame=0, frame_rate=FR, line_time=lt)
     assert abs(est - offset) <= 0.5 * lt
+
+
+def test_row_warps_and_the_motion_cache_change_nothing(moving_case):
+    """The resampler warps only the rows a frame pair serves and reuses the motion of a
+    pair it met before: both must give exactly the full-field, uncached result."""
+    from schlieren.pipeline import flow as F
+
+    offset, f0, raw = moving_case
+    rng = np.random.default_rng(4)
+    coef = F.spline_coefficients(np.ascontiguousarray(raw[0, ..., 0]))
+    disp = rng.normal(scale=2.0, size=raw.shape[1:3] + (2,)).astype(np.float32)
+    rows = np.array([0, 3, 4, 17, raw.shape[1] - 1])
+    np.testing.assert_array_equal(F.warp_coefficient_rows(coef, rows, disp[rows]),
+                                  F.warp_coefficients(coef, disp)[rows])
+    with pytest.raises(ValueError, match="rows"):
+        F.warp_coefficient_rows(coef, np.array([raw.shape[1]]), disp[:1])
+    S._MOTION_CACHE.clear()
+    m1 = S.cached_field_motion(raw[0], raw[1], window=15)
+    assert len(S._MOTION_CACHE) == 1
+    m2 = S.cached_field_motion(raw[0], raw[1], window=15)
+    np.testing.assert_array_equal(m1, S.field_motion(raw[0], raw[1], window=15))
+    np.testing.assert_array_equal(m2, m1)
+    assert len(S._MOTION_CACHE) == 1  # the second call was a hit
+    m2[:] = 0  # callers own what they get
+    np.testing.assert_array_equal(S.cached_field_motion(raw[0], raw[1], window=15), m1)
+    other = S.cached_field_motion(raw[0], raw[1], window=9)  # other parameters: another entry
+    assert len(S._MOTION_CACHE) == 2 and not np.array_equal(other, m1)
+    # a whole resampling gives the same field cold and with every motion from the cache
+    kw = dict(offset=offset, frame_rate=FR, line_time=LT_SMALL, flow_grid=GRID)
+    S._MOTION_CACHE.clear()
+    cold = S.resample_flow(raw, f0, 0.1, **kw)
+    warm = S.resample_flow(raw, f0, 0.1, **kw)
+    np.testing.assert_array_equal(cold, warm)
