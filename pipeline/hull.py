@@ -71,6 +71,8 @@ def visual_hull(masks: np.ndarray, cameras: list[Camera], grid: Grid, flow_grid:
     views = np.zeros(len(X), np.int32)
     rad_world = 0.5 * np.sqrt(3.0) * grid.voxel_size
     for c, cam in enumerate(cameras):
+        if cand.size == 0:  # everything carved already
+            break
         Xk = X[cand]
         uv = cam.project(Xk)
         depth = (Xk @ cam.R.T + cam.t)[:, 2]

@@ -69,6 +69,13 @@ def test_unseen_voxels_and_empty_masks():
     empty = full.copy()
     empty[2] = False  # one camera sees no flow anywhere: everything it sees is carved
     assert not visual_hull(empty, cams, grid, fg).any()
+    # the first camera carves everything: the distorted cameras after it have nothing to test
+    lens = [Camera(c.name, c.K, np.array([-0.05, 0.01, 0.0, 0.0, 0.0]), c.R, c.t, image, c.bg_point, c.bg_normal)
+            for c in cams]
+    first_empty = full.copy()
+    first_empty[0] = False
+    assert not visual_hull(first_empty, lens, grid, fg).any()
+    assert visual_hull(full, lens, grid, fg).sum() > 0
     # A camera that does not see the volume cannot carve it.
     away = cams[0]
     R = away.R.copy()
