@@ -254,7 +254,11 @@ def _thread_cpu(proc) -> dict[int, float]:
     return {t.id: t.user_time + t.system_time for t in proc.threads()}
 
 
-def planning_seconds(cameras: int, frames_list, *, fpt: int, raw_margin: int, block: int) -> dict[int, float]:
+def _batching(name: str) -> str:
+    return "the default batching" if name == "default" else f"--frames-per-task {name}"
+
+
+def planning_seconds(cameras: int, frames_list, *, fpt, raw_margin: int, block: int) -> dict[int, float]:
     """Seconds the client takes to compile the plan and its priorities for each frame count."""
     from schlieren.workers.plan import Extents, critical_path_priorities, make_plan
 
@@ -445,10 +449,10 @@ def write_report(res: dict) -> None:
            f"threshold {1e3 * cs['threshold_per_summary']:.3f} ms per summary.", "",
            "P, planning: the client compiles the plan (make_plan + critical-path priorities) before the first "
            "task; timed here at " + "; ".join(
-               f"--frames-per-task {k}: " + ", ".join(f"{f} frames {t:.2f} s" for f, t in v.items())
+               f"{_batching(k)}: " + ", ".join(f"{f} frames {t:.2f} s" for f, t in v.items())
                for k, v in m["planning_measured"].items())
            + f" and extrapolated (a + b F + c F^2) to {m['predict_frames']} frames: "
-           + ", ".join(f"{v:.0f} s (--frames-per-task {k})" for k, v in m["planning_extrapolated"].items())
+           + ", ".join(f"{v:.0f} s ({_batching(k)})" for k, v in m["planning_extrapolated"].items())
            + ". It does not shrink with N.", ""]
     for f, label in (("seconds", "task wall seconds as measured on this machine"),
                      ("cpu_seconds", "task CPU seconds: what a quiet dedicated core would take")):
@@ -562,7 +566,9 @@ def main(argv=None) -> int:
         r["stage_seconds"] = per_stage(r["receipts"])
         r["stage_cpu_seconds"] = per_stage(r["receipts"], "cpu_seconds")
 
-    fpt = default_frames_per_task((w, h))
+    from schlieren.pipeline.stages import RunConfig
+
+    fpt = default_frames_per_task((w, h), RunConfig().flow_factor)  # what the runs above used
     fit_name = f"dask-{args.workers}" if not args.skip_dask else "serial"
     kw = dict(warm_start_block=B, raw_margin=RAW_MARGIN, frames_per_task=fpt)
 
@@ -578,15 +584,15 @@ def main(argv=None) -> int:
     # task wall seconds as measured here, and task CPU seconds: what a quiet dedicated core takes
     costs = {f: fitted(fit_name, f) for f in ("seconds", "cpu_seconds")}
     print("timing the plan's compilation ...", file=sys.stderr)
-    plan_points = {fpt_: planning_seconds(args.cameras, PLAN_FRAMES, fpt=fpt_, raw_margin=RAW_MARGIN, block=B)
-                   for fpt_ in (fpt, BATCHED)}
-    planning = {fpt_: extrapolate_quadratic(pts, args.predict_frames) for fpt_, pts in plan_points.items()}
-    kw = kw | {"planning": planning[fpt]}
+    plan_points = {name: planning_seconds(args.cameras, PLAN_FRAMES, fpt=fpt_, raw_margin=RAW_MARGIN, block=B)
+                   for name, fpt_ in (("default", fpt), (str(BATCHED), BATCHED))}
+    planning = {name: extrapolate_quadratic(pts, args.predict_frames) for name, pts in plan_points.items()}
+    kw = kw | {"planning": planning["default"]}
     predictions = {f: [predict(c, cameras=args.cameras, frames=args.predict_frames, workers=int(n), **kw).as_dict()
                        for n in args.predict_workers.split(",")] for f, c in costs.items()}
     # the same with BATCHED frames of one camera per task in the 2D stages: fewer tasks
     batched = {f: [predict(c, cameras=args.cameras, frames=args.predict_frames, workers=int(n),
-                           **(kw | {"frames_per_task": BATCHED, "planning": planning[BATCHED]})).as_dict()
+                           **(kw | {"frames_per_task": BATCHED, "planning": planning[str(BATCHED)]})).as_dict()
                    for n in args.predict_workers.split(",")] for f, c in costs.items()}
     # the model's structure checked on each measured run, with that run's own task costs
     checks = []

@@ -40,6 +40,8 @@ __all__ = [
     "threshold_from_summaries",
     "threshold_from_samples",
     "make_mask",
+    "frame_evidence",
+    "mask_from_evidence",
     "flow_noise",
 ]
 
@@ -304,19 +306,50 @@ def make_mask(potentials: np.ndarray, centre: int, threshold: float, *, flows=No
             flows = flows[None]
         if flows.shape[:3] != P.shape:
             raise ValueError(f"flows {flows.shape} do not match potentials {P.shape}")
-    m = np.zeros(P.shape[1:], bool)
-    for j in range(lo, hi):
-        m |= _magnitude(P[j], smooth_sigma) > threshold
-        m |= np.isnan(P[j])   # invalid cells: this camera cannot rule flow out there
-        if flows is not None and deflection_threshold > 0:
-            fl = np.nan_to_num(flows[j], nan=0.0)
-            if flow_sigma > 0:
-                fl = cv2.GaussianBlur(fl, (0, 0), sigmaX=flow_sigma, sigmaY=flow_sigma,
-                                      borderType=cv2.BORDER_REFLECT)
-            thr = deflection_threshold
-            if noise_factor > 0:
-                thr = max(thr, noise_factor * flow_noise(fl))
-            m |= np.hypot(fl[..., 0], fl[..., 1]) > thr
+    kw = dict(smooth_sigma=smooth_sigma, deflection_threshold=deflection_threshold, flow_sigma=flow_sigma,
+              noise_factor=noise_factor)
+    evidence = [frame_evidence(P[j], threshold, flow=None if flows is None else flows[j], **kw)
+                for j in range(lo, hi)]
+    return mask_from_evidence(evidence, dilation_radius=dilation_radius)
+
+
+def frame_evidence(potential: np.ndarray, threshold: float, *, flow=None, smooth_sigma: float = 1.0,
+                   deflection_threshold: float = 0.015, flow_sigma: float = 1.5,
+                   noise_factor: float = 5.0) -> np.ndarray:
+    """The cells one frame marks as flow, before the temporal union and the dilation of
+    :func:`make_mask` (which ORs this over the frames around its centre).
+
+    Parameters
+    ----------
+    potential : ndarray, shape (h, w)
+    threshold : float
+    flow : ndarray, shape (h, w, 2), optional
+        The flow the potential came from.
+
+    Returns
+    -------
+    ndarray, shape (h, w), bool
+    """
+    P = np.asarray(potential)
+    m = _magnitude(P, smooth_sigma) > threshold
+    m |= np.isnan(P)   # invalid cells: this camera cannot rule flow out there
+    if flow is not None and deflection_threshold > 0:
+        fl = np.nan_to_num(np.asarray(flow, dtype=np.float32), nan=0.0)
+        if flow_sigma > 0:
+            fl = cv2.GaussianBlur(fl, (0, 0), sigmaX=flow_sigma, sigmaY=flow_sigma,
+                                  borderType=cv2.BORDER_REFLECT)
+        thr = deflection_threshold
+        if noise_factor > 0:
+            thr = max(thr, noise_factor * flow_noise(fl))
+        m |= np.hypot(fl[..., 0], fl[..., 1]) > thr
+    return m
+
+
+def mask_from_evidence(evidence, *, dilation_radius: int = 4) -> np.ndarray:
+    """Union of :func:`frame_evidence` maps, dilated by a Euclidean disk of ``dilation_radius`` cells."""
+    m = np.zeros(np.shape(evidence[0]), bool)
+    for e in evidence:
+        m |= e
     if dilation_radius > 0:
         r = int(dilation_radius)
         yy, xx = np.mgrid[-r:r + 1, -r:r + 1]

@@ -141,6 +141,9 @@ class Stage:
     batch : bool
         A cheap per-camera-frame stage: a task may compute several consecutive frames
         of one camera (``frames_per_task`` of :func:`~schlieren.workers.plan.make_plan`).
+    grid : {"image", "flow"}
+        What a batched stage's work scales with: the camera images or the (downsampled)
+        flow grid (:func:`~schlieren.workers.run.default_frames_per_task`).
     cost : float
         Rough seconds per task, used only to order the work (``workers/plan.py``,
         :func:`~schlieren.workers.plan.critical_path_priorities`): the serial in-task
@@ -159,6 +162,7 @@ class Stage:
     resources: dict = field(default_factory=dict)
     batch: bool = False
     cost: float = 0.01
+    grid: str = "image"
 
 
 STAGES: tuple[Stage, ...] = (
@@ -172,9 +176,9 @@ STAGES: tuple[Stage, ...] = (
           ("camera", "raw_frame"), batch=True, cost=0.014),
     Stage("resample", _sync.resample_flow, "resample", ("flow_raw", "time_offset", "time"),
           ("flow",), ("camera", "frame"), after=(("clock", "all"), ("deflection", "window")),
-          frame_halo=2, batch=True, cost=0.02),
+          frame_halo=2, batch=True, cost=0.02, grid="flow"),
     Stage("potential", _masks.flow_potential, "masks", ("flow",), ("potential", "potential_summary"),
-          ("camera", "frame"), after=(("resample", "same"),), batch=True, cost=0.004),
+          ("camera", "frame"), after=(("resample", "same"),), batch=True, cost=0.004, grid="flow"),
     Stage("threshold", _masks.threshold_from_summaries, "masks", ("potential_summary",),
           ("mask_threshold",), (), after=(("potential", "all"),), cost=0.02),
     # the potential edges are implied by the threshold's, but without them Dask counts
@@ -183,7 +187,7 @@ STAGES: tuple[Stage, ...] = (
     # ran 7 s after the threshold, and the last warm-start chain ran alone at the end
     Stage("mask", _masks.make_mask, "masks", ("potential", "mask_threshold"), ("mask",),
           ("camera", "frame"), after=(("threshold", "all"), ("potential", "window")), frame_halo=1,
-          batch=True, cost=0.003),
+          batch=True, cost=0.003, grid="flow"),
     Stage("geometry", _tomo.build_geometry, "tomography", (), ("geometry",), (), cost=1.35),
     Stage("hull", _hull.visual_hull, "hull", ("mask",), ("hull",), ("frame",),
           after=(("mask", "same"),), cost=0.36),

@@ -120,6 +120,22 @@ def _deps(st: Stage, index: tuple[int, ...], ext: Extents) -> list[tuple[str, tu
     return out
 
 
+def batch_sizes(frames_per_task) -> dict[str, int]:
+    """Frames per task of every batched stage, from one number for all of them or a
+    mapping ``{stage: frames}`` (batched stages it leaves out get 1)."""
+    if isinstance(frames_per_task, int):
+        out = {s.name: int(frames_per_task) for s in STAGES if s.batch}
+    else:
+        unknown = set(frames_per_task) - {s.name for s in STAGES if s.batch}
+        if unknown:
+            raise ValueError(f"frames_per_task names stages that are not batched: {sorted(unknown)}")
+        out = {s.name: int(frames_per_task.get(s.name, 1)) for s in STAGES if s.batch}
+    bad = {k: v for k, v in out.items() if v < 1}
+    if bad:
+        raise ValueError(f"frames_per_task must be at least 1, not {bad}")
+    return out
+
+
 def _blocks(st: Stage, indices: list[tuple[int, ...]], frames_per_task: int) -> list[list[tuple[int, ...]]]:
     """Group a batched stage's indices by camera into runs of ``frames_per_task`` frames.
 
@@ -135,7 +151,7 @@ def _blocks(st: Stage, indices: list[tuple[int, ...]], frames_per_task: int) -> 
 
 
 def make_plan(ext: Extents, token: str, *, done=None, stages: tuple[Stage, ...] = STAGES,
-              frames_per_task: int = 1) -> Plan:
+              frames_per_task: int | dict = 1) -> Plan:
     """All tasks of all stages, minus those already complete.
 
     Parameters
@@ -145,15 +161,15 @@ def make_plan(ext: Extents, token: str, *, done=None, stages: tuple[Stage, ...] 
         Short session/run token that makes keys unique per run.
     done : callable(stage, index) -> bool, optional
         Completion-marker lookup; complete indices are dropped and so are edges to them.
-    frames_per_task : int
+    frames_per_task : int or dict
         Consecutive frames of one camera per task for the cheap per-camera-frame stages
-        (``Stage.batch``: frame statistics, deflection, resampling, potential, mask).
+        (``Stage.batch``: frame statistics, deflection, resampling, potential, mask); one
+        number for all or ``{stage: frames}`` (:func:`batch_sizes`).
         Their per-frame work is 3-20 ms at 480x360, and each Dask task costs a few ms
         more in the scheduler, the client and the worker. Completion markers stay per
         frame, so resume and the store do not depend on the grouping.
     """
-    if frames_per_task < 1:
-        raise ValueError(f"frames_per_task must be at least 1, not {frames_per_task}")
+    sizes = batch_sizes(frames_per_task)
     plan = Plan(token=token)
     complete: set[tuple[str, tuple[int, ...]]] = set()
     owner: dict[tuple[str, tuple[int, ...]], str] = {}  # (stage, index) -> key of its task
@@ -165,10 +181,11 @@ def make_plan(ext: Extents, token: str, *, done=None, stages: tuple[Stage, ...] 
                 plan.skipped += 1
             else:
                 todo.append(index)
-        for block in _blocks(st, todo, frames_per_task):
+        fpt = sizes.get(st.name, 1)
+        for block in _blocks(st, todo, fpt):
             first = block[0]
-            if st.batch and frames_per_task > 1:  # name the block by its fixed start
-                first = (first[0], first[1] - first[1] % frames_per_task)
+            if st.batch and fpt > 1:  # name the block by its fixed start
+                first = (first[0], first[1] - first[1] % fpt)
             key = task_key(st.name, token, first)
             deps: dict[str, None] = {}   # ordered, de-duplicated (a list's `in` made "all" edges quadratic)
             for index in block:

@@ -53,11 +53,34 @@ PIXELS_PER_TASK = 1.4e6
 MAX_FRAMES_PER_TASK = 8
 
 
-def default_frames_per_task(image_size: tuple[int, int]) -> int:
+#: Flow-grid cells per task the batched stages on the flow grid (resampling, potential,
+#: mask: 16-65 ms per 480x360 field here) aim for: 4 frames per task at 1440x1080 with
+#: flow factor 3. Consecutive frames in one task also share work: an output instant's
+#: resampling reuses the motion of the frame pair it shares with the previous instant,
+#: and a mask the per-frame evidence its neighbours' masks computed.
+FLOW_CELLS_PER_TASK = 7e5
+
+
+def default_frames_per_task(image_size: tuple[int, int], flow_factor: int | None = None) -> int | dict:
     """Frames of one camera per task for images of ``(width, height)``: about
-    :data:`PIXELS_PER_TASK` pixels, between 1 and :data:`MAX_FRAMES_PER_TASK`."""
+    :data:`PIXELS_PER_TASK` pixels, between 1 and :data:`MAX_FRAMES_PER_TASK`.
+
+    With ``flow_factor`` (the flow grid's downsampling) a mapping ``{stage: frames}``:
+    the stages on the flow grid (``Stage.grid == "flow"``) aim for
+    :data:`FLOW_CELLS_PER_TASK` flow cells instead.
+    """
     w, h = image_size
-    return int(min(MAX_FRAMES_PER_TASK, max(1, round(PIXELS_PER_TASK / max(1, w * h)))))
+
+    def frames(units: float, per_task: float) -> int:
+        return int(min(MAX_FRAMES_PER_TASK, max(1, round(per_task / max(1.0, units)))))
+
+    image = frames(w * h, PIXELS_PER_TASK)
+    if flow_factor is None:
+        return image
+    fh, fw = FlowGrid((w, h), flow_factor).shape
+    cells = fh * fw
+    return {s.name: frames(cells, FLOW_CELLS_PER_TASK) if s.grid == "flow" else image
+            for s in STAGES if s.batch}
 
 
 @dataclass
@@ -225,8 +248,8 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
         Path of a Dask performance report (HTML), with a client.
     frames_per_task : int, optional
         Consecutive frames of one camera per task in the cheap 2D stages (default
-        :func:`default_frames_per_task` of the image size; 1 = one task per camera and
-        frame). Results, markers and resume do not depend on it.
+        :func:`default_frames_per_task` of the image size and flow grid; 1 = one task per
+        camera and frame). Results, markers and resume do not depend on it.
     overwrite : bool
         Replace a store of another configuration at ``out_path`` (only a result store:
         anything else is still refused). A store of this same run is resumed either way.
@@ -262,12 +285,14 @@ def _run_leased(session, out_path, cfg, *, client, serial, report, on_receipt, o
         remove_store(out_path)
         store, ext, token = prepare_store(session, out_path, cfg)
     if frames_per_task is None:
-        frames_per_task = default_frames_per_task(session.cameras[0].image_size)
+        frames_per_task = default_frames_per_task(session.cameras[0].image_size, cfg.flow_factor)
     try:
         check = verify_store(store, full=verify, repair=True, ext=ext)
     except OSError as exc:
         raise StoreError(f"cannot check the store ({exc.strerror or exc})", file=str(out_path)) from None
-    plan = make_plan(ext, token, done=_done_predicate(check.done, ext), frames_per_task=int(frames_per_task))
+    if not isinstance(frames_per_task, dict):
+        frames_per_task = int(frames_per_task)
+    plan = make_plan(ext, token, done=_done_predicate(check.done, ext), frames_per_task=frames_per_task)
     if on_plan:
         on_plan(plan)
     summary = RunSummary(store=str(out_path), executor="serial" if (serial or client is None) else "dask",

@@ -90,6 +90,22 @@ class RunContext:
                 kept.popitem(last=False)
         return img
 
+    #: Entries kept by :meth:`memo` per process.
+    MEMO_ITEMS = 64
+
+    def memo(self, key, make):
+        """``make()``, remembered for the last :data:`MEMO_ITEMS` keys (LRU): per-frame
+        intermediate results that the tasks of neighbouring frames share. Keys must name
+        everything the value depends on within the run."""
+        memo = self._small.setdefault("__memo__", OrderedDict())
+        if key in memo:
+            memo.move_to_end(key)
+            return memo[key]
+        value = memo[key] = make()
+        while len(memo) > self.MEMO_ITEMS:
+            memo.popitem(last=False)
+        return value
+
     def _once(self, key, make):
         if key not in self._small:
             self._small[key] = make()
@@ -357,10 +373,17 @@ def _mask(ctx: RunContext, c: int, k: int) -> dict:
     params = ctx.config.masks
     h = params.temporal_radius
     ks = [min(max(i, 0), ctx.n_frames - 1) for i in range(k - h, k + h + 1)]
-    pots = np.stack(ctx.read_upstream_many("potential", [(c, i) for i in ks]))
-    flows = np.stack(ctx.read_upstream_many("flow", [(c, i) for i in ks]))
     thr = ctx.mask_threshold()
-    m = masksmod.make_mask(pots, h, thr, flows=flows, **kernel_kwargs(params, masksmod.make_mask))
+    kw = kernel_kwargs(params, masksmod.frame_evidence)
+
+    def evidence(i):  # masksmod.make_mask, with each frame's evidence made once per process
+        return masksmod.frame_evidence(ctx.read_upstream("potential", (c, i)), thr,
+                                       flow=ctx.read_upstream("flow", (c, i)), **kw)
+
+    ctx.read_upstream_many("potential", [(c, i) for i in ks])
+    ctx.read_upstream_many("flow", [(c, i) for i in ks])
+    ev = [ctx.memo(("mask_evidence", c, i, thr), lambda i=i: evidence(i)) for i in dict.fromkeys(ks)]
+    m = masksmod.mask_from_evidence(ev, **kernel_kwargs(params, masksmod.mask_from_evidence))
     ctx.store.write("mask", (c, k), np.asarray(m, dtype=bool))
     return {"fraction": float(np.mean(m))}
 

@@ -53,6 +53,7 @@ import math
 from dataclasses import dataclass, field, replace
 
 from schlieren.pipeline.stages import STAGES
+from schlieren.workers.plan import batch_sizes
 
 __all__ = ["StageCosts", "Prediction", "fit_costs", "predict", "ready_gaps", "task_counts",
            "PHASE_A", "BARRIER", "PHASE_C"]
@@ -142,15 +143,19 @@ def _indices(stage: str, cameras: int, frames: int, raw_margin: int) -> int:
     return math.prod(sizes[d] for d in _OVER[stage])
 
 
-def task_counts(cameras: int, frames: int, *, raw_margin: int = 2, frames_per_task: int = 1) -> dict[str, int]:
+def task_counts(cameras: int, frames: int, *, raw_margin: int = 2, frames_per_task: int | dict = 1
+                ) -> dict[str, int]:
     """Tasks of each stage in a run of ``cameras`` x ``frames`` (batched stages take
-    ``frames_per_task`` consecutive frames of one camera per task)."""
+    ``frames_per_task`` consecutive frames of one camera per task: one number for all, or
+    ``{stage: frames}``)."""
+    sizes = batch_sizes(frames_per_task)
     out = {}
     for s in STAGES:
         n = _indices(s.name, cameras, frames, raw_margin)
-        if s.batch and frames_per_task > 1:
+        fpt = sizes.get(s.name, 1)
+        if s.batch and fpt > 1:
             per_camera = n // cameras
-            n = cameras * math.ceil(per_camera / frames_per_task)
+            n = cameras * math.ceil(per_camera / fpt)
         out[s.name] = n
     return out
 
@@ -185,7 +190,7 @@ class Prediction:
 
 
 def predict(costs: StageCosts, *, cameras: int, frames: int, workers: int, warm_start_block: int = 4,
-            raw_margin: int = 2, frames_per_task: int = 1, planning: float = 0.0) -> Prediction:
+            raw_margin: int = 2, frames_per_task: int | dict = 1, planning: float = 0.0) -> Prediction:
     """Wall time of ``cameras`` x ``frames`` on ``workers`` single-threaded workers (module docstring).
 
     ``planning`` is the client's seconds to compile the plan before any task runs
@@ -205,8 +210,8 @@ def predict(costs: StageCosts, *, cameras: int, frames: int, workers: int, warm_
             work[s.name] = cameras * frames * costs.threshold_per_summary
         else:
             work[s.name] = _indices(s.name, cameras, frames, raw_margin) * t[s.name]
-    fpt = max(1, frames_per_task)
-    k = (lambda s: fpt if _BATCH[s] else 1)  # indices per task along a chain
+    fpt = batch_sizes(frames_per_task)
+    k = (lambda s: fpt[s] if _BATCH[s] else 1)  # indices per task along a chain
     # the pre-barrier chain: one camera's sync and the clock, or one deflection; then its
     # resample and potential (geometry is not on it: nothing before the barrier needs it)
     L_A = max(t["sync"] + t["clock"], k("deflection") * t["deflection"]) \

@@ -113,12 +113,14 @@ def test_critical_path_priorities_are_upward_ranks():
 
 
 @settings(max_examples=40, deadline=None)
-@given(extents, st.integers(1, 5))
-def test_batched_tasks_cover_every_index_once_and_keep_every_dependency(ext, per_task):
+@given(extents, st.integers(1, 5), st.integers(1, 5))
+def test_batched_tasks_cover_every_index_once_and_keep_every_dependency(ext, image_per_task, flow_per_task):
     """Blocks of frames of one camera: each (stage, index) is in exactly one task, every
     per-index dependency becomes an edge to the task holding it (or is inside the task),
-    edges point backwards, and only the batched stages are grouped."""
-    plan = make_plan(ext, "tok", frames_per_task=per_task)
+    edges point backwards, and only the batched stages are grouped (one size for all, or
+    one for the image stages and another for the flow-grid stages)."""
+    sizes = {s.name: (flow_per_task if s.grid == "flow" else image_per_task) for s in STAGES if s.batch}
+    plan = make_plan(ext, "tok", frames_per_task=image_per_task if image_per_task == flow_per_task else sizes)
     unit = make_plan(ext, "tok")
     owner = {}
     for t in plan.tasks:
@@ -127,6 +129,7 @@ def test_batched_tasks_cover_every_index_once_and_keep_every_dependency(ext, per
             owner[(t.stage, i)] = t.key
         st_ = next(s for s in STAGES if s.name == t.stage)
         if st_.batch:
+            per_task = sizes[t.stage]
             assert len(t.indices) <= per_task
             assert len({i[0] for i in t.indices}) == 1  # one camera
             assert len({i[1] // per_task for i in t.indices}) == 1  # one fixed block
@@ -162,6 +165,23 @@ def test_default_frames_per_task_follows_the_image_size():
     assert default_frames_per_task((1440, 1080)) == 1
     assert default_frames_per_task((4096, 3072)) == 1
     assert default_frames_per_task((32, 24)) == MAX_FRAMES_PER_TASK
+    # with the flow grid: its stages batch by flow cells (480 x 360 at factor 3: 4 frames)
+    sizes = default_frames_per_task((1440, 1080), 3)
+    assert sizes == {"frames": 1, "deflection": 1, "resample": 4, "potential": 4, "mask": 4}
+    assert default_frames_per_task((480, 360), 3) == dict.fromkeys(sizes, MAX_FRAMES_PER_TASK)
+
+
+def test_batch_sizes_are_checked():
+    from schlieren.workers.plan import batch_sizes
+
+    assert batch_sizes(3) == dict.fromkeys(["frames", "deflection", "resample", "potential", "mask"], 3)
+    assert batch_sizes({"mask": 2})["mask"] == 2 and batch_sizes({"mask": 2})["resample"] == 1
+    with pytest.raises(ValueError, match="not batched"):
+        batch_sizes({"tomography": 2})
+    with pytest.raises(ValueError, match="at least 1"):
+        batch_sizes({"mask": 0})
+    with pytest.raises(ValueError, match="at least 1"):
+        make_plan(Extents(camera=1, frame=2, raw_frame=2, raw_offset=0), "t", frames_per_task=0)
 
 
 def _deps_oracle(st, index, ext):
