@@ -250,14 +250,32 @@ def build_projection(origins: np.ndarray, dirs: np.ndarray, shape_zyx, origin_xy
 
 
 @nb.njit(parallel=True, cache=True)
-def _restrict_count(indptr, indices, rows, colmap, counts):
+def _count_kept(indptr, indices, rows, keep, counts):
+    """Entries of each of ``rows`` in the columns ``keep`` (uint8 0/1) marks; four
+    independent partial counts per row (0.15 -> 0.12 s over 193M entries on 2 cores)."""
     for k in nb.prange(rows.shape[0]):
         r = rows[k]
-        c = 0
-        for p in range(indptr[r], indptr[r + 1]):
-            if colmap[indices[p]] >= 0:
-                c += 1
-        counts[k] = c
+        p = indptr[r]
+        end = indptr[r + 1]
+        c0 = 0
+        c1 = 0
+        c2 = 0
+        c3 = 0
+        while p + 4 <= end:
+            c0 += keep[indices[p]]
+            c1 += keep[indices[p + 1]]
+            c2 += keep[indices[p + 2]]
+            c3 += keep[indices[p + 3]]
+            p += 4
+        while p < end:
+            c0 += keep[indices[p]]
+            p += 1
+        counts[k] = c0 + c1 + c2 + c3
+
+
+def _restrict_count(indptr, indices, rows, colmap, counts):
+    """``counts[k]`` = entries of row ``rows[k]`` whose column ``colmap`` keeps (>= 0)."""
+    _count_kept(indptr, indices, rows, (np.asarray(colmap) >= 0).astype(np.uint8), counts)
 
 
 @nb.njit(cache=True, inline="always")
