@@ -161,6 +161,13 @@ def _cases() -> tuple[RealisticCase, ...]:
 
 
 CASES: tuple[RealisticCase, ...] = _cases()
+#: Not in the default family; run by name (``--cases plume2-8cam-960-dist-h264-1bpp``): the
+#: same captures as ``plume2-8cam-960-dist-h264`` at higher bitrates, to measure what a
+#: better camcorder setting buys (docs/realistic.md, "Lossy video").
+BITRATE_CASES: tuple[RealisticCase, ...] = tuple(
+    RealisticCase(f"plume2-8cam-960-dist-h264-{tag}", "plume-s2", "report", 8, (960, 720), distortion=True,
+                  video="h264", bits_per_pixel=bpp, peak_px=0.375, reference_frames=30)
+    for tag, bpp in (("0.5bpp", 0.5), ("1bpp", 1.0)))
 #: A small subset for tests: 4 cameras, 160x120, one frame, coarse voxels (no CFD needed).
 QUICK_CASES: tuple[RealisticCase, ...] = (
     RealisticCase("quick-4cam-160", "plume-s1", "tune", 4, (160, 120), peak_px=0.25, frames=1,
@@ -170,11 +177,17 @@ QUICK_CASES: tuple[RealisticCase, ...] = (
 
 def select_cases(names: str | None, *, role: str | None = None) -> tuple[RealisticCase, ...]:
     """Cases by comma-separated names or name prefixes (``None``: all), optionally one role."""
-    pool = CASES + QUICK_CASES
+    pool = CASES + QUICK_CASES + BITRATE_CASES
     if names:
         wanted = [n.strip() for n in names.split(",") if n.strip()]
-        sel = [c for c in pool if any(c.name == w or c.name.startswith(w) for w in wanted)]
-        missing = [w for w in wanted if not any(c.name == w or c.name.startswith(w) for c in pool)]
+
+        def matches(w):  # an exact name, else every case it prefixes
+            exact = [c for c in pool if c.name == w]
+            return exact or [c for c in pool if c.name.startswith(w)]
+
+        hits = {c.name for w in wanted for c in matches(w)}
+        sel = [c for c in pool if c.name in hits]
+        missing = [w for w in wanted if not matches(w)]
         if missing:
             raise ValueError(f"unknown case(s) {missing}; known: {', '.join(c.name for c in pool)}")
     else:
@@ -388,6 +401,7 @@ def run_case(case: RealisticCase, work: Path, *, config: RunConfig | None = None
     seconds = time.perf_counter() - t0
     res = {"case": case.name, "role": case.role, "cameras": case.cameras, "size": list(case.size),
            "video": case.video, "distortion": case.distortion, "peak_px": info["peak_px"],
+           "bits_per_pixel": case.bits_per_pixel if case.video else None,
            "pipeline_seconds": seconds, "rows": {}}
     if not summary.ok:
         res["failures"] = dict(summary.root_failures())
@@ -428,11 +442,13 @@ def _f(x, spec=".2f") -> str:
 def family_markdown(result: dict, *, machine: str = "") -> str:
     """Markdown table of :func:`run_family`'s result, with the targets of issue 14."""
     lab = result.get("label") or "defaults"
+    rates = sorted({r.get("bits_per_pixel") or 0.16 for r in result["cases"] if r.get("video")})
+    video = ("H.264 at " + ", ".join(f"{b:g}" for b in rates) + " bit/pixel") if rates else "no video cases"
     lines = [f"# Realistic benchmark family ({lab})", "",
              "Command: `schlieren bench realistic` (see `workers/realistic.py`). CFD flows (PhiFlow) simulated on "
              "the 2.5 mm reconstruction grid, scored on that grid; weak deflections; 8-bit frames, noise 1.5 grey "
              "levels, rolling shutter, strobe sync, noisy reference frames; distortion on the 960x720 rigs; "
-             "H.264 at 0.16 bit/pixel. Whole box = SPEC section 4; in plume = the same RMS over voxels where "
+             f"{video}. Whole box = SPEC section 4; in plume = the same RMS over voxels where "
              "|truth - ambient| > 1 % of the range. `approximate` = the truth's own deflections through "
              "tomography and integration (no optical flow).", "",
              "| case | role | cams | image | peak px | whole box dB | in plume dB | peak ratio | approx. whole / plume dB "
@@ -443,7 +459,8 @@ def family_markdown(result: dict, *, machine: str = "") -> str:
         ap = r["rows"].get("approximate", {})
         tgt = PAPER_TARGETS.get(r["cameras"])
         img = f"{r['size'][0]}x{r['size'][1]}" + (" dist" if r["distortion"] else "") + \
-              (f" {r['video']}" if r["video"] else " png")
+              (f" {r['video']}" if r["video"] else " png") + \
+              (f" {r['bits_per_pixel']:g} bit/px" if r.get("bits_per_pixel") not in (None, 0.16) else "")
         lines.append(f"| {r['case']} | {r['role']} | {r['cameras']} | {img} | {_f(r['peak_px'], '.3f')} | "
                      f"{_f(of.get('psnr'))} | {_f(of.get('psnr_plume'))} | {_f(of.get('peak_ratio'))} | "
                      f"{_f(ap.get('psnr'))} / {_f(ap.get('psnr_plume'))} | "

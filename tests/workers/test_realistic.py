@@ -24,6 +24,10 @@ def test_case_selection_and_roles():
     assert rb.select_cases("plume1-16") == tuple(c for c in rb.CASES if c.name.startswith("plume1-16"))
     with pytest.raises(ValueError, match="unknown case"):
         rb.select_cases("nope")
+    # the bitrate cases run only by name; an exact name does not pull in the names it prefixes
+    assert not set(rb.BITRATE_CASES) & set(rb.select_cases(None))
+    assert [c.name for c in rb.select_cases("plume2-8cam-960-dist-h264")] == ["plume2-8cam-960-dist-h264"]
+    assert {c.bits_per_pixel for c in rb.select_cases("plume2-8cam-960-dist-h264-")} == {0.5, 1.0}
     # the content key changes with anything that changes the rendered session, not with the role
     c = rb.CASES[0]
     import dataclasses
