@@ -97,6 +97,40 @@ def _configure_logging(verbose: int) -> None:
     logger.propagate = False
 
 
+class _InterruptWatch:
+    """SIGINT raises KeyboardInterrupt as usual and is also remembered.
+
+    A KeyboardInterrupt raised while Python runs a garbage-collection callback (Dask
+    installs one) or inside a library's ``except Exception``-free cleanup is printed as
+    "Exception ignored" and lost: the run then went on and exited 0 after a Ctrl-C. With
+    the flag, :func:`main` still reports the interrupt (exit 130) when the command returns.
+    """
+
+    def __init__(self):
+        self.seen = False
+        self._previous = None
+
+    def __enter__(self):
+        import signal
+        import threading
+
+        if threading.current_thread() is threading.main_thread() and \
+                signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+            self._previous = signal.signal(signal.SIGINT, self._handler)
+        return self
+
+    def _handler(self, signum, frame):
+        self.seen = True
+        raise KeyboardInterrupt
+
+    def __exit__(self, *exc):
+        import signal
+
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
+        return False
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     try:
@@ -105,7 +139,11 @@ def main(argv: list[str] | None = None) -> int:
         return exc.code if isinstance(exc.code, int) else 2
     _configure_logging(args.verbose)
     try:
-        return int(args.func(args) or 0)
+        with _InterruptWatch() as interrupts:
+            code = int(args.func(args) or 0)
+            if interrupts.seen:  # swallowed on the way (see _InterruptWatch): still an interrupt
+                raise KeyboardInterrupt
+        return code
     except _user_error_types() as exc:
         print(f"schlieren {args.command}: error: {exc}", file=sys.stderr)
         return 2

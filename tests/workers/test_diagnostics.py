@@ -118,3 +118,39 @@ def test_cryptography_is_a_main_dependency():
 
     reqs = [r for r in requires("schlieren") if r.startswith("cryptography")]
     assert reqs and not any("extra ==" in r for r in reqs)
+
+
+def test_a_ctrl_c_swallowed_inside_the_command_still_ends_with_the_interrupt(monkeypatch, capsys):
+    """Python drops a KeyboardInterrupt raised in a garbage-collection callback ("Exception
+    ignored"); the command then returns normally. main still reports it: exit 130, one line."""
+    import os
+    import signal
+
+    from schlieren.workers import cli
+
+    def swallowing(args):
+        try:
+            os.kill(os.getpid(), signal.SIGINT)  # what a terminal's Ctrl-C does
+            for _ in range(1000):
+                pass
+        except KeyboardInterrupt:
+            pass  # lost, as in a GC callback
+        return 0
+
+    monkeypatch.setattr(cli, "build_parser", lambda: _one_command_parser(swallowing))
+    assert cli.main(["probe"]) == 130
+    assert capsys.readouterr().err.strip() == "schlieren probe: interrupted; completed chunks are kept"
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+    # without an interrupt the command's own exit code comes back
+    monkeypatch.setattr(cli, "build_parser", lambda: _one_command_parser(lambda a: 3))
+    assert cli.main(["probe"]) == 3
+
+
+def _one_command_parser(func):
+    import argparse
+
+    p = argparse.ArgumentParser(prog="schlieren")
+    p.add_argument("-v", "--verbose", action="count", default=0)
+    sub = p.add_subparsers(dest="command", required=True)
+    sub.add_parser("probe").set_defaults(func=func)
+    return p
