@@ -97,40 +97,6 @@ def _configure_logging(verbose: int) -> None:
     logger.propagate = False
 
 
-class _InterruptWatch:
-    """SIGINT raises KeyboardInterrupt as usual and is also remembered.
-
-    A KeyboardInterrupt raised while Python runs a garbage-collection callback (Dask
-    installs one) or inside a library's ``except Exception``-free cleanup is printed as
-    "Exception ignored" and lost: the run then went on and exited 0 after a Ctrl-C. With
-    the flag, :func:`main` still reports the interrupt (exit 130) when the command returns.
-    """
-
-    def __init__(self):
-        self.seen = False
-        self._previous = None
-
-    def __enter__(self):
-        import signal
-        import threading
-
-        if threading.current_thread() is threading.main_thread() and \
-                signal.getsignal(signal.SIGINT) is signal.default_int_handler:
-            self._previous = signal.signal(signal.SIGINT, self._handler)
-        return self
-
-    def _handler(self, signum, frame):
-        self.seen = True
-        raise KeyboardInterrupt
-
-    def __exit__(self, *exc):
-        import signal
-
-        if self._previous is not None:
-            signal.signal(signal.SIGINT, self._previous)
-        return False
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     try:
@@ -138,12 +104,11 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as exc:  # argparse printed the usage error (or --help): return its code
         return exc.code if isinstance(exc.code, int) else 2
     _configure_logging(args.verbose)
+    from schlieren.workers import interrupts
+
     try:
-        with _InterruptWatch() as interrupts:
-            code = int(args.func(args) or 0)
-            if interrupts.seen:  # swallowed on the way (see _InterruptWatch): still an interrupt
-                raise KeyboardInterrupt
-        return code
+        with interrupts.watch():  # a Ctrl-C dropped on its way still stops the run (interrupts.check)
+            return int(args.func(args) or 0)
     except _user_error_types() as exc:
         print(f"schlieren {args.command}: error: {exc}", file=sys.stderr)
         return 2

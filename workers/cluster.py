@@ -1185,13 +1185,29 @@ class _CancelledOnClose(logging.Filter):
         return "Task cancelled" not in record.getMessage()
 
 
+class _AfterCtrlC(logging.Filter):
+    """After a Ctrl-C reached this worker: drops the errors of the cluster closing under it
+    (a peer gone mid-transfer: "failed during get data"). Before it nothing is dropped."""
+
+    interrupted = False
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not (_AfterCtrlC.interrupted and record.levelno >= logging.WARNING
+                    and "failed during get data" in record.getMessage())
+
+
+def _note_ctrl_c(signum, frame) -> None:  # a worker's SIGINT: the client stops the run
+    _AfterCtrlC.interrupted = True
+
+
 class LocalInterrupts(WorkerPlugin):
     """Workers of a local cluster leave Ctrl-C to the client process.
 
     A terminal's Ctrl-C reaches every process of its foreground group, the worker
     processes of a local cluster included: each printed a KeyboardInterrupt traceback
     before the client's one-line "interrupted" message. The client closes the cluster
-    (which stops the workers) and keeps every completed chunk; the workers ignore SIGINT.
+    (which stops the workers) and keeps every completed chunk; the workers ignore SIGINT
+    (they only note it, to keep the cluster's closing errors out of the terminal).
     Registered only on local clusters (a worker started by hand keeps its Ctrl-C).
     """
 
@@ -1203,5 +1219,6 @@ class LocalInterrupts(WorkerPlugin):
         import threading
 
         if threading.current_thread() is threading.main_thread():
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
+            signal.signal(signal.SIGINT, _note_ctrl_c)  # ignored, but remembered for _AfterCtrlC
         logging.getLogger("distributed.worker.state_machine").addFilter(_CancelledOnClose())
+        logging.getLogger("distributed.worker").addFilter(_AfterCtrlC())

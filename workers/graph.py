@@ -29,6 +29,7 @@ from dask.task_spec import Task as GraphTask
 from dask.task_spec import TaskRef
 from distributed import Client
 
+from schlieren.workers import interrupts
 from schlieren.workers.plan import Plan, critical_path_priorities
 from schlieren.workers.tasks import run_tasks
 
@@ -113,6 +114,7 @@ def run_graph(client: Client, store_path: str, plan: Plan, *,
     remaining = order
     last_fetch = 0.0
     while remaining:
+        interrupts.check()  # a Ctrl-C that was dropped on its way (workers/interrupts.py)
         states = [(f, f.status) for f in remaining]  # one look per future: states move on
         waiting = [f for f, st in states if st not in _TERMINAL]
         if len(waiting) == len(states) or (waiting and time.monotonic() - last_fetch < batch_interval):

@@ -11,6 +11,7 @@ import contextlib
 import logging
 from typing import Callable
 
+from schlieren.workers import interrupts
 from schlieren.workers.plan import Plan
 from schlieren.workers.tasks import TaskFailed, flush_writes, run_tasks
 
@@ -71,6 +72,7 @@ def _loop(store_path, plan, receipts, failures, on_receipt, on_failure) -> None:
 
 def _tasks(store_path, plan, receipts, failures, on_receipt, on_failure) -> None:
     for task in plan.tasks:
+        interrupts.check()  # a Ctrl-C that was dropped on its way (workers/interrupts.py)
         bad = [d for d in task.deps if d in failures]
         if bad:
             failures[task.key] = f"not run: depends on failed {bad[0]}"

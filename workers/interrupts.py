@@ -1,0 +1,69 @@
+"""A Ctrl-C that is never lost.
+
+SIGINT normally raises KeyboardInterrupt wherever the main thread happens to be. Raised
+while Python runs a garbage-collection callback (distributed installs one) it is printed
+as "Exception ignored" and dropped, and the run went on to the end. :class:`watch`
+(entered by ``schlieren``'s ``main``) keeps Python's behaviour and also remembers the
+signal; the executors' loops call :func:`check` between tasks, so a dropped interrupt
+still stops the run at the next task boundary, with the usual one-line message.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+
+__all__ = ["watch", "check", "seen"]
+
+_SEEN = threading.Event()
+
+
+def seen() -> bool:
+    """Whether a watched Ctrl-C arrived."""
+    return _SEEN.is_set()
+
+
+def check() -> None:
+    """Raise KeyboardInterrupt if a watched Ctrl-C arrived (dropped on its way or not)."""
+    if _SEEN.is_set():
+        raise KeyboardInterrupt
+
+
+class watch:
+    """Context manager: SIGINT raises KeyboardInterrupt and is remembered (:func:`check`).
+
+    Only installed from the main thread over Python's own handler (an embedding program's
+    handler is left alone). A remembered interrupt dropped in an "unraisable" context is not
+    printed as a traceback (the caller prints its one line).
+    """
+
+    def __init__(self):
+        self._previous = None
+        self._hook = None
+
+    def __enter__(self) -> "watch":
+        _SEEN.clear()
+        if threading.current_thread() is threading.main_thread() and \
+                signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+            self._previous = signal.signal(signal.SIGINT, _handler)
+            self._hook = sys.unraisablehook
+            sys.unraisablehook = self._unraisable
+        return self
+
+    def _unraisable(self, unraisable) -> None:
+        if unraisable.exc_type is not None and issubclass(unraisable.exc_type, KeyboardInterrupt) and _SEEN.is_set():
+            return
+        self._hook(unraisable)
+
+    def __exit__(self, *exc) -> bool:
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
+            sys.unraisablehook = self._hook
+        _SEEN.clear()
+        return False
+
+
+def _handler(signum, frame) -> None:
+    _SEEN.set()
+    raise KeyboardInterrupt
