@@ -38,7 +38,7 @@ from schlieren.pipeline.tomography.params import TomoParams
 from schlieren.pipeline.tomography.rays import rhs_from_d_out, rhs_from_flows
 
 __all__ = ["SolveInfo", "solve_gradient", "solve_gradient_d_out", "basis_set",
-           "difference_operator", "difference_normal", "cgls", "prepare_frame", "FrameSystem", "finite_rhs",
+           "difference_operator", "difference_normal", "regulariser_normal", "cgls", "prepare_frame", "FrameSystem", "finite_rhs",
            "valid_rays", "rhs_noise", "RegularisationChoice", "choose_reg_weight"]
 
 log = logging.getLogger(__name__)
@@ -184,6 +184,22 @@ def difference_normal(inset: np.ndarray) -> sp.csr_matrix:
     return M
 
 
+def regulariser_normal(inset: np.ndarray, prior: str = "first-differences") -> sp.csr_matrix:
+    """The normal matrix of the smoothness term (``TomoParams.prior``) on the set ``inset``.
+
+    ``first-differences``: :func:`difference_normal` (``L^T L``); ``second-differences``:
+    its square ``(L^T L)^2``, the squared graph Laplacian (a 25-point stencil inside the set).
+    """
+    M = difference_normal(inset)
+    if prior == "first-differences":
+        return M
+    if prior != "second-differences":
+        raise ValueError(f"prior must be 'first-differences' or 'second-differences', not {prior!r}")
+    B = (M @ M).tocsr()
+    B.sort_indices()
+    return B
+
+
 def _apply_cols(M: sp.csr_matrix, X: np.ndarray) -> np.ndarray:
     """``M @ X`` for three columns in one pass over ``M``."""
     X = np.ascontiguousarray(X, dtype=np.float64)
@@ -286,7 +302,7 @@ class FrameSystem:
 
     op: RestrictedOperator
     inset: np.ndarray  # (nz, ny, nx) bool: kept basis functions
-    LtL: sp.csr_matrix  # normal matrix of the first differences on the set (difference_normal)
+    LtL: sp.csr_matrix  # normal matrix of the smoothness term on the set (regulariser_normal)
     _colsumsq: np.ndarray | None = None  # diag(S^T S), shape (n,); computed on first use
 
     @property
@@ -313,7 +329,7 @@ def valid_rays(data: np.ndarray) -> np.ndarray | None:
 
 
 def prepare_frame(geom: TomoGeometry, hull: np.ndarray, *, dilation: int,
-                  rows: np.ndarray | None = None) -> FrameSystem:
+                  rows: np.ndarray | None = None, prior: str = "first-differences") -> FrameSystem:
     """Restrict the session's projection to a frame's hull (basis functions and rays;
     ``rows``: only these rays, e.g. :func:`valid_rays`)."""
     hull = np.asarray(hull, dtype=bool)
@@ -325,7 +341,7 @@ def prepare_frame(geom: TomoGeometry, hull: np.ndarray, *, dilation: int,
     n = int(flat.sum())
     colmap[flat] = np.arange(n, dtype=np.int32)
     op = RestrictedOperator.from_full(geom.S, np.arange(geom.S.shape[0]) if rows is None else rows, colmap, n)
-    return FrameSystem(op=op, inset=inset, LtL=difference_normal(inset))
+    return FrameSystem(op=op, inset=inset, LtL=regulariser_normal(inset, prior))
 
 
 def finite_rhs(b: np.ndarray) -> np.ndarray:
@@ -402,7 +418,7 @@ def solve_gradient(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarra
         x_warm = _warm(x0, inset)
         op, b_k, products = restrict_with_setup(geom.S, colmap, n, rhs, x_warm, reuse_buffers=True,
                                                 rows=valid_rays(data))
-        sys_ = FrameSystem(op=op, inset=inset, LtL=difference_normal(inset), _colsumsq=products[0])
+        sys_ = FrameSystem(op=op, inset=inset, LtL=regulariser_normal(inset, params.prior), _colsumsq=products[0])
     op = sys_.op
     if op.n == 0 or op.m == 0:
         info = SolveInfo(iterations=0, residual=0.0, residual_components=(0.0, 0.0, 0.0),
@@ -641,7 +657,7 @@ def choose_reg_weight(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.nda
         raise ValueError(f"the noise estimate must be finite and positive, got {noise}")
     data = np.asarray(rhs_or_flows)
     rows = valid_rays(data)
-    sys_ = prepare_frame(geom, hull, dilation=params.hull_dilation, rows=rows)
+    sys_ = prepare_frame(geom, hull, dilation=params.hull_dilation, rows=rows, prior=params.prior)
     op = sys_.op
     if op.n == 0 or op.m == 0:
         return RegularisationChoice(reg_weight=float(params.reg_weight), target=0.0, path=())

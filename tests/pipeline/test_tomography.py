@@ -203,6 +203,51 @@ def test_difference_normal_equals_product(seed):
     np.testing.assert_array_equal(M.toarray(), (L.T @ L).toarray())
 
 
+def test_second_difference_prior_is_the_squared_laplacian_and_passes_ramps():
+    """prior "second-differences" = (L^T L)^2: zero on constants over the whole grid and on a
+    linear ramp two voxels from the grid's faces, where first differences still penalise it."""
+    from schlieren.pipeline.tomography.solve import regulariser_normal
+
+    full = np.ones((8, 9, 10), bool)
+    M = regulariser_normal(full, "first-differences")
+    B = regulariser_normal(full, "second-differences")
+    np.testing.assert_array_equal(B.toarray(), (M @ M).toarray())
+    assert B.has_sorted_indices
+    np.testing.assert_allclose(B @ np.ones(full.sum()), 0, atol=1e-12)
+    k, j, i = np.meshgrid(*(np.arange(n) for n in full.shape), indexing="ij")
+    ramp = (0.3 * i - 0.2 * j + 0.1 * k).ravel()
+    interior = np.zeros(full.shape, bool)
+    interior[2:-2, 2:-2, 2:-2] = True
+    np.testing.assert_allclose((B @ ramp)[interior.ravel()], 0, atol=1e-12)
+    assert ramp @ (M @ ramp) > 1  # first differences penalise every step of the ramp
+    with pytest.raises(ValueError, match="prior"):
+        regulariser_normal(full, "third")
+
+
+def test_blob_from_exact_d_out_with_either_prior(setup):
+    """The second-difference prior reconstructs the blob of the end-to-end test as well."""
+    grid, cams, fg, geom = setup
+    centre, sigma, amp = np.array([0.002, 0.001, 0.04]), 0.008, -8e-5
+    e, grad_true = blob_field(grid, centre, sigma, amp)
+    origins = np.repeat(geom.centers, geom.n_rays // len(cams), axis=0)
+    dirs = geom.d_in.reshape(-1, 3)
+    s0, s1 = clip_rays_to_box(origins, dirs, np.asarray(grid.origin) - 2 * grid.voxel_size,
+                              np.asarray(grid.origin) + (np.array(grid.shape[::-1]) + 1) * grid.voxel_size)
+    integral = np.zeros_like(dirs)
+    hit = s1 > s0
+    integral[hit] = blob_line_integrals(origins[hit], dirs[hit], s0[hit], s1[hit], centre, sigma, amp)
+    d_out = dirs * (1 + R_AMB) + integral
+    d_out = (d_out / np.linalg.norm(d_out, axis=1, keepdims=True)).reshape(geom.d_in.shape)
+    hull = np.linalg.norm(grid.centres() - centre, axis=-1) < 3.2 * sigma
+    errs = {}
+    for prior in ("first-differences", "second-differences"):
+        params = TomoParams(reg_weight=0.002, max_iter=200, tol=1e-4, prior=prior)
+        grad, info = solve_gradient_d_out(geom, d_out, hull, params=params)
+        errs[prior] = np.sqrt(np.mean((grad - grad_true) ** 2)) / np.abs(grad_true).max()
+    assert errs["second-differences"] < 0.05, errs
+    assert errs["second-differences"] != errs["first-differences"]  # the prior is used
+
+
 def _line_integral_error(grid, geom, n_cams, centre, sigma, amp):
     _, grad = blob_field(grid, centre, sigma, amp)
     coeff = grad.reshape(-1, 3)
