@@ -3,11 +3,14 @@
 Least squares ``S n_{x,y,z} = n_amb (d_out - d_in)_{x,y,z}`` (eq. 5) for the three
 components at once, restricted to the basis functions whose support touches the visual
 hull and to the rays that hit them. Plain LSQR/CGLS semi-converges on noisy deflections,
-so the normal equations are regularised with a first-difference smoothness term on the
-basis set (differences to the zero-valued basis functions outside the set included, so
-the gradient fades to zero at the hull boundary):
+so the normal equations are regularised with a smoothness term on the basis set built
+from first differences ``L`` (differences to the zero-valued basis functions outside the
+set included, so the gradient fades to zero at the hull boundary):
 
-    min ||S x - b||^2 + mu^2 ||L x||^2,   mu^2 = reg_weight * mean(diag(S^T S)),
+    min ||S x - b||^2 + mu^2 x^T R x,   mu^2 = reg_weight * mean(diag(S^T S)),
+
+with ``R = L^T L`` (``prior: first-differences``, the paper's) or ``R = (L^T L)^2``
+(``second-differences``, the default: a curvature penalty, see ``TomoParams.prior``),
 
 solved by conjugate gradients on the Jacobi-scaled normal equations (the CGLS iteration;
 one fused pass over ``S`` per iteration applies ``S^T S`` to the three components),
@@ -184,7 +187,7 @@ def difference_normal(inset: np.ndarray) -> sp.csr_matrix:
     return M
 
 
-def regulariser_normal(inset: np.ndarray, prior: str = "first-differences") -> sp.csr_matrix:
+def regulariser_normal(inset: np.ndarray, prior: str = "second-differences") -> sp.csr_matrix:
     """The normal matrix of the smoothness term (``TomoParams.prior``) on the set ``inset``.
 
     ``first-differences``: :func:`difference_normal` (``L^T L``); ``second-differences``:
@@ -329,7 +332,7 @@ def valid_rays(data: np.ndarray) -> np.ndarray | None:
 
 
 def prepare_frame(geom: TomoGeometry, hull: np.ndarray, *, dilation: int,
-                  rows: np.ndarray | None = None, prior: str = "first-differences") -> FrameSystem:
+                  rows: np.ndarray | None = None, prior: str = "second-differences") -> FrameSystem:
     """Restrict the session's projection to a frame's hull (basis functions and rays;
     ``rows``: only these rays, e.g. :func:`valid_rays`)."""
     hull = np.asarray(hull, dtype=bool)
