@@ -392,10 +392,6 @@ def _coefficients(field: np.ndarray) -> list:
     return [spline_coefficients(np.ascontiguousarray(field[..., k])) for k in range(field.shape[-1])]
 
 
-def _warp_channels(coefs: list, disp: np.ndarray) -> np.ndarray:
-    return np.stack([warp_coefficients(c, disp) for c in coefs], axis=-1)
-
-
 def _warp_channel_rows(coefs: list, rows: np.ndarray, disp: np.ndarray) -> np.ndarray:
     return np.stack([warp_coefficient_rows(c, rows, disp) for c in coefs], axis=-1)
 
