@@ -93,6 +93,10 @@ class RunContext:
     #: Entries kept by :meth:`memo` per process.
     MEMO_ITEMS = 64
 
+    def memoized(self, key) -> bool:
+        """Whether :meth:`memo` holds ``key``."""
+        return key in self._small.get("__memo__", ())
+
     def memo(self, key, make):
         """``make()``, remembered for the last :data:`MEMO_ITEMS` keys (LRU): per-frame
         intermediate results that the tasks of neighbouring frames share. Keys must name
@@ -380,9 +384,12 @@ def _mask(ctx: RunContext, c: int, k: int) -> dict:
         return masksmod.frame_evidence(ctx.read_upstream("potential", (c, i)), thr,
                                        flow=ctx.read_upstream("flow", (c, i)), **kw)
 
-    ctx.read_upstream_many("potential", [(c, i) for i in ks])
-    ctx.read_upstream_many("flow", [(c, i) for i in ks])
-    ev = [ctx.memo(("mask_evidence", c, i, thr), lambda i=i: evidence(i)) for i in dict.fromkeys(ks)]
+    keys = {i: ("mask_evidence", c, i, thr) for i in ks}
+    todo = [(c, i) for i, key in keys.items() if not ctx.memoized(key)]
+    if todo:  # read the frames still needed together (concurrent requests on object stores)
+        ctx.read_upstream_many("potential", todo)
+        ctx.read_upstream_many("flow", todo)
+    ev = [ctx.memo(key, lambda i=i: evidence(i)) for i, key in keys.items()]
     m = masksmod.mask_from_evidence(ev, **kernel_kwargs(params, masksmod.mask_from_evidence))
     ctx.store.write("mask", (c, k), np.asarray(m, dtype=bool))
     return {"fraction": float(np.mean(m))}
