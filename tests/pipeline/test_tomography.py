@@ -227,18 +227,7 @@ def test_second_difference_prior_is_the_squared_laplacian_and_passes_ramps():
 def test_blob_from_exact_d_out_with_either_prior(setup):
     """The second-difference prior reconstructs the blob of the end-to-end test as well."""
     grid, cams, fg, geom = setup
-    centre, sigma, amp = np.array([0.002, 0.001, 0.04]), 0.008, -8e-5
-    e, grad_true = blob_field(grid, centre, sigma, amp)
-    origins = np.repeat(geom.centers, geom.n_rays // len(cams), axis=0)
-    dirs = geom.d_in.reshape(-1, 3)
-    s0, s1 = clip_rays_to_box(origins, dirs, np.asarray(grid.origin) - 2 * grid.voxel_size,
-                              np.asarray(grid.origin) + (np.array(grid.shape[::-1]) + 1) * grid.voxel_size)
-    integral = np.zeros_like(dirs)
-    hit = s1 > s0
-    integral[hit] = blob_line_integrals(origins[hit], dirs[hit], s0[hit], s1[hit], centre, sigma, amp)
-    d_out = dirs * (1 + R_AMB) + integral
-    d_out = (d_out / np.linalg.norm(d_out, axis=1, keepdims=True)).reshape(geom.d_in.shape)
-    hull = np.linalg.norm(grid.centres() - centre, axis=-1) < 3.2 * sigma
+    centre, sigma, grad_true, d_out, hull = _blob_exit_directions(grid, cams, geom)
     errs = {}
     for prior in ("first-differences", "second-differences"):
         params = TomoParams(reg_weight=0.002, max_iter=200, tol=1e-4, prior=prior)
@@ -353,12 +342,11 @@ def _psnr(r, truth):
     return 20 * np.log10(1 / rms)
 
 
-def test_blob_end_to_end_from_exact_d_out(setup):
-    """Straight-ray exact exit directions of a Gaussian blob -> gradient -> refractivity."""
-    grid, cams, fg, geom = setup
-    centre, sigma, amp = np.array([0.002, 0.001, 0.04]), 0.008, -8e-5
-    e, grad_true = blob_field(grid, centre, sigma, amp)
-    truth = R_AMB + e
+def _blob_exit_directions(grid, cams, geom, amp=-8e-5):
+    """Straight-ray exact exit directions of a Gaussian blob, its true gradient and a hull
+    around it: ``(centre, sigma, grad_true, d_out (C, h, w, 3), hull)``."""
+    centre, sigma = np.array([0.002, 0.001, 0.04]), 0.008
+    _, grad_true = blob_field(grid, centre, sigma, amp)
     origins = np.repeat(geom.centers, geom.n_rays // len(cams), axis=0)
     dirs = geom.d_in.reshape(-1, 3)
     s0, s1 = clip_rays_to_box(origins, dirs, np.asarray(grid.origin) - 2 * grid.voxel_size,
@@ -366,11 +354,18 @@ def test_blob_end_to_end_from_exact_d_out(setup):
     integral = np.zeros_like(dirs)
     hit = s1 > s0
     integral[hit] = blob_line_integrals(origins[hit], dirs[hit], s0[hit], s1[hit], centre, sigma, amp)
-    n_amb = 1 + R_AMB
-    d_out = dirs * n_amb + integral
-    d_out /= np.linalg.norm(d_out, axis=1, keepdims=True)
-    d_out = d_out.reshape(geom.d_in.shape)
+    d_out = dirs * (1 + R_AMB) + integral
+    d_out = (d_out / np.linalg.norm(d_out, axis=1, keepdims=True)).reshape(geom.d_in.shape)
     hull = np.linalg.norm(grid.centres() - centre, axis=-1) < 3.2 * sigma
+    return centre, sigma, grad_true, d_out, hull
+
+
+def test_blob_end_to_end_from_exact_d_out(setup):
+    """Straight-ray exact exit directions of a Gaussian blob -> gradient -> refractivity."""
+    grid, cams, fg, geom = setup
+    centre, sigma, grad_true, d_out, hull = _blob_exit_directions(grid, cams, geom)
+    truth = R_AMB + blob_field(grid, centre, sigma, -8e-5)[0]
+    n_amb = 1 + R_AMB
     params = TomoParams(reg_weight=0.002, max_iter=200, tol=1e-4)
     grad, info = solve_gradient_d_out(geom, d_out, hull, params=params)
     assert info.iterations > 0 and info.residual < 0.2
