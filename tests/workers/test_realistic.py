@@ -53,3 +53,27 @@ def test_quick_case_end_to_end(tmp_path):
     assert 0.2 < of["peak_ratio"] < 1.5
     assert ap["psnr"] >= of["psnr"] - 1.0
     assert "| quick-4cam-160 |" in (results / "realistic.md").read_text()
+
+
+def test_scale_solve_follows_a_saturating_response():
+    """The excess-temperature scale converges where the deflection saturates (r ~ 1/T), and
+    a linear response takes the proportional steps (as the CFD flows' scales did)."""
+    def saturating(s):  # like the quick flow: 0.023 px at scale 1, 0.25 px needs a scale near 70
+        return 0.0767 * np.log1p(0.35 * s)
+
+    probes = []
+    scale, peak, ok = rb._solve_scale(saturating, 0.25, probes)
+    assert ok and abs(peak / 0.25 - 1.0) < rb.PEAK_TOL and saturating(scale) == peak
+    assert scale > 50 and len(probes) <= rb.MAX_PROBES
+    # proportional steps alone are still 20 % short after the old budget of three probes
+    s = 1.0
+    for _ in range(3):
+        s *= 0.25 / saturating(s)
+    assert saturating(s) < 0.8 * 0.25
+
+    probes = []
+    scale, peak, ok = rb._solve_scale(lambda s: 0.2 * s, 0.25, probes)
+    assert ok and scale == 0.25 / 0.2 and len(probes) == 2
+    # an unreachable request: the closest probe, flagged
+    scale, peak, ok = rb._solve_scale(lambda s: 0.1 * s / (1.0 + s), 0.25, [])
+    assert not ok and peak <= 0.1
