@@ -290,22 +290,31 @@ def _restrict_row(indptr, indices, data, r, colmap, new_indices, new_data, q):
 
 
 @nb.njit(cache=True, fastmath=True, inline="always")
-def _row_setup(indptr, indices, data, r, b, x, with_x, s_, ab, ax):
-    """One row's share of ``diag(S^T S)``, ``S^T b`` and (if ``with_x``) ``S^T S x``
-    (``x`` float32 as in :func:`_normal3`, accumulated in float64)."""
+def _row_setup(indptr, indices, data, r, b, x, with_x, acc):
+    """One row's share of ``diag(S^T S)``, ``S^T b`` and (if ``with_x``) ``S^T S x``.
+
+    ``acc[j]`` holds the three products of column ``j`` side by side (float32: one cache
+    line per entry instead of three arrays' worth; 183 -> 156 ms over 69M entries): ``acc[j,
+    0]`` the squared sum, ``1:4`` ``S^T b``, ``4:7`` ``S^T S x`` (``x`` float32 as in
+    :func:`_normal3`).
+    """
+    b0 = np.float32(b[r, 0])
+    b1 = np.float32(b[r, 1])
+    b2 = np.float32(b[r, 2])
+    t0 = t1 = t2 = np.float32(0.0)
     if with_x:
         t0, t1, t2 = row_dot3_f32(indptr, indices, data, x, r)
-        row_scatter3(indptr, indices, data, r, t0, t1, t2, ax)
-    b0 = b[r, 0]
-    b1 = b[r, 1]
-    b2 = b[r, 2]
     for p in range(indptr[r], indptr[r + 1]):
         j = indices[p]
-        v = np.float64(data[p])
-        s_[j] += v * v
-        ab[j, 0] += v * b0
-        ab[j, 1] += v * b1
-        ab[j, 2] += v * b2
+        v = data[p]
+        acc[j, 0] += v * v
+        acc[j, 1] += v * b0
+        acc[j, 2] += v * b1
+        acc[j, 3] += v * b2
+        if with_x:  # loop-invariant: the compiler unswitches it
+            acc[j, 4] += v * t0
+            acc[j, 5] += v * t1
+            acc[j, 6] += v * t2
 
 
 @nb.njit(parallel=True, cache=True)
@@ -338,31 +347,31 @@ def restrict_rows_cols(S: sp.csr_matrix, rows: np.ndarray, colmap: np.ndarray):
 
 
 @nb.njit(inline="always", cache=True)
-def _setup_accumulators(m, n, nchunks, with_x):
-    """Per-block partial sums of the setup products, and the row bounds of ``nchunks`` blocks."""
-    acc_s = np.zeros((nchunks, n))
-    acc_b = np.zeros((nchunks, n, 3))
-    acc_x = np.zeros((nchunks if with_x else 0, n, 3))
+def _setup_accumulators(m, n, nchunks):
+    """Per-block partial sums of the setup products (see :func:`_row_setup`), and the row
+    bounds of ``nchunks`` blocks."""
+    acc = np.zeros((nchunks, n, 8), np.float32)
     bounds = np.linspace(0, m, nchunks + 1).astype(np.int64)
-    return acc_s, acc_b, acc_x, bounds
+    return acc, bounds
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
-def _sum_chunks(acc_s, acc_b, acc_x, n, nchunks, with_x):
-    """Sum the per-block partial products in block order (fixed: thread-count independent)."""
+def _sum_chunks(acc, n, nchunks):
+    """Sum the per-block partial products in block order (fixed: thread-count independent),
+    in float64: ``(diag(S^T S) (n,), S^T b (n, 3), S^T S x (n, 3))``."""
     out_s = np.zeros(n)
     out_b = np.zeros((n, 3))
     out_x = np.zeros((n, 3))
     for j in nb.prange(n):
         for c in range(nchunks):
-            out_s[j] += acc_s[c, j]
-            out_b[j, 0] += acc_b[c, j, 0]
-            out_b[j, 1] += acc_b[c, j, 1]
-            out_b[j, 2] += acc_b[c, j, 2]
-            if with_x:
-                out_x[j, 0] += acc_x[c, j, 0]
-                out_x[j, 1] += acc_x[c, j, 1]
-                out_x[j, 2] += acc_x[c, j, 2]
+            a = acc[c, j]
+            out_s[j] += a[0]
+            out_b[j, 0] += a[1]
+            out_b[j, 1] += a[2]
+            out_b[j, 2] += a[3]
+            out_x[j, 0] += a[4]
+            out_x[j, 1] += a[5]
+            out_x[j, 2] += a[6]
     return out_s, out_b, out_x
 
 
@@ -370,15 +379,13 @@ def _sum_chunks(acc_s, acc_b, acc_x, n, nchunks, with_x):
 def _restrict_setup3(indptr, indices, data, rows, colmap, new_indptr, new_indices, new_data, b, x, n,
                      nchunks, with_x):
     """:func:`_restrict_fill` fused with :func:`_setup3` (each restricted row is used while hot)."""
-    acc_s, acc_b, acc_x, bounds = _setup_accumulators(rows.shape[0], n, nchunks, with_x)
+    acc, bounds = _setup_accumulators(rows.shape[0], n, nchunks)
     for c in nb.prange(nchunks):
-        s_ = acc_s[c]
-        ab = acc_b[c]
-        ax = acc_x[c] if with_x else ab
+        a = acc[c]
         for k in range(bounds[c], bounds[c + 1]):
             _restrict_row(indptr, indices, data, rows[k], colmap, new_indices, new_data, new_indptr[k])
-            _row_setup(new_indptr, new_indices, new_data, k, b, x, with_x, s_, ab, ax)
-    return _sum_chunks(acc_s, acc_b, acc_x, n, nchunks, with_x)
+            _row_setup(new_indptr, new_indices, new_data, k, b, x, with_x, a)
+    return _sum_chunks(acc, n, nchunks)
 
 
 _SCRATCH = threading.local()
@@ -596,14 +603,12 @@ def _colsumsq(indices, data, n, nchunks):
 @nb.njit(parallel=True, cache=True, fastmath=True)
 def _setup3(indptr, indices, data, b, x, n, nchunks, with_x):
     """``diag(S^T S)``, ``S^T b`` and (if ``with_x``) ``S^T S x`` in one pass over ``S``."""
-    acc_s, acc_b, acc_x, bounds = _setup_accumulators(indptr.shape[0] - 1, n, nchunks, with_x)
+    acc, bounds = _setup_accumulators(indptr.shape[0] - 1, n, nchunks)
     for c in nb.prange(nchunks):
-        s_ = acc_s[c]
-        ab = acc_b[c]
-        ax = acc_x[c] if with_x else ab
+        a = acc[c]
         for r in range(bounds[c], bounds[c + 1]):
-            _row_setup(indptr, indices, data, r, b, x, with_x, s_, ab, ax)
-    return _sum_chunks(acc_s, acc_b, acc_x, n, nchunks, with_x)
+            _row_setup(indptr, indices, data, r, b, x, with_x, a)
+    return _sum_chunks(acc, n, nchunks)
 
 
 class RestrictedOperator:

@@ -7,10 +7,13 @@ so the normal equations are regularised with a smoothness term on the basis set 
 from first differences ``L`` (differences to the zero-valued basis functions outside the
 set included, so the gradient fades to zero at the hull boundary):
 
-    min ||S x - b||^2 + mu^2 x^T R x,   mu^2 = reg_weight * mean(diag(S^T S)),
+    min ||S x - b||^2 + mu^2 x^T R x + mu_c^2 ||C x||^2,
+    mu^2 = reg_weight * mean(diag(S^T S)),   mu_c^2 = curl_weight * mean(diag(S^T S)),
 
 with ``R = L^T L`` (``prior: first-differences``, the paper's) or ``R = (L^T L)^2``
-(``second-differences``, the default: a curvature penalty, see ``TomoParams.prior``),
+(``second-differences``, the default: a curvature penalty, see ``TomoParams.prior``) and
+``C`` the discrete curl of the gradient field (:func:`curl_normal`; beyond the paper, which
+solves the components independently: ``curl_weight: 0``),
 
 solved by conjugate gradients on the Jacobi-scaled normal equations (the CGLS iteration;
 one fused pass over ``S`` per iteration applies ``S^T S`` to the three components),
@@ -41,7 +44,7 @@ from schlieren.pipeline.tomography.params import TomoParams
 from schlieren.pipeline.tomography.rays import rhs_from_d_out, rhs_from_flows
 
 __all__ = ["SolveInfo", "solve_gradient", "solve_gradient_d_out", "basis_set",
-           "difference_operator", "difference_normal", "regulariser_normal", "cgls", "prepare_frame", "FrameSystem", "finite_rhs",
+           "difference_operator", "difference_normal", "regulariser_normal", "regulariser", "SquaredLaplacian", "curl_normal", "CurlNormal", "cgls", "prepare_frame", "FrameSystem", "finite_rhs",
            "valid_rays", "rhs_noise", "RegularisationChoice", "choose_reg_weight"]
 
 log = logging.getLogger(__name__)
@@ -187,6 +190,42 @@ def difference_normal(inset: np.ndarray) -> sp.csr_matrix:
     return M
 
 
+class SquaredLaplacian:
+    """``(L^T L)^2`` kept as its factor ``M = L^T L`` (the set's 7-point Laplacian).
+
+    Applied as two products with ``M`` (2 x 7 entries per row instead of the 25 of the
+    formed square, and no sparse matrix product per frame: 30 ms at paper scale).
+    ``M`` is symmetric, so ``diag(M^2)`` is the row sums of ``M``'s squared entries.
+    """
+
+    def __init__(self, M: sp.csr_matrix):
+        self.M = M
+        self.shape = M.shape
+
+    def diagonal(self) -> np.ndarray:
+        return np.asarray(self.M.multiply(self.M).sum(axis=1)).ravel()
+
+    def toarray(self) -> np.ndarray:
+        return (self.M @ self.M).toarray()
+
+
+def regulariser(inset: np.ndarray, prior: str = "second-differences") -> sp.csr_matrix | SquaredLaplacian:
+    """The smoothness term's normal matrix as the solver applies it: :func:`difference_normal`
+    for ``first-differences``, :class:`SquaredLaplacian` of it for ``second-differences``
+    (equal to :func:`regulariser_normal`, never formed)."""
+    if prior not in ("first-differences", "second-differences"):
+        raise ValueError(f"prior must be 'first-differences' or 'second-differences', not {prior!r}")
+    M = difference_normal(inset)
+    return M if prior == "first-differences" else SquaredLaplacian(M)
+
+
+def _apply_regulariser(R, X: np.ndarray) -> np.ndarray:
+    """``R @ X`` for three columns (``R`` from :func:`regulariser`)."""
+    if isinstance(R, SquaredLaplacian):
+        return _apply_cols(R.M, _apply_cols(R.M, X))
+    return _apply_cols(R, X)
+
+
 def regulariser_normal(inset: np.ndarray, prior: str = "second-differences") -> sp.csr_matrix:
     """The normal matrix of the smoothness term (``TomoParams.prior``) on the set ``inset``.
 
@@ -201,6 +240,172 @@ def regulariser_normal(inset: np.ndarray, prior: str = "second-differences") -> 
     B = (M @ M).tocsr()
     B.sort_indices()
     return B
+
+
+#: Gradient components (0 = x) of the three plaquette planes of :class:`CurlNormal`.
+_PLANES = ((0, 1), (0, 2), (1, 2))
+
+
+@nb.njit(cache=True)
+def _plaquettes(colmap, n):
+    """Corners of every 2x2 plaquette of the three coordinate planes with at least one
+    corner in the set: ``(P, 4)`` unknown indices ``(p, p+e_a, p+e_c, p+e_a+e_c)`` (``n`` =
+    outside the set, i.e. zero) and the plane (index into ``_PLANES``) of each."""
+    nz, ny, nx = colmap.shape
+    cap = 3 * (n + 1) * 4
+    corners = np.empty((cap, 4), np.int32)
+    planes = np.empty(cap, np.int8)
+    k = 0
+    for plane in range(3):
+        ca, cc = _PLANES[plane]
+        a, c = 2 - ca, 2 - cc  # grid axes (z, y, x order) of components ca, cc
+        da = np.zeros(3, np.int64)
+        dc = np.zeros(3, np.int64)
+        da[a] = 1
+        dc[c] = 1
+        for z in range(nz - da[0] - dc[0]):
+            for y in range(ny - da[1] - dc[1]):
+                for x in range(nx - da[2] - dc[2]):
+                    q0 = colmap[z, y, x]
+                    qa = colmap[z + da[0], y + da[1], x + da[2]]
+                    qc = colmap[z + dc[0], y + dc[1], x + dc[2]]
+                    qac = colmap[z + da[0] + dc[0], y + da[1] + dc[1], x + da[2] + dc[2]]
+                    if q0 < 0 and qa < 0 and qc < 0 and qac < 0:
+                        continue
+                    if k == corners.shape[0]:  # cannot happen for a sane cap; grow anyway
+                        grown = np.empty((2 * k, 4), np.int32)
+                        grown[:k] = corners
+                        corners = grown
+                        gp = np.empty(2 * k, np.int8)
+                        gp[:k] = planes
+                        planes = gp
+                    corners[k, 0] = q0 if q0 >= 0 else n
+                    corners[k, 1] = qa if qa >= 0 else n
+                    corners[k, 2] = qc if qc >= 0 else n
+                    corners[k, 3] = qac if qac >= 0 else n
+                    planes[k] = plane
+                    k += 1
+    return corners[:k].copy(), planes[:k].copy()
+
+
+@nb.njit(cache=True, fastmath=True)
+def _curl_apply(corners, planes, x, w, out):
+    """``out += w C^T C x`` (``x``, ``out`` (n, 3); corner index ``n`` = outside, zero)."""
+    n = x.shape[0]
+    for k in range(corners.shape[0]):
+        ca, cc = _PLANES[planes[k]]
+        p0 = corners[k, 0]
+        pa = corners[k, 1]
+        pc = corners[k, 2]
+        pac = corners[k, 3]
+        # circulation: (g_c(pa) + g_c(pac) - g_c(p0) - g_c(pc)) - (g_a(pc) + g_a(pac) - g_a(p0) - g_a(pa))
+        v = 0.0
+        if p0 < n:
+            v += x[p0, ca] - x[p0, cc]
+        if pa < n:
+            v += x[pa, cc] + x[pa, ca]
+        if pc < n:
+            v -= x[pc, cc] + x[pc, ca]
+        if pac < n:
+            v += x[pac, cc] - x[pac, ca]
+        v *= w
+        if p0 < n:
+            out[p0, ca] += v
+            out[p0, cc] -= v
+        if pa < n:
+            out[pa, cc] += v
+            out[pa, ca] += v
+        if pc < n:
+            out[pc, cc] -= v
+            out[pc, ca] -= v
+        if pac < n:
+            out[pac, cc] += v
+            out[pac, ca] -= v
+
+
+@nb.njit(cache=True)
+def _curl_diagonal(corners, planes, n):
+    d = np.zeros((n, 3))
+    for k in range(corners.shape[0]):
+        ca, cc = _PLANES[planes[k]]
+        for q in range(4):
+            j = corners[k, q]
+            if j < n:
+                d[j, ca] += 1.0
+                d[j, cc] += 1.0
+    return d
+
+
+class CurlNormal:
+    """``C^T C`` for the discrete curl ``C`` of a gradient field on a set of voxels,
+    applied matrix-free (:func:`curl_normal`)."""
+
+    def __init__(self, corners: np.ndarray, planes: np.ndarray, n: int):
+        self.corners = corners
+        self.planes = planes
+        self.n = int(n)
+
+    def diagonal3(self) -> np.ndarray:
+        """``diag(C^T C)`` as (n, 3)."""
+        return _curl_diagonal(self.corners, self.planes, self.n)
+
+    def apply3(self, x: np.ndarray, weight: float = 1.0, out: np.ndarray | None = None) -> np.ndarray:
+        """``out + weight C^T C x`` for x of shape (n, 3) (``out`` updated in place if given)."""
+        x = np.ascontiguousarray(x, dtype=np.float64).reshape(self.n, 3)
+        out = np.zeros((self.n, 3)) if out is None else out
+        _curl_apply(self.corners, self.planes, x, float(weight), out)
+        return out
+
+    def curl_matrix(self) -> sp.csr_matrix:
+        """``C`` itself, shape (plaquettes, 3 n), columns ``3 i + c`` (for tests)."""
+        rows, cols, vals = [], [], []
+        r = np.arange(len(self.planes))
+        comps = np.array(_PLANES)[self.planes.astype(np.int64)]
+        ca, cc = comps[:, 0], comps[:, 1]
+        p0, pa, pc, pac = self.corners.T.astype(np.int64)
+        for q, comp, sign in ((pa, cc, 1.0), (pac, cc, 1.0), (p0, cc, -1.0), (pc, cc, -1.0),
+                              (pc, ca, -1.0), (pac, ca, -1.0), (p0, ca, 1.0), (pa, ca, 1.0)):
+            ok = q < self.n
+            rows.append(r[ok])
+            cols.append(3 * q[ok] + comp[ok])
+            vals.append(np.full(int(ok.sum()), sign))
+        return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                             shape=(len(r), 3 * self.n))
+
+
+def curl_normal(inset: np.ndarray) -> CurlNormal:
+    """``C^T C`` for the discrete curl ``C`` of a gradient field on the set ``inset``.
+
+    The unknowns are the solver's ``(n, 3)`` arrays (row ``i`` = the set's voxels in C order,
+    column ``c`` = x, y, z). For each pair of components ``(a, c)`` and each 2x2 plaquette of
+    voxels in their plane with at least one voxel in the set, ``C`` has one row, the
+    circulation of ``g`` around the plaquette:
+
+        (g_c(p+e_a) + g_c(p+e_a+e_c) - g_c(p) - g_c(p+e_c))
+      - (g_a(p+e_c) + g_a(p+e_a+e_c) - g_a(p) - g_a(p+e_a)),
+
+    i.e. ``2 h (d_a g_c - d_c g_a)`` averaged over the plaquette: zero for the gradient of
+    any field that is quadratic across it (second-order accurate for smooth fields). Voxels
+    outside the set count as zero, like the smoothness term's differences. ``C^T C`` is
+    symmetric positive semi-definite and couples the three components; its null space is
+    the curl-free fields, which the per-component null spaces of a few-view tomography
+    mostly are not (see ``TomoParams.curl_weight``). Applied matrix-free (a plaquette list
+    per frame: 2 ms instead of 0.22 s for the sparse product at paper scale).
+
+    Parameters
+    ----------
+    inset : ndarray, shape (nz, ny, nx) bool
+
+    Returns
+    -------
+    CurlNormal
+    """
+    inset = np.ascontiguousarray(inset, dtype=bool)
+    n = int(inset.sum())
+    colmap = np.full(inset.shape, -1, np.int32)
+    colmap[inset] = np.arange(n, dtype=np.int32)
+    corners, planes = _plaquettes(colmap, n)
+    return CurlNormal(corners, planes, n)
 
 
 def _apply_cols(M: sp.csr_matrix, X: np.ndarray) -> np.ndarray:
@@ -305,8 +510,9 @@ class FrameSystem:
 
     op: RestrictedOperator
     inset: np.ndarray  # (nz, ny, nx) bool: kept basis functions
-    LtL: sp.csr_matrix  # normal matrix of the smoothness term on the set (regulariser_normal)
+    LtL: sp.csr_matrix | SquaredLaplacian  # smoothness term's normal matrix on the set (regulariser)
     _colsumsq: np.ndarray | None = None  # diag(S^T S), shape (n,); computed on first use
+    CtC: CurlNormal | None = None  # curl_normal(inset) when TomoParams.curl_weight > 0
 
     @property
     def n(self) -> int:
@@ -327,14 +533,23 @@ def valid_rays(data: np.ndarray) -> np.ndarray | None:
     clipped or textureless regions): those rays are left out of the system rather than
     read as "no deflection".
     """
-    ok = np.isfinite(np.asarray(data)).all(axis=-1).ravel()
+    data = np.asarray(data)
+    # the channel sum is finite exactly when every channel is (NaN and inf propagate; the
+    # values are deflections in pixels or O(1e-3) right-hand sides, far from overflow):
+    # 4x faster than isfinite().all(axis=-1) over a trailing axis of 2 or 3
+    total = data[..., 0].copy()
+    for k in range(1, data.shape[-1]):
+        total += data[..., k]
+    ok = np.isfinite(total).ravel()
     return None if ok.all() else np.flatnonzero(ok)
 
 
 def prepare_frame(geom: TomoGeometry, hull: np.ndarray, *, dilation: int,
-                  rows: np.ndarray | None = None, prior: str = "second-differences") -> FrameSystem:
+                  rows: np.ndarray | None = None, prior: str = "second-differences",
+                  curl: bool = False) -> FrameSystem:
     """Restrict the session's projection to a frame's hull (basis functions and rays;
-    ``rows``: only these rays, e.g. :func:`valid_rays`)."""
+    ``rows``: only these rays, e.g. :func:`valid_rays`; ``curl``: also build
+    :func:`curl_normal` for ``TomoParams.curl_weight``)."""
     hull = np.asarray(hull, dtype=bool)
     if hull.shape != geom.grid.shape:
         raise ValueError(f"hull shape {hull.shape} does not match the grid {geom.grid.shape}")
@@ -344,7 +559,8 @@ def prepare_frame(geom: TomoGeometry, hull: np.ndarray, *, dilation: int,
     n = int(flat.sum())
     colmap[flat] = np.arange(n, dtype=np.int32)
     op = RestrictedOperator.from_full(geom.S, np.arange(geom.S.shape[0]) if rows is None else rows, colmap, n)
-    return FrameSystem(op=op, inset=inset, LtL=regulariser_normal(inset, prior))
+    return FrameSystem(op=op, inset=inset, LtL=regulariser(inset, prior),
+                       CtC=curl_normal(inset) if curl else None)
 
 
 def finite_rhs(b: np.ndarray) -> np.ndarray:
@@ -421,7 +637,8 @@ def solve_gradient(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarra
         x_warm = _warm(x0, inset)
         op, b_k, products = restrict_with_setup(geom.S, colmap, n, rhs, x_warm, reuse_buffers=True,
                                                 rows=valid_rays(data))
-        sys_ = FrameSystem(op=op, inset=inset, LtL=regulariser_normal(inset, params.prior), _colsumsq=products[0])
+        sys_ = FrameSystem(op=op, inset=inset, LtL=regulariser(inset, params.prior), _colsumsq=products[0],
+                           CtC=curl_normal(inset) if params.curl_weight > 0 else None)
     op = sys_.op
     if op.n == 0 or op.m == 0:
         info = SolveInfo(iterations=0, residual=0.0, residual_components=(0.0, 0.0, 0.0),
@@ -514,6 +731,16 @@ def _solve_restricted(sys_: FrameSystem, b: np.ndarray, params: TomoParams, x0, 
     mu2 = params.reg_weight * float(np.mean(colsumsq))
     LtL = sys_.LtL
     diag = colsumsq + mu2 * LtL.diagonal()
+    # Curl coupling (TomoParams.curl_weight): one joint CG over the three components.
+    muc2 = params.curl_weight * float(np.mean(colsumsq)) if params.curl_weight > 0 else 0.0
+    CtC = None
+    if muc2 > 0:
+        CtC = sys_.CtC if sys_.CtC is not None else curl_normal(sys_.inset)
+        sys_.CtC = CtC
+        diag = diag + muc2 * CtC.diagonal3().mean(axis=1)
+
+    def curl_term(v, out=None):
+        return CtC.apply3(v, muc2, out)
     P = (1.0 / np.sqrt(np.where(diag > 0, diag, 1.0)))[:, None]
     bb = np.einsum("ij,ij->j", b, b)
 
@@ -523,7 +750,8 @@ def _solve_restricted(sys_: FrameSystem, b: np.ndarray, params: TomoParams, x0, 
     if x_warm is not None:
         z = x_warm / P
         StSx = StSx0
-        Nz = P * (StSx0 + (mu2 * _apply_cols(LtL, x_warm) if mu2 > 0 else 0.0))
+        Nz = P * (StSx0 + (mu2 * _apply_regulariser(LtL, x_warm) if mu2 > 0 else 0.0)
+                  + (curl_term(x_warm) if CtC is not None else 0.0))
     else:
         z = np.zeros((op.n, 3))
         StSx, Nz = np.zeros((op.n, 3)), np.zeros((op.n, 3))
@@ -531,6 +759,9 @@ def _solve_restricted(sys_: FrameSystem, b: np.ndarray, params: TomoParams, x0, 
     p = r.copy()
     rr = np.einsum("ij,ij->j", r, r)
     ref = np.sqrt(np.einsum("ij,ij->j", rhs, rhs))
+    if CtC is not None:  # coupled: one CG, its residual and reference over all components
+        rr = np.full(3, rr.sum())
+        ref = np.full(3, np.sqrt(np.sum(ref ** 2)))
 
     def data_res():
         x = P * z
@@ -547,14 +778,25 @@ def _solve_restricted(sys_: FrameSystem, b: np.ndarray, params: TomoParams, x0, 
     # new direction; q = P (S^T S x + mu^2 L^T L x) with p.q; the updates with r.r).
     x = P * p
     q = np.empty_like(p)
+    # (L^T L)^2 x as M (M x): the inner product into ``Mx``, the outer one fused below
+    squared = isinstance(LtL, SquaredLaplacian) and mu2 > 0
+    Mr = LtL.M if isinstance(LtL, SquaredLaplacian) else LtL
+    Mx = np.empty_like(p) if squared else x
     while it < params.max_iter and np.any(active):
         if stop is not None and np.all(data_res() <= stop):
             reason = "discrepancy"
             break
         Sp = op.normal3(x)
-        pq = _cg_apply(P1, Sp, LtL.indptr, LtL.indices, LtL.data, float(mu2), x, p, q)
+        d = curl_term(x, Sp.copy()) if CtC is not None else Sp
+        if squared:
+            matvec3(Mr.indptr, Mr.indices, Mr.data, x, Mx)
+        pq = _cg_apply(P1, d, Mr.indptr, Mr.indices, Mr.data, float(mu2), Mx if squared else x, p, q)
+        if CtC is not None:
+            pq = np.full(3, pq.sum())
         alpha = np.where(active & (pq > 0), rr / np.where(pq > 0, pq, 1.0), 0.0)
         rr_new = _cg_update3(z, StSx, r, p, q, Sp, alpha)
+        if CtC is not None:
+            rr_new = np.full(3, rr_new.sum())
         beta = np.where(active, rr_new / np.where(rr > 0, rr, 1.0), 0.0)
         rr = np.where(active, rr_new, rr)
         it += 1
@@ -655,12 +897,17 @@ def choose_reg_weight(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.nda
     RegularisationChoice
     """
     tau = float(params.reg_tau if tau is None else tau)
+    # The smoothness weight is chosen without the curl term: with it, the discrepancy
+    # principle trades smoothness for integrability (on the realistic family's tune cases
+    # the weight fell 12-35x, -0.4 dB on 16 cameras); the curl term is then added on top.
+    params = dataclasses.replace(params, curl_weight=0.0)
     noise = np.asarray(noise, dtype=np.float64).reshape(3)
     if not np.all(np.isfinite(noise)) or not noise.any():
         raise ValueError(f"the noise estimate must be finite and positive, got {noise}")
     data = np.asarray(rhs_or_flows)
     rows = valid_rays(data)
-    sys_ = prepare_frame(geom, hull, dilation=params.hull_dilation, rows=rows, prior=params.prior)
+    sys_ = prepare_frame(geom, hull, dilation=params.hull_dilation, rows=rows, prior=params.prior,
+                         curl=params.curl_weight > 0)
     op = sys_.op
     if op.n == 0 or op.m == 0:
         return RegularisationChoice(reg_weight=float(params.reg_weight), target=0.0, path=())

@@ -44,10 +44,11 @@ def test_interlaced_session_reconstructs_close_to_the_progressive_one(tiny_sessi
     got = evaluate(tmp_path / "run.zarr", tiny_session.truth)
     base = evaluate(serial_store, tiny_session.truth)
     assert [r["frame"] for r in got["frames"]] == list(range(2 * a, 2 * b))
-    # Measured (2026-11-24, default parameters): progressive 36.9 dB, fields 33.8 dB. The
-    # footprint-chosen LK window gains the progressive run more than the fields (which carry
-    # half the rows); on the fields the defaults still beat the old fixed window (31.9 dB),
-    # a larger window (33.65 dB) and more smoothing (33.8 dB). Both bounds can fail: a
-    # field-timing or parity mix-up costs far more than 3.5 dB.
-    assert got["overall"]["psnr"] > base["overall"]["psnr"] - 3.5, (got["overall"], base["overall"])
-    assert got["overall"]["psnr"] > 33.0, got["overall"]
+    # Measured (2026-11-24, default parameters): progressive 36.9 dB, fields 33.8 dB; with
+    # the curl-coupled tomography (same day) progressive 38.0 dB, fields 34.2 dB. The
+    # footprint-chosen LK window and the curl term gain the progressive run more than the
+    # fields (which carry half the rows); on the fields the defaults still beat the old fixed
+    # window (31.9 dB), a larger window (33.65 dB) and more smoothing (33.8 dB). Both bounds
+    # can fail: a field-timing or parity mix-up costs far more than 4 dB.
+    assert got["overall"]["psnr"] > base["overall"]["psnr"] - 4.0, (got["overall"], base["overall"])
+    assert got["overall"]["psnr"] > 33.5, got["overall"]
