@@ -1018,6 +1018,24 @@ def _lk_level(coef, frame, u, v, *, window, window_type, iterations, regularisat
     return u, v
 
 
+def measurement_sigma(params: FlowParams) -> float:
+    """RMS width (pixels, per axis) of the image averaging behind one flow-grid cell.
+
+    A deflection on the flow grid is not the deflection of the ray through the cell centre:
+    it is the LK window's weighted mean of the per-pixel deflections (``window`` taps),
+    smoothed (``smoothing_sigma``) and block-averaged to the grid (``factor``). Their
+    variances add: ``var(window taps) + smoothing_sigma^2 + (factor^2 - 1) / 12``. The
+    tomography models this averaging (``TomoParams.model_flow_window``). Methods other
+    than LK get the smoothing and block mean only.
+    """
+    var = float(params.smoothing_sigma) ** 2 + (params.factor ** 2 - 1) / 12.0
+    if params.method == "lk":
+        taps = _window_taps(int(params.window), params.window_type).astype(np.float64)
+        x = np.arange(len(taps)) - (len(taps) - 1) / 2.0
+        var += float(np.sum(taps * x * x) / np.sum(taps))
+    return float(np.sqrt(var))
+
+
 def window_for_voxel(px_per_voxel: float, window_per_voxel: float, *, smallest: int = 5,
                      largest: int = 25) -> int:
     """The odd LK window (pixels) spanning ``window_per_voxel`` voxel footprints."""

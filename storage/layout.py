@@ -227,6 +227,10 @@ def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tup
         _f32("rhs_noise", ("axis",), (3,), (3,),
              {"long_name": "noise of the tomography right-hand side measured outside the masks (x, y, z)",
               "units": "1", "stage": "regularisation"}, dtype="float64"),
+        _f32("flow_window", ("camera",), (C,), (C,),
+             {"long_name": "width of the flow's image averaging modelled by the tomography per camera "
+                           "(0 = cell-centre rays)", "units": "flow cell", "stage": "regularisation", **cam},
+             dtype="float64"),
         # ---- volumes -----------------------------------------------------------------
         ArraySpec("hull", ("frame", "z", "y", "x"), (F, nz, ny, nx), (1, nz, ny, nx), "bool", False,
                   {"long_name": "visual hull", "units": "1", "stage": "hull", **vol_attrs, **t}),

@@ -425,17 +425,21 @@ def _regularisation(ctx: RunContext) -> dict:
     params = ctx.config.tomography
     out = {"reg_choice": params.reg_choice}
     weight, noise = float(params.reg_weight), np.full(3, np.nan)
+    C = len(ctx.cameras)
+    window = choose_flow_window(ctx)
+    ctx.store.write("flow_window", (), window.astype(np.float64))
+    out["flow_window"] = [float(v) for v in window]
+    blur = tomography.MeasurementBlur((C,) + tuple(ctx.flow_grid.shape), window) if np.any(window > 0) else None
     if params.reg_choice == "discrepancy" and ctx.n_frames > 0:
         k = ctx.n_frames // 2
         geom = _geometry(ctx.store_path, _geometry_key(ctx))
-        C = len(ctx.cameras)
         masks = np.stack([ctx.store.read("mask", (c, k)) for c in range(C)])
         flows = np.stack([ctx.read_upstream("flow", (c, k)) for c in range(C)])
         rhs = tomography.rhs_from_flows(geom, flows, n_ambient=params.n_ambient)
         noise = tomography.rhs_noise(rhs, ~masks)
         hull = hullmod.visual_hull(masks, ctx.cameras, ctx.session.grid, ctx.flow_grid, params=ctx.config.hull)
         if np.all(np.isfinite(noise)) and noise.any() and hull.any():
-            choice = tomography.choose_reg_weight(geom, flows, hull, noise, params=params)
+            choice = tomography.choose_reg_weight(geom, flows, hull, noise, params=params, blur=blur)
             weight = choice.reg_weight
             out["path"] = [[float(a), float(b)] for a, b in choice.path]
             log.info("regularisation: weight %.4g from the discrepancy principle (noise %s, frame %d)",
@@ -446,6 +450,26 @@ def _regularisation(ctx: RunContext) -> dict:
     ctx.store.write("rhs_noise", (), np.asarray(noise, dtype=np.float64))
     out.update({"reg_weight": weight, "rhs_noise": [float(v) for v in noise]})
     return out
+
+
+def choose_flow_window(ctx: RunContext) -> np.ndarray:
+    """Per-camera width (flow cells) of the flow averaging the tomography models
+    (``TomoParams.model_flow_window``; :func:`schlieren.pipeline.flow.measurement_sigma`), 0 = none."""
+    C = len(ctx.cameras)
+    if not ctx.config.tomography.model_flow_window:
+        return np.zeros(C)
+    return np.array([flowmod.measurement_sigma(flow_params(ctx, c)) / ctx.flow_grid.factor for c in range(C)])
+
+
+def flow_blur(ctx: RunContext):
+    """The flow averaging the regularisation stage chose (stored ``flow_window``), or None."""
+    def make():
+        sig = np.asarray(ctx.store.read("flow_window", ()), dtype=np.float64)
+        if not np.any(sig > 0):
+            return None
+        return tomography.MeasurementBlur((len(ctx.cameras),) + tuple(ctx.flow_grid.shape), sig)
+
+    return ctx._once("flow_blur", make)
 
 
 def tomo_params(ctx: RunContext):
@@ -473,7 +497,7 @@ def _tomography(ctx: RunContext, k: int) -> dict:
         ctx.store.write("refractivity", (k,), np.asarray(r, dtype=np.float32))
         ctx.store.write("gradient", (k,), np.stack([gx, gy, gz], axis=-1).astype(np.float32))
         return _info_dict(info)
-    grad, info = tomography.solve_gradient(geom, flows, hull, params=tomo_params(ctx), x0=x0)
+    grad, info = tomography.solve_gradient(geom, flows, hull, params=tomo_params(ctx), x0=x0, blur=flow_blur(ctx))
     ctx.store.write("gradient", (k,), np.asarray(grad, dtype=np.float32))
     return _info_dict(info)
 

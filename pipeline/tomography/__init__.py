@@ -17,6 +17,7 @@ from schlieren.pipeline.tomography.geometry import (
 from schlieren.pipeline.tomography.params import RefractivityParams, TomoParams
 from schlieren.pipeline.tomography.rays import approximate_d_out, rhs_from_d_out, rhs_from_flows
 from schlieren.pipeline.tomography.solve import (
+    MeasurementBlur,
     RegularisationChoice,
     SolveInfo,
     choose_reg_weight,
@@ -29,5 +30,5 @@ __all__ = [
     "TomoParams", "RefractivityParams", "TomoGeometry", "build_geometry", "content_hash",
     "save_geometry", "load_geometry", "approximate_d_out", "rhs_from_d_out", "rhs_from_flows",
     "SolveInfo", "solve_gradient", "solve_gradient_d_out", "RefractivityInfo",
-    "solve_refractivity", "RegularisationChoice", "choose_reg_weight", "rhs_noise",
+    "solve_refractivity", "RegularisationChoice", "choose_reg_weight", "rhs_noise", "MeasurementBlur",
 ]

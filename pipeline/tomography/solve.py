@@ -13,7 +13,9 @@ set included, so the gradient fades to zero at the hull boundary):
 with ``R = L^T L`` (``prior: first-differences``, the paper's) or ``R = (L^T L)^2``
 (``second-differences``, the default: a curvature penalty, see ``TomoParams.prior``) and
 ``C`` the discrete curl of the gradient field (:func:`curl_normal`; beyond the paper, which
-solves the components independently: ``curl_weight: 0``),
+solves the components independently: ``curl_weight: 0``). From optical flow the data term is
+``||W S x - b||^2`` with ``W`` the flow's image averaging (:class:`MeasurementBlur`,
+``TomoParams.model_flow_window``; beyond the paper, whose rows are the cell-centre rays),
 
 solved by conjugate gradients on the Jacobi-scaled normal equations (the CGLS iteration;
 one fused pass over ``S`` per iteration applies ``S^T S`` to the three components),
@@ -44,7 +46,7 @@ from schlieren.pipeline.tomography.params import TomoParams
 from schlieren.pipeline.tomography.rays import rhs_from_d_out, rhs_from_flows
 
 __all__ = ["SolveInfo", "solve_gradient", "solve_gradient_d_out", "basis_set",
-           "difference_operator", "difference_normal", "regulariser_normal", "regulariser", "SquaredLaplacian", "curl_normal", "CurlNormal", "cgls", "prepare_frame", "FrameSystem", "finite_rhs",
+           "difference_operator", "difference_normal", "regulariser_normal", "regulariser", "SquaredLaplacian", "curl_normal", "CurlNormal", "cgls", "prepare_frame", "FrameSystem", "MeasurementBlur", "finite_rhs",
            "valid_rays", "rhs_noise", "RegularisationChoice", "choose_reg_weight"]
 
 log = logging.getLogger(__name__)
@@ -504,6 +506,62 @@ def cgls(A, AT, b_parts: list[np.ndarray], x0: np.ndarray, *, max_iter: int, tol
                       rhs_norm=rhs_norm)
 
 
+class MeasurementBlur:
+    """The flow's image-space averaging, per camera, at flow-cell resolution: ``W``.
+
+    A measured deflection is a weighted mean of the per-pixel deflections around the cell
+    (the LK window, smoothing and block mean: :func:`schlieren.pipeline.flow.measurement_sigma`),
+    while a row of ``S`` is the single ray through the cell centre. With ``W`` the data
+    term becomes ``||W S x - b||^2``: ``W`` is a separable Gaussian over neighbouring cells
+    of the same camera (``sigma`` in cells, taps out to ``ceil(2 sigma)``, at least one),
+    zero-padded at the image border so that it is symmetric (``W^T = W``).
+
+    Parameters
+    ----------
+    flow_shape : (C, h, w)
+    sigmas : sequence of float
+        Per camera, in flow cells; <= 0 leaves that camera's rays as they are.
+    """
+
+    def __init__(self, flow_shape, sigmas):
+        self.flow_shape = tuple(int(v) for v in flow_shape)
+        sig = np.asarray(sigmas, dtype=np.float64).reshape(-1)
+        if len(sig) != self.flow_shape[0]:
+            raise ValueError(f"one sigma per camera expected ({self.flow_shape[0]}), got {len(sig)}")
+        self.sigmas = sig
+        self.taps = []
+        for v in sig:
+            if v <= 0:
+                self.taps.append(None)
+                continue
+            K = max(1, int(np.ceil(2.0 * v)))
+            k = np.exp(-0.5 * (np.arange(-K, K + 1) / v) ** 2)
+            self.taps.append((k / k.sum()).astype(np.float32))
+
+    def apply(self, Y: np.ndarray) -> np.ndarray:
+        """``W Y`` for ``Y`` of shape (C, h, w, k) (float32 result)."""
+        import cv2
+
+        Y = np.ascontiguousarray(Y, dtype=np.float32)
+        out = np.empty_like(Y)
+        for c, t in enumerate(self.taps):
+            if t is None:
+                out[c] = Y[c]
+                continue
+            for j in range(Y.shape[-1]):
+                out[c, ..., j] = cv2.sepFilter2D(Y[c, ..., j], cv2.CV_32F, t, t, borderType=cv2.BORDER_CONSTANT)
+        return out
+
+    def restricted(self, rows: np.ndarray, values: np.ndarray) -> np.ndarray:
+        """``(W Y)[rows]`` where ``Y`` is ``values`` (len(rows), k) on ``rows`` and zero
+        elsewhere (float32)."""
+        C, h, w = self.flow_shape
+        k = values.shape[1]
+        full = np.zeros((C * h * w, k), np.float32)
+        full[rows] = values
+        return self.apply(full.reshape(C, h, w, k)).reshape(-1, k)[rows]
+
+
 @dataclass
 class FrameSystem:
     """The per-frame restricted system (also used by the direct refractivity solve)."""
@@ -581,8 +639,8 @@ def _scatter(inset: np.ndarray, values: np.ndarray) -> np.ndarray:
 
 def solve_gradient(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarray, *,
                    params: TomoParams = TomoParams(), x0: np.ndarray | None = None,
-                   noise_rms: float | None = None, system: FrameSystem | None = None
-                   ) -> tuple[np.ndarray, SolveInfo]:
+                   noise_rms: float | None = None, system: FrameSystem | None = None,
+                   blur: MeasurementBlur | None = None) -> tuple[np.ndarray, SolveInfo]:
     """Reconstruct the refractive-index gradient of one frame (paper sec. 5, eq. 5).
 
     Parameters
@@ -602,6 +660,9 @@ def solve_gradient(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarra
         RMS noise of one right-hand-side component, for the discrepancy stop.
     system : FrameSystem, optional
         A restriction already prepared for this hull (reuse across calls).
+    blur : MeasurementBlur, optional
+        Model the flow's image-space averaging (``W S x = b``; :class:`MeasurementBlur`);
+        None: each measurement is the ray through its cell centre.
 
     Returns
     -------
@@ -635,8 +696,8 @@ def solve_gradient(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarra
         colmap = np.full(flat.size, -1, np.int32)
         colmap[flat] = np.arange(n, dtype=np.int32)
         x_warm = _warm(x0, inset)
-        op, b_k, products = restrict_with_setup(geom.S, colmap, n, rhs, x_warm, reuse_buffers=True,
-                                                rows=valid_rays(data))
+        op, b_k, products = restrict_with_setup(geom.S, colmap, n, rhs, x_warm if blur is None else None,
+                                                reuse_buffers=True, rows=valid_rays(data))
         sys_ = FrameSystem(op=op, inset=inset, LtL=regulariser(inset, params.prior), _colsumsq=products[0],
                            CtC=curl_normal(inset) if params.curl_weight > 0 else None)
     op = sys_.op
@@ -645,7 +706,9 @@ def solve_gradient(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarra
                          stop_reason="empty", setup_seconds=time.perf_counter() - t0)
         return np.zeros(geom.grid.shape + (3,), np.float32), info
     b = b_k if products is not None else rhs(op.rows)
-    x, it, reason, res, t_solve = _solve_restricted(sys_, b, params, x0, noise_rms, products)
+    if blur is not None:
+        products = None  # S^T b and the warm start's product go through W (_solve_restricted)
+    x, it, reason, res, t_solve = _solve_restricted(sys_, b, params, x0, noise_rms, products, blur=blur)
     t1 = time.perf_counter()
     grad = _scatter(sys_.inset, x)
     info = SolveInfo(iterations=it, residual=float(np.max(res)), residual_components=tuple(map(float, res)),
@@ -709,7 +772,8 @@ def _cg_direction3(p, r, beta, P, x):
             x[i, c] = P[i] * v
 
 
-def _solve_restricted(sys_: FrameSystem, b: np.ndarray, params: TomoParams, x0, noise_rms, products=None):
+def _solve_restricted(sys_: FrameSystem, b: np.ndarray, params: TomoParams, x0, noise_rms, products=None,
+                      blur: MeasurementBlur | None = None):
     """Jacobi-scaled CG on the regularised normal equations, three columns at once.
 
     ``P (S^T S + mu^2 L^T L) P z = P S^T b``, ``x = P z``. Mathematically the CGLS
@@ -725,7 +789,22 @@ def _solve_restricted(sys_: FrameSystem, b: np.ndarray, params: TomoParams, x0, 
     x_warm = _warm(x0, sys_.inset)
     # One pass over S for diag(S^T S), S^T b and the warm start's S^T S x0 (or already
     # done while restricting: ``products``).
-    colsumsq, Stb, StSx0 = products if products is not None else op.setup_products(b, x_warm)
+    if blur is None:
+        normal = op.normal3
+        colsumsq, Stb, StSx0 = products if products is not None else op.setup_products(b, x_warm)
+    else:
+        # data operator W S (MeasurementBlur): S^T W^T W S x as two passes over S and two
+        # image-space filters; the Jacobi scaling and mu keep diag(S^T S) (W only averages
+        # neighbouring rays of a camera, which cross a voxel alike)
+        rows = op.rows
+
+        def normal(v):  # float32 passes, as op.normal3
+            Sv = op.matvec3_f32(v)
+            return op.rmatvec3_f32(blur.restricted(rows, blur.restricted(rows, Sv)))
+
+        colsumsq = sys_.colsumsq
+        Stb = op.rmatvec3(blur.restricted(rows, b).astype(np.float64))
+        StSx0 = normal(x_warm) if x_warm is not None else np.zeros((op.n, 3))
     if sys_._colsumsq is None:
         sys_._colsumsq = colsumsq
     mu2 = params.reg_weight * float(np.mean(colsumsq))
@@ -786,7 +865,7 @@ def _solve_restricted(sys_: FrameSystem, b: np.ndarray, params: TomoParams, x0, 
         if stop is not None and np.all(data_res() <= stop):
             reason = "discrepancy"
             break
-        Sp = op.normal3(x)
+        Sp = normal(x)
         d = curl_term(x, Sp.copy()) if CtC is not None else Sp
         if squared:
             matvec3(Mr.indptr, Mr.indices, Mr.data, x, Mx)
@@ -868,7 +947,8 @@ class RegularisationChoice:
 
 def choose_reg_weight(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarray, noise: np.ndarray, *,
                       params: TomoParams = TomoParams(), tau: float | None = None, largest: float = 4.0,
-                      smallest: float = 1e-4, factor: float = 2.0) -> RegularisationChoice:
+                      smallest: float = 1e-4, factor: float = 2.0,
+                      blur: MeasurementBlur | None = None) -> RegularisationChoice:
     """Choose the regularisation weight of one frame by Morozov's discrepancy principle.
 
     Solves the frame for decreasing weights ``largest, largest / factor, ...`` (each
@@ -891,6 +971,8 @@ def choose_reg_weight(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.nda
     tau : float, optional
         Safety factor of the discrepancy principle (1 = the noise level exactly);
         default ``params.reg_tau``.
+    blur : MeasurementBlur, optional
+        The data operator's image averaging, as for :func:`solve_gradient`.
 
     Returns
     -------
@@ -925,7 +1007,7 @@ def choose_reg_weight(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.nda
     while True:
         p = dataclasses.replace(params, reg_weight=mu, max_iter=200, tol=1e-3, discrepancy=0.0)
         xr, _it, _reason, rel, _t = _solve_restricted(sys_, b, p, _scatter(sys_.inset, x) if x is not None else None,
-                                                      None)
+                                                      None, blur=blur)
         x = xr
         res2 = float(np.sum((rel * np.sqrt(np.maximum(np.einsum("ij,ij->j", b, b), 1e-300))) ** 2)) if bb > 0 else 0.0
         ratio = res2 / target if target > 0 else 0.0
