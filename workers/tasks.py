@@ -429,7 +429,7 @@ def _regularisation(ctx: RunContext) -> dict:
     window = choose_flow_window(ctx)
     ctx.store.write("flow_window", (), window.astype(np.float64))
     out["flow_window"] = [float(v) for v in window]
-    blur = tomography.MeasurementBlur((C,) + tuple(ctx.flow_grid.shape), window) if np.any(window > 0) else None
+    blur = _measurement_blur(ctx, window)
     if params.reg_choice == "discrepancy" and ctx.n_frames > 0:
         k = ctx.n_frames // 2
         geom = _geometry(ctx.store_path, _geometry_key(ctx))
@@ -461,15 +461,17 @@ def choose_flow_window(ctx: RunContext) -> np.ndarray:
     return np.array([flowmod.measurement_sigma(flow_params(ctx, c)) / ctx.flow_grid.factor for c in range(C)])
 
 
+def _measurement_blur(ctx: RunContext, window: np.ndarray):
+    """:class:`~schlieren.pipeline.tomography.MeasurementBlur` of per-camera widths, None if all 0."""
+    if not np.any(np.asarray(window) > 0):
+        return None
+    return tomography.MeasurementBlur((len(ctx.cameras),) + tuple(ctx.flow_grid.shape), window)
+
+
 def flow_blur(ctx: RunContext):
     """The flow averaging the regularisation stage chose (stored ``flow_window``), or None."""
-    def make():
-        sig = np.asarray(ctx.store.read("flow_window", ()), dtype=np.float64)
-        if not np.any(sig > 0):
-            return None
-        return tomography.MeasurementBlur((len(ctx.cameras),) + tuple(ctx.flow_grid.shape), sig)
-
-    return ctx._once("flow_blur", make)
+    return ctx._once("flow_blur", lambda: _measurement_blur(
+        ctx, np.asarray(ctx.store.read("flow_window", ()), dtype=np.float64)))
 
 
 def tomo_params(ctx: RunContext):

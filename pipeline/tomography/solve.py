@@ -202,13 +202,9 @@ class SquaredLaplacian:
 
     def __init__(self, M: sp.csr_matrix):
         self.M = M
-        self.shape = M.shape
 
     def diagonal(self) -> np.ndarray:
         return np.asarray(self.M.multiply(self.M).sum(axis=1)).ravel()
-
-    def toarray(self) -> np.ndarray:
-        return (self.M @ self.M).toarray()
 
 
 def regulariser(inset: np.ndarray, prior: str = "second-differences") -> sp.csr_matrix | SquaredLaplacian:
@@ -229,17 +225,16 @@ def _apply_regulariser(R, X: np.ndarray) -> np.ndarray:
 
 
 def regulariser_normal(inset: np.ndarray, prior: str = "second-differences") -> sp.csr_matrix:
-    """The normal matrix of the smoothness term (``TomoParams.prior``) on the set ``inset``.
+    """The normal matrix of the smoothness term (``TomoParams.prior``) on the set ``inset``,
+    formed: :func:`regulariser` as an explicit matrix (for tests and inspection).
 
     ``first-differences``: :func:`difference_normal` (``L^T L``); ``second-differences``:
     its square ``(L^T L)^2``, the squared graph Laplacian (a 25-point stencil inside the set).
     """
-    M = difference_normal(inset)
-    if prior == "first-differences":
-        return M
-    if prior != "second-differences":
-        raise ValueError(f"prior must be 'first-differences' or 'second-differences', not {prior!r}")
-    B = (M @ M).tocsr()
+    R = regulariser(inset, prior)
+    if not isinstance(R, SquaredLaplacian):
+        return R
+    B = (R.M @ R.M).tocsr()
     B.sort_indices()
     return B
 
@@ -254,7 +249,8 @@ def _plaquettes(colmap, n):
     corner in the set: ``(P, 4)`` unknown indices ``(p, p+e_a, p+e_c, p+e_a+e_c)`` (``n`` =
     outside the set, i.e. zero) and the plane (index into ``_PLANES``) of each."""
     nz, ny, nx = colmap.shape
-    cap = 3 * (n + 1) * 4
+    # a voxel is a corner of at most 4 plaquettes per plane: at most 12 n of them
+    cap = 12 * n
     corners = np.empty((cap, 4), np.int32)
     planes = np.empty(cap, np.int8)
     k = 0
@@ -274,13 +270,6 @@ def _plaquettes(colmap, n):
                     qac = colmap[z + da[0] + dc[0], y + da[1] + dc[1], x + da[2] + dc[2]]
                     if q0 < 0 and qa < 0 and qc < 0 and qac < 0:
                         continue
-                    if k == corners.shape[0]:  # cannot happen for a sane cap; grow anyway
-                        grown = np.empty((2 * k, 4), np.int32)
-                        grown[:k] = corners
-                        corners = grown
-                        gp = np.empty(2 * k, np.int8)
-                        gp[:k] = planes
-                        planes = gp
                     corners[k, 0] = q0 if q0 >= 0 else n
                     corners[k, 1] = qa if qa >= 0 else n
                     corners[k, 2] = qc if qc >= 0 else n
@@ -988,8 +977,7 @@ def choose_reg_weight(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.nda
         raise ValueError(f"the noise estimate must be finite and positive, got {noise}")
     data = np.asarray(rhs_or_flows)
     rows = valid_rays(data)
-    sys_ = prepare_frame(geom, hull, dilation=params.hull_dilation, rows=rows, prior=params.prior,
-                         curl=params.curl_weight > 0)
+    sys_ = prepare_frame(geom, hull, dilation=params.hull_dilation, rows=rows, prior=params.prior)
     op = sys_.op
     if op.n == 0 or op.m == 0:
         return RegularisationChoice(reg_weight=float(params.reg_weight), target=0.0, path=())

@@ -217,6 +217,9 @@ def test_second_difference_prior_is_the_squared_laplacian_and_passes_ramps():
     B = regulariser_normal(full, "second-differences")
     np.testing.assert_array_equal(B.toarray(), (M @ M).toarray())
     assert B.has_sorted_indices
+    # the solver's form (never formed) has the same diagonal
+    from schlieren.pipeline.tomography.solve import regulariser
+    np.testing.assert_array_equal(regulariser(full, "second-differences").diagonal(), B.diagonal())
     np.testing.assert_allclose(B @ np.ones(full.sum()), 0, atol=1e-12)
     k, j, i = np.meshgrid(*(np.arange(n) for n in full.shape), indexing="ij")
     ramp = (0.3 * i - 0.2 * j + 0.1 * k).ravel()
