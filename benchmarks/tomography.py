@@ -265,15 +265,20 @@ def speed(args):
     # from each camera's voxel footprint, as workers.tasks.flow_blur builds it.
     from schlieren.pipeline import flow as flowmod
     from schlieren.pipeline.geometry import pixel_footprint
-    from schlieren.pipeline.tomography import MeasurementBlur
+    from schlieren.pipeline.tomography import MeasurementBlur, volume_sigma
 
     fp = flowmod.FlowParams()
     windows = [flowmod.window_for_voxel(grid.voxel_size / pixel_footprint(c, np.asarray(grid.center)),
                                         fp.window_per_voxel) for c in cams]
-    blur = None
-    if tp.model_flow_window and not args.no_blur:
-        blur = MeasurementBlur(geom.flow_shape, [flowmod.measurement_sigma(
-            flowmod.FlowParams(window=w)) / fg.factor for w in windows])
+    cell_sigmas = [flowmod.measurement_sigma(flowmod.FlowParams(window=w)) / fg.factor for w in windows]
+    # the measurements are made with the image averaging; the solver models it as the
+    # pipeline does (TomoParams.flow_window_space)
+    blur = MeasurementBlur(geom.flow_shape, cell_sigmas) if tp.model_flow_window and not args.no_blur else None
+    model = {}
+    if blur is not None:
+        space = args.window_space or tp.flow_window_space
+        model = ({"blur": blur} if space == "image"
+                 else {"volume_blur": volume_sigma(cell_sigmas, cams, grid, fg.factor)})
     print(f"geometry: {t_geom:.1f}s, S {geom.S.shape} nnz {geom.S.nnz}, {geom.nbytes / 1e9:.2f} GB", flush=True)
     # A plume-like hull: a vertical cone-cylinder whose dilated basis set has ~150k voxels.
     X = grid.centres()
@@ -300,7 +305,7 @@ def speed(args):
     r0 = None
     for f, (rhs, rtrue) in enumerate(frames):
         ts, cs = time.perf_counter(), time.process_time()
-        g, sinfo = solve_gradient(geom, rhs, hull, params=tp, x0=x0, blur=blur)
+        g, sinfo = solve_gradient(geom, rhs, hull, params=tp, x0=x0, **model)
         t_tomo, c_tomo = time.perf_counter() - ts, time.process_time() - cs
         ti, ci = time.perf_counter(), time.process_time()
         r, pinfo = integrate(g, hull, grid, r_ambient=R_AMB, params=PoissonParams(solver=args.solver), x0=r0)
@@ -317,8 +322,10 @@ def speed(args):
         print(json.dumps(row), flush=True)
     warm = results[1:] if len(results) > 1 else results
     out = {"grid": list(grid.shape), "voxel": voxel_note,
-           "flow_window_model": (f"LK windows {sorted(set(windows))} px -> W sigma "
-                                 f"{', '.join(f'{v:.2f}' for v in sorted(set(blur.sigmas)))} cells"
+           "flow_window_model": (f"LK windows {sorted(set(windows))} px -> image sigma "
+                                 f"{', '.join(f'{v:.2f}' for v in sorted(set(blur.sigmas)))} cells, modelled "
+                                 + (f"in the volume (sigma {model['volume_blur']:.2f} voxels)" if "volume_blur" in model
+                                    else "in image space")
                                  if blur is not None else "off (--no-blur)"), "flow_grid": list(fg.shape), "cameras": 16,
            "hull_voxels": int(hull.sum()), "geometry_seconds": round(t_geom, 1),
            "geometry_bytes": geom.nbytes, "data_seconds": round(t_data, 1), "frames": results,
@@ -364,6 +371,8 @@ def main(argv=None):
     ap.add_argument("--suffix", default="", help="appended to the results file name")
     ap.add_argument("--hull-radius", type=float, default=0.06)
     ap.add_argument("--solver", default="mg")
+    ap.add_argument("--window-space", choices=("volume", "image"), default="",
+                    help="speed run: where the solver models the flow averaging (default: TomoParams')")
     ap.add_argument("--voxel", default="", help="speed run: voxel in metres, or 'auto' (the default a manifest "
                                                 "without voxel_size gets); default 2.5 mm")
     args = ap.parse_args(argv)

@@ -429,7 +429,12 @@ def _regularisation(ctx: RunContext) -> dict:
     window = choose_flow_window(ctx)
     ctx.store.write("flow_window", (), window.astype(np.float64))
     out["flow_window"] = [float(v) for v in window]
-    blur = _measurement_blur(ctx, window)
+    # The weight is chosen with the image-space model whatever flow_window_space says: it
+    # fits the cell data to their noise, which the discrepancy principle needs; the volume
+    # model's misfit stays above it on 16 cameras (the search would end at its smallest
+    # weight). Measured on the realistic family's tune cases: volume solves with the weight
+    # chosen this way +0.03 to +0.18 dB over volume solves with their own choice.
+    blur = _window_model(ctx, window, space="image")
     if params.reg_choice == "discrepancy" and ctx.n_frames > 0:
         k = ctx.n_frames // 2
         geom = _geometry(ctx.store_path, _geometry_key(ctx))
@@ -439,7 +444,7 @@ def _regularisation(ctx: RunContext) -> dict:
         noise = tomography.rhs_noise(rhs, ~masks)
         hull = hullmod.visual_hull(masks, ctx.cameras, ctx.session.grid, ctx.flow_grid, params=ctx.config.hull)
         if np.all(np.isfinite(noise)) and noise.any() and hull.any():
-            choice = tomography.choose_reg_weight(geom, flows, hull, noise, params=params, blur=blur)
+            choice = tomography.choose_reg_weight(geom, flows, hull, noise, params=params, **blur)
             weight = choice.reg_weight
             out["path"] = [[float(a), float(b)] for a, b in choice.path]
             log.info("regularisation: weight %.4g from the discrepancy principle (noise %s, frame %d)",
@@ -461,16 +466,23 @@ def choose_flow_window(ctx: RunContext) -> np.ndarray:
     return np.array([flowmod.measurement_sigma(flow_params(ctx, c)) / ctx.flow_grid.factor for c in range(C)])
 
 
-def _measurement_blur(ctx: RunContext, window: np.ndarray):
-    """:class:`~schlieren.pipeline.tomography.MeasurementBlur` of per-camera widths, None if all 0."""
-    if not np.any(np.asarray(window) > 0):
-        return None
-    return tomography.MeasurementBlur((len(ctx.cameras),) + tuple(ctx.flow_grid.shape), window)
+def _window_model(ctx: RunContext, window: np.ndarray, space: str | None = None) -> dict:
+    """The solver's keyword for the flow averaging of per-camera widths ``window`` (flow
+    cells): ``blur`` (:class:`~schlieren.pipeline.tomography.MeasurementBlur`, image space)
+    or ``volume_blur`` (sigma in voxels, :func:`~schlieren.pipeline.tomography.volume_sigma`)
+    as ``space`` (default ``TomoParams.flow_window_space``) says; empty if every width is 0."""
+    window = np.asarray(window, dtype=np.float64)
+    if not np.any(window > 0):
+        return {}
+    if (space or ctx.config.tomography.flow_window_space) == "image":
+        return {"blur": tomography.MeasurementBlur((len(ctx.cameras),) + tuple(ctx.flow_grid.shape), window)}
+    return {"volume_blur": tomography.volume_sigma(window, ctx.cameras, ctx.session.grid, ctx.flow_grid.factor)}
 
 
-def flow_blur(ctx: RunContext):
-    """The flow averaging the regularisation stage chose (stored ``flow_window``), or None."""
-    return ctx._once("flow_blur", lambda: _measurement_blur(
+def flow_blur(ctx: RunContext) -> dict:
+    """The flow averaging the regularisation stage chose (stored ``flow_window``), as the
+    solver's keyword (:func:`_window_model`)."""
+    return ctx._once("flow_blur", lambda: _window_model(
         ctx, np.asarray(ctx.store.read("flow_window", ()), dtype=np.float64)))
 
 
@@ -499,7 +511,8 @@ def _tomography(ctx: RunContext, k: int) -> dict:
         ctx.store.write("refractivity", (k,), np.asarray(r, dtype=np.float32))
         ctx.store.write("gradient", (k,), np.stack([gx, gy, gz], axis=-1).astype(np.float32))
         return _info_dict(info)
-    grad, info = tomography.solve_gradient(geom, flows, hull, params=tomo_params(ctx), x0=x0, blur=flow_blur(ctx))
+    grad, info = tomography.solve_gradient(geom, flows, hull, params=tomo_params(ctx), x0=x0,
+                                           **flow_blur(ctx))
     ctx.store.write("gradient", (k,), np.asarray(grad, dtype=np.float32))
     return _info_dict(info)
 

@@ -20,10 +20,12 @@ from schlieren.pipeline.tomography.solve import (
     MeasurementBlur,
     RegularisationChoice,
     SolveInfo,
+    VolumeBlur,
     choose_reg_weight,
     rhs_noise,
     solve_gradient,
     solve_gradient_d_out,
+    volume_sigma,
 )
 
 __all__ = [
@@ -31,4 +33,5 @@ __all__ = [
     "save_geometry", "load_geometry", "approximate_d_out", "rhs_from_d_out", "rhs_from_flows",
     "SolveInfo", "solve_gradient", "solve_gradient_d_out", "RefractivityInfo",
     "solve_refractivity", "RegularisationChoice", "choose_reg_weight", "rhs_noise", "MeasurementBlur",
+    "VolumeBlur", "volume_sigma",
 ]

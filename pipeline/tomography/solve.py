@@ -14,8 +14,10 @@ with ``R = L^T L`` (``prior: first-differences``, the paper's) or ``R = (L^T L)^
 (``second-differences``, the default: a curvature penalty, see ``TomoParams.prior``) and
 ``C`` the discrete curl of the gradient field (:func:`curl_normal`; beyond the paper, which
 solves the components independently: ``curl_weight: 0``). From optical flow the data term is
-``||W S x - b||^2`` with ``W`` the flow's image averaging (:class:`MeasurementBlur`,
-``TomoParams.model_flow_window``; beyond the paper, whose rows are the cell-centre rays),
+``||S G x - b||^2`` with ``G`` the flow's image averaging moved to the volume (a Gaussian
+over the basis coefficients, :class:`VolumeBlur`; ``TomoParams.model_flow_window``, beyond
+the paper, whose rows are the cell-centre rays) or ``||W S x - b||^2`` with ``W`` the same
+averaging in image space (:class:`MeasurementBlur`, ``flow_window_space: image``),
 
 solved by conjugate gradients on the Jacobi-scaled normal equations (the CGLS iteration;
 one fused pass over ``S`` per iteration applies ``S^T S`` to the three components),
@@ -46,7 +48,7 @@ from schlieren.pipeline.tomography.params import TomoParams
 from schlieren.pipeline.tomography.rays import rhs_from_d_out, rhs_from_flows
 
 __all__ = ["SolveInfo", "solve_gradient", "solve_gradient_d_out", "basis_set",
-           "difference_operator", "difference_normal", "regulariser_normal", "regulariser", "SquaredLaplacian", "curl_normal", "CurlNormal", "cgls", "prepare_frame", "FrameSystem", "MeasurementBlur", "finite_rhs",
+           "difference_operator", "difference_normal", "regulariser_normal", "regulariser", "SquaredLaplacian", "curl_normal", "CurlNormal", "cgls", "prepare_frame", "FrameSystem", "MeasurementBlur", "VolumeBlur", "volume_sigma", "finite_rhs",
            "valid_rays", "rhs_noise", "RegularisationChoice", "choose_reg_weight"]
 
 log = logging.getLogger(__name__)
@@ -551,6 +553,112 @@ class MeasurementBlur:
         return self.apply(full.reshape(C, h, w, k)).reshape(-1, k)[rows]
 
 
+@nb.njit(cache=True, fastmath=True, inline="always")
+def _taps_at3(src, start, stride, length, i, taps, K):
+    """The three sums of ``taps`` correlated with the line ``src[start + q stride]``,
+    ``0 <= q < length`` (zero beyond its ends), at position ``i``."""
+    s0 = np.float32(0.0)
+    s1 = np.float32(0.0)
+    s2 = np.float32(0.0)
+    for k in range(-K, K + 1):
+        q = i + k
+        if 0 <= q < length:
+            t = taps[k + K]
+            j = start + q * stride
+            s0 += t * src[j, 0]
+            s1 += t * src[j, 1]
+            s2 += t * src[j, 2]
+    return s0, s1, s2
+
+
+@nb.njit(cache=True, fastmath=True, inline="always")
+def _filter_line3(src, dst, start, stride, length, taps, K):
+    """``dst`` = ``taps`` correlated with one line of ``src`` (rows ``start + i stride``)."""
+    for i in range(length):
+        j = start + i * stride
+        dst[j, 0], dst[j, 1], dst[j, 2] = _taps_at3(src, start, stride, length, i, taps, K)
+
+
+@nb.njit(parallel=True, cache=True, fastmath=True)
+def _gauss3_box(x, idx, nz, ny, nx, taps, a, b, out):
+    """``out = (G x)`` on the set: ``x`` (n, 3) scattered to the (nz, ny, nx) box by the
+    flat indices ``idx`` (zero elsewhere), the separable filter ``taps`` along x, y and z
+    (zero outside the box), read back at ``idx``. ``a``, ``b``: (nz*ny*nx, 3) float32 scratch."""
+    K = (taps.shape[0] - 1) // 2
+    n = idx.shape[0]
+    plane = ny * nx
+    a[:] = 0.0
+    for i in nb.prange(n):
+        for c in range(3):
+            a[idx[i], c] = x[i, c]
+    for zz in nb.prange(nz):  # along x: a -> b
+        for yy in range(ny):
+            _filter_line3(a, b, zz * plane + yy * nx, 1, nx, taps, K)
+    for zz in nb.prange(nz):  # along y: b -> a
+        for xx in range(nx):
+            _filter_line3(b, a, zz * plane + xx, nx, ny, taps, K)
+    for i in nb.prange(n):  # along z, only where it is read: a -> out
+        j = idx[i]
+        zz = j // plane
+        out[i, 0], out[i, 1], out[i, 2] = _taps_at3(a, j - zz * plane, plane, nz, zz, taps, K)
+
+
+def volume_sigma(cell_sigmas, cameras, grid, factor: int) -> float:
+    """Width (voxels) of the volume Gaussian equivalent to the flow's per-camera image
+    averaging: each camera's ``sigma`` (flow cells, :func:`~schlieren.pipeline.flow.measurement_sigma`
+    over ``factor``) times ``factor`` pixels per cell times its pixel footprint at the box
+    centre (metres per pixel), over the voxel size; the mean over the cameras with a
+    width (0 if none has one).
+    """
+    from schlieren.pipeline.geometry import pixel_footprint
+
+    sig = np.asarray(cell_sigmas, dtype=np.float64).reshape(-1)
+    if len(sig) != len(cameras):
+        raise ValueError(f"one width per camera expected ({len(cameras)}), got {len(sig)}")
+    centre = 0.5 * (np.asarray(grid.vmin, dtype=np.float64) + np.asarray(grid.vmax, dtype=np.float64))
+    vals = [s * factor * pixel_footprint(cam, centre) / grid.voxel_size for s, cam in zip(sig, cameras) if s > 0]
+    return float(np.mean(vals)) if vals else 0.0
+
+
+class VolumeBlur:
+    """``G``: a Gaussian over the basis coefficients (``sigma`` in voxels), restricted to the
+    basis set (zero outside it on input and output, so ``G^T = G``).
+
+    The flow's image-space averaging of a projection equals the projection of the volume
+    averaged by a Gaussian of the same width at the volume (exact for parallel rays, the
+    width scaled by depth for a pinhole), so ``W S x ~ S G x``: the data term keeps the
+    single fused pass over ``S`` of the point-ray model (:meth:`RestrictedOperator.normal3`)
+    and adds two cheap volume filters (taps out to ``ceil(2 sigma)``).
+    """
+
+    def __init__(self, inset: np.ndarray, sigma: float):
+        self.sigma = float(sigma)
+        if not self.sigma > 0:
+            raise ValueError(f"VolumeBlur: sigma must be > 0 voxels, got {sigma}")
+        K = max(1, int(np.ceil(2.0 * self.sigma)))
+        k = np.exp(-0.5 * (np.arange(-K, K + 1) / self.sigma) ** 2)
+        self.taps = (k / k.sum()).astype(np.float32)
+        inset = np.asarray(inset, dtype=bool)
+        nz = [np.flatnonzero(inset.any(axis=tuple(j for j in range(3) if j != i))) for i in range(3)]
+        lo = [int(a[0]) if len(a) else 0 for a in nz]
+        hi = [int(a[-1]) + 1 if len(a) else 0 for a in nz]
+        self.box = tuple(slice(a, b) for a, b in zip(lo, hi))
+        sub = inset[self.box]
+        self.shape = sub.shape
+        self.idx = np.flatnonzero(sub).astype(np.int64)
+        size = int(np.prod(self.shape))
+        self._a = np.empty((size, 3), np.float32)
+        self._b = np.empty((size, 3), np.float32)
+
+    def apply(self, x: np.ndarray) -> np.ndarray:
+        """``G x`` for ``x`` of shape (n, 3) (float64 result)."""
+        x = np.ascontiguousarray(x, dtype=np.float32).reshape(-1, 3)
+        out = np.empty((len(self.idx), 3))
+        if len(self.idx):
+            _gauss3_box(x, self.idx, *self.shape, self.taps, self._a, self._b, out)
+        return out
+
+
 @dataclass
 class FrameSystem:
     """The per-frame restricted system (also used by the direct refractivity solve)."""
@@ -629,7 +737,8 @@ def _scatter(inset: np.ndarray, values: np.ndarray) -> np.ndarray:
 def solve_gradient(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarray, *,
                    params: TomoParams = TomoParams(), x0: np.ndarray | None = None,
                    noise_rms: float | None = None, system: FrameSystem | None = None,
-                   blur: MeasurementBlur | None = None) -> tuple[np.ndarray, SolveInfo]:
+                   blur: MeasurementBlur | None = None,
+                   volume_blur: float = 0.0) -> tuple[np.ndarray, SolveInfo]:
     """Reconstruct the refractive-index gradient of one frame (paper sec. 5, eq. 5).
 
     Parameters
@@ -652,6 +761,10 @@ def solve_gradient(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarra
     blur : MeasurementBlur, optional
         Model the flow's image-space averaging (``W S x = b``; :class:`MeasurementBlur`);
         None: each measurement is the ray through its cell centre.
+    volume_blur : float
+        Or model it in the volume (``S G x = b``, :class:`VolumeBlur` of this sigma in
+        voxels, :func:`volume_sigma`): the same fit at the cost of the point-ray model's
+        single pass over ``S`` per iteration. 0: off.
 
     Returns
     -------
@@ -671,9 +784,14 @@ def solve_gradient(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarra
             b = np.asarray(data, dtype=np.float64).reshape(-1, 3)[rows]
         return finite_rhs(b)
 
+    if blur is not None and volume_blur > 0:
+        raise ValueError("solve_gradient: give either blur (image space) or volume_blur, not both")
     products = None
+    G = None
     if system is not None:
         sys_ = system
+        if volume_blur > 0 and sys_.inset.any():
+            G = VolumeBlur(sys_.inset, volume_blur)
     else:
         # Restriction fused with the solver's setup pass (diag(S^T S), S^T b, S^T S x0).
         hull = np.asarray(hull, dtype=bool)
@@ -685,6 +803,9 @@ def solve_gradient(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarra
         colmap = np.full(flat.size, -1, np.int32)
         colmap[flat] = np.arange(n, dtype=np.int32)
         x_warm = _warm(x0, inset)
+        G = VolumeBlur(inset, volume_blur) if volume_blur > 0 and inset.any() else None
+        if G is not None and x_warm is not None:  # the unknowns are G's input: S^T S G x0
+            x_warm = G.apply(x_warm)
         op, b_k, products = restrict_with_setup(geom.S, colmap, n, rhs, x_warm if blur is None else None,
                                                 reuse_buffers=True, rows=valid_rays(data))
         sys_ = FrameSystem(op=op, inset=inset, LtL=regulariser(inset, params.prior), _colsumsq=products[0],
@@ -697,7 +818,7 @@ def solve_gradient(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarra
     b = b_k if products is not None else rhs(op.rows)
     if blur is not None:
         products = None  # S^T b and the warm start's product go through W (_solve_restricted)
-    x, it, reason, res, t_solve = _solve_restricted(sys_, b, params, x0, noise_rms, products, blur=blur)
+    x, it, reason, res, t_solve = _solve_restricted(sys_, b, params, x0, noise_rms, products, blur=blur, volume=G)
     t1 = time.perf_counter()
     grad = _scatter(sys_.inset, x)
     info = SolveInfo(iterations=it, residual=float(np.max(res)), residual_components=tuple(map(float, res)),
@@ -762,7 +883,7 @@ def _cg_direction3(p, r, beta, P, x):
 
 
 def _solve_restricted(sys_: FrameSystem, b: np.ndarray, params: TomoParams, x0, noise_rms, products=None,
-                      blur: MeasurementBlur | None = None):
+                      blur: MeasurementBlur | None = None, volume: VolumeBlur | None = None):
     """Jacobi-scaled CG on the regularised normal equations, three columns at once.
 
     ``P (S^T S + mu^2 L^T L) P z = P S^T b``, ``x = P z``. Mathematically the CGLS
@@ -778,7 +899,18 @@ def _solve_restricted(sys_: FrameSystem, b: np.ndarray, params: TomoParams, x0, 
     x_warm = _warm(x0, sys_.inset)
     # One pass over S for diag(S^T S), S^T b and the warm start's S^T S x0 (or already
     # done while restricting: ``products``).
-    if blur is None:
+    if volume is not None:
+        # data operator S G (VolumeBlur): G^T S^T S G as two volume filters around the fused
+        # pass; products (from the restriction or computed here) are S^T b and S^T S G x0,
+        # G^T applied below; the Jacobi scaling keeps diag(S^T S) (G averages neighbours)
+        def normal(v):
+            return volume.apply(op.normal3(volume.apply(v)))
+        if products is None:
+            products = op.setup_products(b, volume.apply(x_warm) if x_warm is not None else None)
+        colsumsq = products[0]
+        Stb = volume.apply(products[1])
+        StSx0 = volume.apply(products[2]) if x_warm is not None else products[2]
+    elif blur is None:
         normal = op.normal3
         colsumsq, Stb, StSx0 = products if products is not None else op.setup_products(b, x_warm)
     else:
@@ -937,7 +1069,7 @@ class RegularisationChoice:
 def choose_reg_weight(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarray, noise: np.ndarray, *,
                       params: TomoParams = TomoParams(), tau: float | None = None, largest: float = 4.0,
                       smallest: float = 1e-4, factor: float = 2.0,
-                      blur: MeasurementBlur | None = None) -> RegularisationChoice:
+                      blur: MeasurementBlur | None = None, volume_blur: float = 0.0) -> RegularisationChoice:
     """Choose the regularisation weight of one frame by Morozov's discrepancy principle.
 
     Solves the frame for decreasing weights ``largest, largest / factor, ...`` (each
@@ -962,6 +1094,8 @@ def choose_reg_weight(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.nda
         default ``params.reg_tau``.
     blur : MeasurementBlur, optional
         The data operator's image averaging, as for :func:`solve_gradient`.
+    volume_blur : float
+        Or the same averaging moved to the volume (sigma in voxels), as for :func:`solve_gradient`.
 
     Returns
     -------
@@ -986,6 +1120,7 @@ def choose_reg_weight(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.nda
     else:
         b = np.asarray(data, dtype=np.float64).reshape(-1, 3)[op.rows]
     b = finite_rhs(b)
+    G = VolumeBlur(sys_.inset, volume_blur) if volume_blur > 0 else None
     bb = float(np.einsum("ij,ij->", b, b))
     target = tau ** 2 * op.m * float(np.sum(noise ** 2))
     path = []
@@ -995,7 +1130,7 @@ def choose_reg_weight(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.nda
     while True:
         p = dataclasses.replace(params, reg_weight=mu, max_iter=200, tol=1e-3, discrepancy=0.0)
         xr, _it, _reason, rel, _t = _solve_restricted(sys_, b, p, _scatter(sys_.inset, x) if x is not None else None,
-                                                      None, blur=blur)
+                                                      None, blur=blur, volume=G)
         x = xr
         res2 = float(np.sum((rel * np.sqrt(np.maximum(np.einsum("ij,ij->j", b, b), 1e-300))) ** 2)) if bb > 0 else 0.0
         ratio = res2 / target if target > 0 else 0.0
