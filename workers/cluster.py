@@ -26,6 +26,7 @@ import re
 import secrets
 import shlex
 import socket
+import warnings
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -543,18 +544,28 @@ def _local_client(opts: ClusterOptions) -> Iterator[tuple[Client, ClusterInfo]]:
     # the nannies run in this process and export pre-spawn-environ into os.environ before
     # spawning each worker; put this process's own environment back when done
     saved_env = {k: os.environ.get(k) for k in THREAD_ENV}
-    cluster = LocalCluster(
-        n_workers=n_workers,
-        threads_per_worker=opts.threads_per_worker,
-        processes=True,
-        host="127.0.0.1",
-        dashboard_address=loopback_dashboard_address(opts.dashboard_address),
-        memory_limit=opts.memory_limit,
-        resources={TOMO: opts.tomo_slots},
-        local_directory=opts.local_directory,
-        silence_logs=logging.WARNING,
-        **kwargs,
-    )
+    with warnings.catch_warnings(record=True) as caught:
+        # a dashboard port already taken (another run, a notebook's cluster) is not an error:
+        # distributed picks a free one and says so as a multi-line UserWarning on stderr;
+        # the run reports the dashboard it got ("dashboard: ..." and the log line below)
+        warnings.filterwarnings("always", message=r"Port \d+ is already in use", category=UserWarning)
+        cluster = LocalCluster(
+            n_workers=n_workers,
+            threads_per_worker=opts.threads_per_worker,
+            processes=True,
+            host="127.0.0.1",
+            dashboard_address=loopback_dashboard_address(opts.dashboard_address),
+            memory_limit=opts.memory_limit,
+            resources={TOMO: opts.tomo_slots},
+            local_directory=opts.local_directory,
+            silence_logs=logging.WARNING,
+            **kwargs,
+        )
+    for w in caught:
+        if re.search(r"Port \d+ is already in use", str(w.message)):
+            log.info("dashboard port of %s already in use; the scheduler chose another", opts.dashboard_address)
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     try:
         client = Client(cluster, set_as_default=True)
         try:

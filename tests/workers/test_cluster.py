@@ -109,6 +109,28 @@ def test_local_cluster_listens_on_loopback_only(local):
 
 
 @pytest.mark.timeout(120)
+def test_a_dashboard_port_taken_after_the_check_is_no_warning(recwarn, caplog, monkeypatch):
+    """The dashboard port is free when checked but taken when the scheduler binds it
+    (another run starting at the same moment): the cluster starts on another port without
+    distributed's multi-line UserWarning on stderr (on Ctrl-C the run's stderr must stay the
+    one-line message) and says so in the log."""
+    import schlieren.workers.cluster as clustermod
+
+    monkeypatch.setattr(clustermod, "_port_is_free", lambda host, port: True)  # the check passes
+    monkeypatch.setattr(logging.getLogger("schlieren"), "propagate", True)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen(1)
+        port = s.getsockname()[1]
+        opts = ClusterOptions(workers=1, memory_limit="1GiB", dashboard_address=f"127.0.0.1:{port}")
+        with caplog.at_level(logging.INFO, logger="schlieren.workers.cluster"), open_client(opts) as (_client, info):
+            assert info.dashboard_link.startswith("http://127.0.0.1:")
+            assert f":{port}/" not in info.dashboard_link
+    assert not [w for w in recwarn if "already in use" in str(w.message)], [str(w.message) for w in recwarn]
+    assert any("already in use" in r.getMessage() for r in caplog.records), [r.getMessage() for r in caplog.records]
+
+
+@pytest.mark.timeout(120)
 def test_worker_plugin_is_idempotent_and_logs_json(local):
     client, _, log_dir = local
     client.register_plugin(SchlierenWorkerSetup(log_dir=str(log_dir)))  # again: a no-op
