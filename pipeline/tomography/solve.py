@@ -1068,7 +1068,7 @@ class RegularisationChoice:
 
 def choose_reg_weight(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarray, noise: np.ndarray, *,
                       params: TomoParams = TomoParams(), tau: float | None = None, largest: float = 4.0,
-                      smallest: float = 1e-4, factor: float = 2.0,
+                      smallest: float = 1e-4, factor: float = 2.0, plateau: float = 0.02,
                       blur: MeasurementBlur | None = None, volume_blur: float = 0.0) -> RegularisationChoice:
     """Choose the regularisation weight of one frame by Morozov's discrepancy principle.
 
@@ -1078,8 +1078,14 @@ def choose_reg_weight(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.nda
     sum_c sigma_c^2`` (``m`` rays, ``sigma_c`` the noise of component ``c``, e.g. from
     :func:`rhs_noise`), interpolated geometrically between the two weights around the
     crossing. Less regularisation would fit the noise; more would leave signal in the
-    residual. If even ``smallest`` does not reach the target (model error dominates),
-    ``smallest`` is returned.
+    residual. If the residual levels off above the target (model error dominates, or the
+    noise outside the masks understates the misfit inside), so that dividing the weight by
+    ``factor`` lowers it by less than ``plateau`` (2 %), the search stops and returns the
+    larger weight of that step: less regularisation no longer buys a better fit (on the
+    paper-scale session benchmark, whose noise-free renders leave the target 68x below the
+    reachable misfit, that ends the search at 0.0156 after 10 solves instead of the smallest
+    weight after 16; its volumes are 51.50 / 51.37 dB at those weights). ``smallest`` bounds
+    the search.
 
     Parameters
     ----------
@@ -1092,6 +1098,10 @@ def choose_reg_weight(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.nda
     tau : float, optional
         Safety factor of the discrepancy principle (1 = the noise level exactly);
         default ``params.reg_tau``.
+    largest, smallest, factor : float
+        The weights tried: ``largest``, ``largest / factor``, ... down to ``smallest``.
+    plateau : float
+        Stop when a step lowers the residual by less than this fraction (see above); 0 never.
     blur : MeasurementBlur, optional
         The data operator's image averaging, as for :func:`solve_gradient`.
     volume_blur : float
@@ -1143,6 +1153,11 @@ def choose_reg_weight(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.nda
             t = np.log(r0) / (np.log(r0) - np.log(r1)) if r0 > 0 and r1 > 0 and r0 != r1 else 1.0
             chosen = float(np.exp(np.log(mu0) + np.clip(t, 0.0, 1.0) * (np.log(mu1) - np.log(mu0))))
             return RegularisationChoice(reg_weight=chosen, target=target, path=tuple(path))
+        if prev is not None and ratio > (1.0 - plateau) * prev[1]:
+            log.info("regularisation: the data residual levels off %.3gx above the discrepancy target "
+                     "(%.3g -> %.3g from weight %.3g to %.3g); taking %.3g", ratio, prev[1], ratio, prev[0], mu,
+                     prev[0])
+            return RegularisationChoice(reg_weight=prev[0], target=target, path=tuple(path))
         if mu / factor < smallest * (1 - 1e-9):
             return RegularisationChoice(reg_weight=mu, target=target, path=tuple(path))
         prev = (mu, ratio)
