@@ -615,8 +615,7 @@ def volume_sigma(cell_sigmas, cameras, grid, factor: int) -> float:
     sig = np.asarray(cell_sigmas, dtype=np.float64).reshape(-1)
     if len(sig) != len(cameras):
         raise ValueError(f"one width per camera expected ({len(cameras)}), got {len(sig)}")
-    centre = 0.5 * (np.asarray(grid.vmin, dtype=np.float64) + np.asarray(grid.vmax, dtype=np.float64))
-    vals = [s * factor * pixel_footprint(cam, centre) / grid.voxel_size for s, cam in zip(sig, cameras) if s > 0]
+    vals = [s * factor * pixel_footprint(cam, grid.center) / grid.voxel_size for s, cam in zip(sig, cameras) if s > 0]
     return float(np.mean(vals)) if vals else 0.0
 
 
@@ -1069,7 +1068,7 @@ class RegularisationChoice:
 def choose_reg_weight(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarray, noise: np.ndarray, *,
                       params: TomoParams = TomoParams(), tau: float | None = None, largest: float = 4.0,
                       smallest: float = 1e-4, factor: float = 2.0, plateau: float = 0.02,
-                      blur: MeasurementBlur | None = None, volume_blur: float = 0.0) -> RegularisationChoice:
+                      blur: MeasurementBlur | None = None) -> RegularisationChoice:
     """Choose the regularisation weight of one frame by Morozov's discrepancy principle.
 
     Solves the frame for decreasing weights ``largest, largest / factor, ...`` (each
@@ -1104,8 +1103,8 @@ def choose_reg_weight(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.nda
         Stop when a step lowers the residual by less than this fraction (see above); 0 never.
     blur : MeasurementBlur, optional
         The data operator's image averaging, as for :func:`solve_gradient`.
-    volume_blur : float
-        Or the same averaging moved to the volume (sigma in voxels), as for :func:`solve_gradient`.
+        (The weight is chosen with the image-space model also for volume solves: the
+        volume model's misfit levels off above the discrepancy target.)
 
     Returns
     -------
@@ -1130,7 +1129,6 @@ def choose_reg_weight(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.nda
     else:
         b = np.asarray(data, dtype=np.float64).reshape(-1, 3)[op.rows]
     b = finite_rhs(b)
-    G = VolumeBlur(sys_.inset, volume_blur) if volume_blur > 0 else None
     bb = float(np.einsum("ij,ij->", b, b))
     target = tau ** 2 * op.m * float(np.sum(noise ** 2))
     path = []
@@ -1140,7 +1138,7 @@ def choose_reg_weight(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.nda
     while True:
         p = dataclasses.replace(params, reg_weight=mu, max_iter=200, tol=1e-3, discrepancy=0.0)
         xr, _it, _reason, rel, _t = _solve_restricted(sys_, b, p, _scatter(sys_.inset, x) if x is not None else None,
-                                                      None, blur=blur, volume=G)
+                                                      None, blur=blur)
         x = xr
         res2 = float(np.sum((rel * np.sqrt(np.maximum(np.einsum("ij,ij->j", b, b), 1e-300))) ** 2)) if bb > 0 else 0.0
         ratio = res2 / target if target > 0 else 0.0
