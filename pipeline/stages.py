@@ -133,7 +133,8 @@ class Stage:
     over : tuple of str
         Dims mapped over: ``("camera", "frame")``, ``("frame",)``, ``("camera",)`` or ``()``.
     after : tuple of (str, str)
-        ``(stage, how)`` dependencies, ``how`` in ``{"same", "all", "window", "chain"}``.
+        ``(stage, how)`` dependencies, ``how`` in ``{"same", "all", "window", "chain",
+        "block"}`` (``block``: every frame of the task's warm-start block).
     frame_halo : int
         Frames either side read by ``window`` dependencies.
     resources : dict
@@ -198,7 +199,7 @@ STAGES: tuple[Stage, ...] = (
           resources={"TOMO": 1}, cost=2.5),
     Stage("tomography", _tomo.solve_gradient, "tomography", ("flow", "hull", "geometry", "reg_weight"),
           ("gradient",), ("frame",),
-          after=(("hull", "same"), ("resample", "same"), ("geometry", "all"), ("regularisation", "all"),
+          after=(("hull", "block"), ("resample", "same"), ("geometry", "all"), ("regularisation", "all"),
                  ("tomography", "chain")),
           resources={"TOMO": 1}, cost=0.71),
     Stage("integrate", _poisson.integrate, "poisson", ("gradient", "hull"),

@@ -115,6 +115,10 @@ def _deps(st: Stage, index: tuple[int, ...], ext: Extents) -> list[tuple[str, tu
             k = labels["frame"]
             if k % max(ext.warm_start_block, 1) != 0:
                 out.append((dep_name, (k - 1,)))
+        elif how == "block":  # every frame of this task's warm-start block
+            B = max(ext.warm_start_block, 1)
+            lo = labels["frame"] - labels["frame"] % B
+            out += [(dep_name, (k,)) for k in range(lo, min(lo + B, sizes["frame"]))]
         else:  # pragma: no cover - the table is static
             raise ValueError(f"unknown dependency kind {how!r} in stage {st.name}")
     return out
@@ -208,8 +212,9 @@ def critical_path_priorities(plan: Plan, costs: dict[str, float] | None = None) 
     ``rank(t) = cost(t) + max(rank(s) for s waiting for t)`` (upward rank of list
     scheduling; the classic critical-path-first heuristic). Running the ready task of
     highest rank first starts the long chains early: after the threshold barrier the
-    masks and hulls of each warm-start block's first frame go before those of later
-    frames, so the chained tomography solves of all blocks proceed side by side and
+    masks and hulls of each warm-start block (its first solve waits for all of them, to
+    restrict the projection once to their union) go before other work, so the chained
+    tomography solves of all blocks proceed side by side and
     the run does not end on one worker finishing a chain alone. Tasks nothing waits
     for (frame statistics) rank lowest and fill idle slots.
 

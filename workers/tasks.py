@@ -511,10 +511,27 @@ def _tomography(ctx: RunContext, k: int) -> dict:
         ctx.store.write("refractivity", (k,), np.asarray(r, dtype=np.float32))
         ctx.store.write("gradient", (k,), np.stack([gx, gy, gz], axis=-1).astype(np.float32))
         return _info_dict(info)
-    grad, info = tomography.solve_gradient(geom, flows, hull, params=tomo_params(ctx), x0=x0,
-                                           **flow_blur(ctx))
+    params = tomo_params(ctx)
+    grad, info = tomography.solve_gradient(geom, flows, hull, params=params, x0=x0,
+                                           support=_block_support(ctx, k, params.hull_dilation), **flow_blur(ctx))
     ctx.store.write("gradient", (k,), np.asarray(grad, dtype=np.float32))
     return _info_dict(info)
+
+
+def _block_support(ctx: RunContext, k: int, dilation: int) -> np.ndarray:
+    """The union of the basis sets of frame ``k``'s warm-start block (the plan makes every
+    tomography task wait for its block's hulls): each frame's system is selected inside
+    this shared restriction, which a worker builds once per block (``solve_gradient``'s
+    ``support``; the same system as the frame's own restriction)."""
+    B = max(ctx.config.warm_start_block, 1)
+    lo = k - k % B
+    frames = range(lo, min(lo + B, len(ctx.times())))
+    key = (lo, dilation)
+    held = ctx._small.get("block_support")  # only the latest block (a worker moves on)
+    if held is None or held[0] != key:
+        held = (key, tomography.block_support([ctx.store.read("hull", (i,)) for i in frames], dilation))
+        ctx._small["block_support"] = held
+    return held[1]
 
 
 def _integrate(ctx: RunContext, k: int) -> dict:

@@ -21,6 +21,7 @@ from schlieren.pipeline.tomography.solve import (
     RegularisationChoice,
     SolveInfo,
     VolumeBlur,
+    block_support,
     choose_reg_weight,
     rhs_noise,
     solve_gradient,
@@ -33,5 +34,5 @@ __all__ = [
     "save_geometry", "load_geometry", "approximate_d_out", "rhs_from_d_out", "rhs_from_flows",
     "SolveInfo", "solve_gradient", "solve_gradient_d_out", "RefractivityInfo",
     "solve_refractivity", "RegularisationChoice", "choose_reg_weight", "rhs_noise", "MeasurementBlur",
-    "VolumeBlur", "volume_sigma",
+    "VolumeBlur", "volume_sigma", "block_support",
 ]

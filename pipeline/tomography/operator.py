@@ -26,6 +26,7 @@ bit-identical for any number of numba threads; the forward products are per row.
 
 from __future__ import annotations
 
+import mmap
 import threading
 
 import numba as nb
@@ -38,13 +39,44 @@ __all__ = [
     "restrict_rows_cols",
     "restrict_with_setup",
     "RestrictedOperator",
+    "SubsetOperator",
+    "shared_restriction",
     "basis_weights",
+    "large_empty",
     "ADJOINT_CHUNKS",
 ]
 
 #: Fixed number of row blocks of the adjoint accumulations (independent of the thread
 #: count, so results do not depend on it; also the maximum useful number of threads).
 ADJOINT_CHUNKS = 8
+
+#: ``live`` argument of the row-skipping kernels that means "every row".
+_ALL_ROWS = np.zeros(0, np.uint8)
+
+
+#: Buffers from this size on are backed by transparent huge pages (:func:`large_empty`).
+_HUGE_PAGE_BYTES = 32 << 20
+
+
+def large_empty(size: int, dtype) -> np.ndarray:
+    """``np.empty(size, dtype)`` for a large 1-D buffer, backed by transparent huge pages
+    where the kernel offers them on request (``madvise`` mode; a no-op elsewhere).
+
+    The first write to fresh memory faults one page at a time: 4 KiB pages made writing a
+    new 300 MB buffer take 0.6 s on this project's VMs, 2 MiB pages 0.02 s. Below
+    32 MiB, or without ``MADV_HUGEPAGE``, this is plain ``np.empty``.
+    """
+    dtype = np.dtype(dtype)
+    size = int(size)
+    nbytes = size * dtype.itemsize
+    if nbytes < _HUGE_PAGE_BYTES or not hasattr(mmap, "MADV_HUGEPAGE"):
+        return np.empty(size, dtype)
+    buf = mmap.mmap(-1, nbytes, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
+    try:
+        buf.madvise(mmap.MADV_HUGEPAGE)
+    except OSError:  # pragma: no cover - kernels without transparent huge pages
+        pass
+    return np.frombuffer(buf, dtype=dtype, count=size)  # the array keeps the mapping alive
 
 
 def clip_rays_to_box(origins: np.ndarray, dirs: np.ndarray, lo: np.ndarray, hi: np.ndarray):
@@ -241,8 +273,8 @@ def build_projection(origins: np.ndarray, dirs: np.ndarray, shape_zyx, origin_xy
     _project_pass(a, b, s0, s1, nx, ny, nz, step * h, nchunks, counts, indptr, dummy_i, dummy_d, False)
     np.cumsum(counts, out=indptr[1:])
     nnz = int(indptr[-1])
-    indices = np.empty(nnz, np.int32)
-    data = np.empty(nnz, np.float32)
+    indices = large_empty(nnz, np.int32)
+    data = large_empty(nnz, np.float32)
     _project_pass(a, b, s0, s1, nx, ny, nz, step * h, nchunks, counts, indptr, indices, data, True)
     if nnz < np.iinfo(np.int32).max:
         indptr = indptr.astype(np.int32)
@@ -323,8 +355,31 @@ def _restrict_fill(indptr, indices, data, rows, colmap, new_indptr, new_indices,
         _restrict_row(indptr, indices, data, rows[k], colmap, new_indices, new_data, new_indptr[k])
 
 
-def restrict_rows_cols(S: sp.csr_matrix, rows: np.ndarray, colmap: np.ndarray):
+def _restricted_layout(S: sp.csr_matrix, rows: np.ndarray, colmap: np.ndarray, reuse_buffers: bool):
+    """Count pass of a restriction: the rows of ``rows`` with at least one kept column,
+    their CSR row pointer and (unfilled) index and value arrays (this thread's scratch
+    buffers with ``reuse_buffers``, see :func:`_scratch`)."""
+    counts = np.empty(len(rows), np.int64)
+    _restrict_count(S.indptr, S.indices, rows, colmap, counts)
+    keep = counts > 0
+    rows_k = rows[keep]
+    new_indptr = np.zeros(len(rows_k) + 1, np.int64)
+    np.cumsum(counts[keep], out=new_indptr[1:])
+    nnz = int(new_indptr[-1])
+    if reuse_buffers:
+        new_indices = _scratch("indices", nnz, np.int32)
+        new_data = _scratch("data", nnz, np.float32)
+    else:
+        new_indices = np.empty(nnz, np.int32)
+        new_data = np.empty(nnz, np.float32)
+    return keep, rows_k, new_indptr, new_indices, new_data
+
+
+def restrict_rows_cols(S: sp.csr_matrix, rows: np.ndarray, colmap: np.ndarray, *, reuse_buffers: bool = False):
     """Rows ``rows`` of ``S`` with columns renumbered by ``colmap`` (-1 = dropped).
+
+    ``reuse_buffers``: write into this thread's scratch buffers (as
+    :func:`restrict_with_setup`; valid until the next restriction in this thread).
 
     Returns
     -------
@@ -333,15 +388,7 @@ def restrict_rows_cols(S: sp.csr_matrix, rows: np.ndarray, colmap: np.ndarray):
     """
     rows = np.ascontiguousarray(rows, dtype=np.int64)
     colmap = np.ascontiguousarray(colmap, dtype=np.int32)
-    counts = np.empty(len(rows), np.int64)
-    _restrict_count(S.indptr, S.indices, rows, colmap, counts)
-    keep = counts > 0
-    rows_k = rows[keep]
-    new_indptr = np.zeros(len(rows_k) + 1, np.int64)
-    np.cumsum(counts[keep], out=new_indptr[1:])
-    nnz = int(new_indptr[-1])
-    new_indices = np.empty(nnz, np.int32)
-    new_data = np.empty(nnz, np.float32)
+    keep, rows_k, new_indptr, new_indices, new_data = _restricted_layout(S, rows, colmap, reuse_buffers)
     _restrict_fill(S.indptr, S.indices, S.data, rows_k, colmap, new_indptr, new_indices, new_data)
     return new_indptr, new_indices, new_data, keep
 
@@ -377,13 +424,18 @@ def _sum_chunks(acc, n, nchunks):
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
 def _restrict_setup3(indptr, indices, data, rows, colmap, new_indptr, new_indices, new_data, b, x, n,
-                     nchunks, with_x):
-    """:func:`_restrict_fill` fused with :func:`_setup3` (each restricted row is used while hot)."""
+                     nchunks, with_x, valid):
+    """:func:`_restrict_fill` fused with :func:`_setup3` (each restricted row is used while hot);
+    rows whose ray ``valid`` (uint8 over all rays; empty: every ray) marks 0 are written but
+    left out of the products."""
     acc, bounds = _setup_accumulators(rows.shape[0], n, nchunks)
+    masked = valid.shape[0] > 0
     for c in nb.prange(nchunks):
         a = acc[c]
         for k in range(bounds[c], bounds[c + 1]):
             _restrict_row(indptr, indices, data, rows[k], colmap, new_indices, new_data, new_indptr[k])
+            if masked and valid[rows[k]] == 0:
+                continue
             _row_setup(new_indptr, new_indices, new_data, k, b, x, with_x, a)
     return _sum_chunks(acc, n, nchunks)
 
@@ -395,17 +447,24 @@ def _scratch(name: str, size: int, dtype) -> np.ndarray:
     """A per-thread reusable buffer of at least ``size`` elements (grown when needed).
 
     The restricted matrix of a paper-scale frame is ~0.5 GB: writing it into fresh memory
-    every frame costs a page fault per 4 KiB (about a third of a second here).
+    every frame costs a page fault per 4 KiB (about a third of a second here). A buffer that
+    has to grow comes from :func:`large_empty` (huge pages where granted) with 25 % headroom:
+    on the session benchmark's growing plume the second warm-start block's restriction
+    (14 % larger than the first) faulted its fresh buffer for 0.6 s of its 0.8 s.
     """
+    _SCRATCH.owner = None  # whatever the buffers held (a shared restriction) is overwritten
     buf = getattr(_SCRATCH, name, None)
     if buf is None or buf.size < size or buf.dtype != np.dtype(dtype):
-        buf = np.empty(max(size, 1), dtype)
+        buf = None  # release the old buffer first
+        setattr(_SCRATCH, name, None)
+        buf = large_empty(max(size + size // 4, 1), dtype)
         setattr(_SCRATCH, name, buf)
     return buf[:size]
 
 
 def restrict_with_setup(S: sp.csr_matrix, colmap: np.ndarray, n: int, rhs, x: np.ndarray | None = None,
-                        *, reuse_buffers: bool = False, rows: np.ndarray | None = None):
+                        *, reuse_buffers: bool = False, rows: np.ndarray | None = None,
+                        valid: np.ndarray | None = None):
     """Restrict ``S`` (all rays, columns by ``colmap``) and run the solver's setup pass with it.
 
     Equivalent to ``RestrictedOperator.from_full(S, arange(M), colmap, n)`` followed by
@@ -429,6 +488,8 @@ def restrict_with_setup(S: sp.csr_matrix, colmap: np.ndarray, n: int, rhs, x: np
         ``reuse_buffers=True`` in the same thread.
     rows : ndarray of int, optional
         Candidate rays (default all); e.g. only those with a valid measurement.
+    valid : ndarray of bool, shape (M,), optional
+        Rays kept in the operator but left out of the products (their ``rhs`` is not used).
 
     Returns
     -------
@@ -440,25 +501,14 @@ def restrict_with_setup(S: sp.csr_matrix, colmap: np.ndarray, n: int, rhs, x: np
     """
     rows = np.arange(S.shape[0], dtype=np.int64) if rows is None else np.asarray(rows, dtype=np.int64)
     colmap = np.ascontiguousarray(colmap, dtype=np.int32)
-    counts = np.empty(len(rows), np.int64)
-    _restrict_count(S.indptr, S.indices, rows, colmap, counts)
-    keep = counts > 0
-    rows_k = rows[keep]
-    new_indptr = np.zeros(len(rows_k) + 1, np.int64)
-    np.cumsum(counts[keep], out=new_indptr[1:])
-    nnz = int(new_indptr[-1])
-    if reuse_buffers:
-        new_indices = _scratch("indices", nnz, np.int32)
-        new_data = _scratch("data", nnz, np.float32)
-    else:
-        new_indices = np.empty(nnz, np.int32)
-        new_data = np.empty(nnz, np.float32)
+    _, rows_k, new_indptr, new_indices, new_data = _restricted_layout(S, rows, colmap, reuse_buffers)
     b = np.ascontiguousarray(rhs(rows_k), dtype=np.float64).reshape(len(rows_k), 3)
     with_x = x is not None
     xx = (np.ascontiguousarray(x, dtype=np.float32).reshape(n, 3) if with_x
           else np.zeros((0, 3), np.float32))
     prods = _restrict_setup3(S.indptr, S.indices, S.data, rows_k, colmap, new_indptr, new_indices, new_data,
-                             b, xx, int(n), ADJOINT_CHUNKS, with_x)
+                             b, xx, int(n), ADJOINT_CHUNKS, with_x,
+                             _ALL_ROWS if valid is None else np.ascontiguousarray(valid, dtype=bool).view(np.uint8))
     return RestrictedOperator(new_indptr, new_indices, new_data, n, rows_k), b, prods
 
 
@@ -573,19 +623,23 @@ def _normal3(indptr, indices, data, x, n, nchunks):
     the solver's tolerance) and the blocks are summed in float64. Measured at paper scale
     (69M non-zeros, 2 cores): 0.138 s per product in float64, 0.079 s like this.
     """
-    return _scatter_blocks_f32(indptr, indices, data, x, x, n, nchunks, True)
+    return _scatter_blocks_f32(indptr, indices, data, x, x, n, nchunks, True, _ALL_ROWS)
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
-def _scatter_blocks_f32(indptr, indices, data, x, y, n, nchunks, fused):
+def _scatter_blocks_f32(indptr, indices, data, x, y, n, nchunks, fused, live):
     """``S^T t`` with float32 per-block sums, ``t_r = S_r x`` (``fused``, i.e. ``S^T S x``) or
-    ``t_r = y_r``; the blocks are summed in float64 in block order."""
+    ``t_r = y_r``; the blocks are summed in float64 in block order. Rows with ``live[r] ==
+    0`` are skipped (``live`` uint8; empty: every row)."""
     m = indptr.shape[0] - 1
     acc = np.zeros((nchunks, n, 3), np.float32)
     bounds = np.linspace(0, m, nchunks + 1).astype(np.int64)
+    masked = live.shape[0] > 0
     for c in nb.prange(nchunks):
         a = acc[c]
         for r in range(bounds[c], bounds[c + 1]):
+            if masked and live[r] == 0:
+                continue
             if fused:
                 t0, t1, t2 = row_dot3_f32(indptr, indices, data, x, r)
             else:
@@ -620,12 +674,16 @@ def _colsumsq(indices, data, n, nchunks):
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
-def _setup3(indptr, indices, data, b, x, n, nchunks, with_x):
-    """``diag(S^T S)``, ``S^T b`` and (if ``with_x``) ``S^T S x`` in one pass over ``S``."""
+def _setup3(indptr, indices, data, b, x, n, nchunks, with_x, live):
+    """``diag(S^T S)``, ``S^T b`` and (if ``with_x``) ``S^T S x`` in one pass over ``S``
+    (rows with ``live[r] == 0`` skipped, as in :func:`_scatter_blocks_f32`)."""
     acc, bounds = _setup_accumulators(indptr.shape[0] - 1, n, nchunks)
+    masked = live.shape[0] > 0
     for c in nb.prange(nchunks):
         a = acc[c]
         for r in range(bounds[c], bounds[c + 1]):
+            if masked and live[r] == 0:
+                continue
             _row_setup(indptr, indices, data, r, b, x, with_x, a)
     return _sum_chunks(acc, n, nchunks)
 
@@ -692,7 +750,8 @@ class RestrictedOperator:
     def rmatvec3_f32(self, y: np.ndarray) -> np.ndarray:
         """``S^T y`` with float32 partial sums (as the normal product), float64 (n, 3)."""
         y = np.ascontiguousarray(y, dtype=np.float32).reshape(self.m, 3)
-        return _scatter_blocks_f32(self.indptr, self.indices, self.data, y, y, self.n, self._nchunks, False)
+        return _scatter_blocks_f32(self.indptr, self.indices, self.data, y, y, self.n, self._nchunks, False,
+                                   _ALL_ROWS)
 
     def column_sumsq(self) -> np.ndarray:
         """``diag(S^T S)``, shape (n,)."""
@@ -716,7 +775,129 @@ class RestrictedOperator:
         with_x = x is not None
         x = (np.ascontiguousarray(x, dtype=np.float32).reshape(self.n, 3) if with_x
              else np.zeros((0, 3), np.float32))
-        return _setup3(self.indptr, self.indices, self.data, b, x, self.n, self._nchunks, with_x)
+        return _setup3(self.indptr, self.indices, self.data, b, x, self.n, self._nchunks, with_x, _ALL_ROWS)
 
     def to_scipy(self) -> sp.csr_matrix:
         return sp.csr_matrix((self.data, self.indices, self.indptr), shape=(self.m, self.n))
+
+
+@nb.njit(parallel=True, cache=True)
+def _live_rows(indptr, indices, keep, valid, out):
+    """``out[r]`` = 1 if row ``r`` is ``valid`` and has an entry in a column ``keep`` marks."""
+    for r in nb.prange(indptr.shape[0] - 1):
+        hit = 0
+        if valid[r]:
+            for p in range(indptr[r], indptr[r + 1]):
+                if keep[indices[p]]:
+                    hit = 1
+                    break
+        out[r] = hit
+
+
+def shared_restriction(S: sp.csr_matrix, support: np.ndarray, key, *, rhs=None, x: np.ndarray | None = None,
+                       valid: np.ndarray | None = None):
+    """``S`` restricted to the columns ``support`` marks and every ray that hits them, kept
+    in this thread's scratch buffers for the next call with the same ``key``.
+
+    The frames of a warm-start block differ little (the family's hulls: union 2-3 % above
+    each frame's), so their systems are restricted once to the block's union and then
+    selected inside it (:class:`SubsetOperator`); the restriction is deterministic, so a
+    thread that has not seen the block builds the same operator.
+
+    Parameters
+    ----------
+    S : scipy.sparse.csr_matrix, shape (M, N)
+    support : ndarray, shape (N,) bool
+    key : hashable
+        Identifies ``(S, support)`` (e.g. the geometry's content hash and a digest of the
+        support).
+    rhs, x, valid : optional
+        When the restriction is built by this call and ``rhs`` is given, the setup products
+        of :func:`restrict_with_setup` (``x`` in the support's numbering, rays ``valid``)
+        are accumulated while it is written.
+
+    Returns
+    -------
+    op : RestrictedOperator
+    fused : tuple or None
+        ``(b, products)`` over all of ``op``'s rows when the products were computed.
+    """
+    owner = getattr(_SCRATCH, "owner", None)
+    if owner is not None and owner[0] == key:
+        return owner[1], None
+    flat = np.asarray(support, dtype=bool).ravel()
+    if flat.size != S.shape[1]:
+        raise ValueError(f"support has {flat.size} voxels, the projection {S.shape[1]} columns")
+    n = int(flat.sum())
+    colmap = np.full(flat.size, -1, np.int32)
+    colmap[flat] = np.arange(n, dtype=np.int32)
+    fused = None
+    if rhs is not None:
+        op, b, prods = restrict_with_setup(S, colmap, n, rhs, x, reuse_buffers=True, valid=valid)
+        fused = (b, prods)
+    else:
+        rows = np.arange(S.shape[0], dtype=np.int64)
+        indptr, indices, data, keep = restrict_rows_cols(S, rows, colmap, reuse_buffers=True)
+        op = RestrictedOperator(indptr, indices, data, n, rows[keep])
+    _SCRATCH.owner = (key, op)
+    return op, fused
+
+
+class SubsetOperator:
+    """A frame's system inside a shared restriction (:func:`shared_restriction`).
+
+    The columns ``sel`` of ``base`` and the rows ``live`` marks: those with a valid
+    measurement that hit at least one of the columns (the rows :meth:`RestrictedOperator.
+    from_full` would keep). Products equal those of the frame's own restriction: the
+    other columns are held at zero and the other rows skipped; a product costs a pass over
+    ``base`` (``nnz`` is its size).
+
+    Parameters
+    ----------
+    base : RestrictedOperator
+    sel : ndarray of int, shape (n,)
+        The frame's columns in ``base``'s numbering, increasing.
+    valid : ndarray of bool, shape (base.m,), optional
+        Rows with a valid measurement (default all).
+    """
+
+    def __init__(self, base: RestrictedOperator, sel: np.ndarray, valid: np.ndarray | None = None):
+        self.base = base
+        self.sel = np.ascontiguousarray(sel, dtype=np.int64)
+        keep = np.zeros(base.n, np.uint8)
+        keep[self.sel] = 1
+        valid = (np.ones(base.m, np.uint8) if valid is None
+                 else np.ascontiguousarray(valid, dtype=bool).view(np.uint8))
+        self.live = np.empty(base.m, np.uint8)
+        _live_rows(base.indptr, base.indices, keep, valid, self.live)
+        self._live_idx = np.flatnonzero(self.live)
+        self.rows = base.rows[self._live_idx]
+        self.n = len(self.sel)
+        self.m = len(self.rows)
+        self._nchunks = base._nchunks
+
+    @property
+    def nnz(self) -> int:
+        return self.base.nnz
+
+    def _embed(self, x: np.ndarray) -> np.ndarray:
+        out = np.zeros((self.base.n, 3), np.float32)
+        out[self.sel] = np.asarray(x).reshape(self.n, 3)
+        return out
+
+    def normal3(self, x: np.ndarray) -> np.ndarray:
+        """``S^T S x`` of the frame's system (x of shape (n, 3))."""
+        b = self.base
+        xe = self._embed(x)
+        return _scatter_blocks_f32(b.indptr, b.indices, b.data, xe, xe, b.n, self._nchunks, True,
+                                   self.live)[self.sel]
+
+    def setup_products(self, b: np.ndarray, x: np.ndarray | None = None):
+        """As :meth:`RestrictedOperator.setup_products`, ``b`` over the frame's rows (m, 3)."""
+        base = self.base
+        bb = np.zeros((base.m, 3))
+        bb[self._live_idx] = np.asarray(b, dtype=np.float64).reshape(self.m, 3)
+        with_x = x is not None
+        xx = self._embed(x) if with_x else np.zeros((0, 3), np.float32)
+        d, sb, sx = _setup3(base.indptr, base.indices, base.data, bb, xx, base.n, self._nchunks, with_x, self.live)
+        return d[self.sel], sb[self.sel], sx[self.sel]

@@ -33,6 +33,7 @@ noise-free deflections it costs 1.0 dB (58.9 -> 57.8 dB).
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import logging
 import time
 from dataclasses import dataclass, field
@@ -43,13 +44,14 @@ import scipy.ndimage as ndi
 import scipy.sparse as sp
 
 from schlieren.pipeline.tomography.geometry import TomoGeometry
-from schlieren.pipeline.tomography.operator import RestrictedOperator, matvec3, restrict_with_setup, row_dot3
+from schlieren.pipeline.tomography.operator import (RestrictedOperator, SubsetOperator, matvec3, restrict_with_setup,
+                                                    row_dot3, shared_restriction)
 from schlieren.pipeline.tomography.params import TomoParams
 from schlieren.pipeline.tomography.rays import rhs_from_d_out, rhs_from_flows
 
 __all__ = ["SolveInfo", "solve_gradient", "solve_gradient_d_out", "basis_set",
            "difference_operator", "difference_normal", "regulariser_normal", "regulariser", "SquaredLaplacian", "curl_normal", "CurlNormal", "cgls", "prepare_frame", "FrameSystem", "MeasurementBlur", "VolumeBlur", "volume_sigma", "finite_rhs",
-           "valid_rays", "rhs_noise", "RegularisationChoice", "choose_reg_weight"]
+           "valid_rays", "rhs_noise", "RegularisationChoice", "choose_reg_weight", "block_support"]
 
 log = logging.getLogger(__name__)
 
@@ -206,7 +208,12 @@ class SquaredLaplacian:
         self.M = M
 
     def diagonal(self) -> np.ndarray:
-        return np.asarray(self.M.multiply(self.M).sum(axis=1)).ravel()
+        # every row holds its diagonal entry, so no row is empty (reduceat needs that);
+        # 1 ms instead of 21 for scipy's elementwise product at paper scale
+        M = self.M
+        if M.shape[0] == 0:
+            return np.zeros(0)
+        return np.add.reduceat(np.asarray(M.data, dtype=np.float64) ** 2, M.indptr[:-1])
 
 
 def regulariser(inset: np.ndarray, prior: str = "second-differences") -> sp.csr_matrix | SquaredLaplacian:
@@ -737,7 +744,7 @@ def solve_gradient(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarra
                    params: TomoParams = TomoParams(), x0: np.ndarray | None = None,
                    noise_rms: float | None = None, system: FrameSystem | None = None,
                    blur: MeasurementBlur | None = None,
-                   volume_blur: float = 0.0) -> tuple[np.ndarray, SolveInfo]:
+                   volume_blur: float = 0.0, support: np.ndarray | None = None) -> tuple[np.ndarray, SolveInfo]:
     """Reconstruct the refractive-index gradient of one frame (paper sec. 5, eq. 5).
 
     Parameters
@@ -764,6 +771,12 @@ def solve_gradient(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarra
         Or model it in the volume (``S G x = b``, :class:`VolumeBlur` of this sigma in
         voxels, :func:`volume_sigma`): the same fit at the cost of the point-ray model's
         single pass over ``S`` per iteration. 0: off.
+    support : ndarray, shape (nz, ny, nx) bool, optional
+        Basis functions shared by several frames, a superset of this frame's set (e.g.
+        :func:`block_support` of a warm-start block): the projection is restricted to it
+        once per thread and the frame's system selected inside it (:class:`SubsetOperator`;
+        the same system, its products cost a pass over the shared restriction). Without a
+        ``blur`` only; ignored with ``system``.
 
     Returns
     -------
@@ -805,8 +818,11 @@ def solve_gradient(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarra
         G = VolumeBlur(inset, volume_blur) if volume_blur > 0 and inset.any() else None
         if G is not None and x_warm is not None:  # the unknowns are G's input: S^T S G x0
             x_warm = G.apply(x_warm)
-        op, b_k, products = restrict_with_setup(geom.S, colmap, n, rhs, x_warm if blur is None else None,
-                                                reuse_buffers=True, rows=valid_rays(data))
+        if support is not None and blur is None:
+            op, b_k, products = _subset_system(geom, inset, support, valid_rays(data), rhs, x_warm)
+        else:
+            op, b_k, products = restrict_with_setup(geom.S, colmap, n, rhs, x_warm if blur is None else None,
+                                                    reuse_buffers=True, rows=valid_rays(data))
         sys_ = FrameSystem(op=op, inset=inset, LtL=regulariser(inset, params.prior), _colsumsq=products[0],
                            CtC=curl_normal(inset) if params.curl_weight > 0 else None)
     op = sys_.op
@@ -825,6 +841,65 @@ def solve_gradient(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarra
                      setup_seconds=t1 - t0 - t_solve, solve_seconds=t_solve)
     log.debug("solve_gradient: %s", info)
     return grad, info
+
+
+def block_support(hulls, dilation: int) -> np.ndarray:
+    """The union of several frames' basis sets (:func:`basis_set`), e.g. a warm-start
+    block's: the shared restriction of :func:`solve_gradient`'s ``support``."""
+    out = None
+    for h in hulls:
+        s = basis_set(h, dilation)
+        out = s if out is None else (out | s)
+    if out is None:
+        raise ValueError("block_support needs at least one hull")
+    return out
+
+
+def _subset_system(geom: TomoGeometry, inset: np.ndarray, support: np.ndarray, valid: np.ndarray | None,
+                   rhs=None, x_warm: np.ndarray | None = None):
+    """The frame's system (basis set ``inset``, rays ``valid``) inside the restriction of
+    the projection to ``support`` (built once per thread and support), with its right-hand
+    side ``rhs(rows)`` and setup products (:meth:`SubsetOperator.setup_products`, fused with
+    the restriction when this call builds it).
+
+    Returns
+    -------
+    op : SubsetOperator
+    b : ndarray (op.m, 3) or None (without ``rhs``)
+    products : tuple or None
+    """
+    support = np.asarray(support, dtype=bool)
+    if support.shape != inset.shape:
+        raise ValueError(f"support shape {support.shape} does not match the grid {inset.shape}")
+    if np.any(inset & ~support):
+        raise ValueError("support must contain the frame's basis set (the dilated hull)")
+    digest = hashlib.blake2b(np.packbits(support).tobytes(), digest_size=16).hexdigest()
+    sel = np.flatnonzero(inset.ravel()[support.ravel()])
+    flag = None
+    if valid is not None:
+        flag = np.zeros(geom.S.shape[0], bool)
+        flag[valid] = True
+    x_sup = None
+    if x_warm is not None:
+        x_sup = np.zeros((int(support.sum()), 3))
+        x_sup[sel] = x_warm
+    rhs_valid = rhs
+    if rhs is not None and flag is not None:
+        def rhs_valid(rows):  # the support's rays include invalid ones: never evaluated
+            out = np.zeros((len(rows), 3))
+            ok = flag[rows]
+            out[ok] = rhs(rows[ok])
+            return out
+    base, fused = shared_restriction(geom.S, support, (geom.key, geom.S.shape, geom.S.nnz, digest),
+                                     rhs=rhs_valid, x=x_sup, valid=flag)
+    op = SubsetOperator(base, sel, None if flag is None else flag[base.rows])
+    if rhs is None:
+        return op, None, None
+    if fused is not None:  # products over the support's rows: keep the frame's rows and columns
+        b_all, prods = fused
+        return op, b_all[op._live_idx], tuple(p[sel] for p in prods)
+    b = rhs(op.rows)
+    return op, b, op.setup_products(b, x_warm)
 
 
 def _warm(x0, inset):

@@ -106,7 +106,12 @@ def test_critical_path_priorities_are_upward_ranks():
     assert tomo[0] > tomo[1] > tomo[2] and tomo[3] > tomo[4] > tomo[5]
     assert abs(tomo[0] - tomo[3]) < 1e-9
     hull = {t.index[0]: rank[t.key] for t in plan.by_stage()["hull"]}
-    assert hull[0] > hull[2] and hull[3] > hull[5]
+    # a block's first solve waits for every hull of the block (the shared restriction)
+    tomo_deps = {t.index[0]: t.deps for t in plan.by_stage()["tomography"]}
+    hull_key = {t.index[0]: t.key for t in plan.by_stage()["hull"]}
+    assert {hull_key[i] for i in range(3)} <= set(tomo_deps[0]) and hull_key[3] not in tomo_deps[0]
+    assert {hull_key[i] for i in range(3, 6)} <= set(tomo_deps[4])
+    assert hull[0] == hull[2] > tomo[0] and hull[3] == hull[5]
     # nothing waits for the frame statistics: they only fill idle slots
     assert max(rank[t.key] for t in plan.by_stage()["frames"]) == costs["frames"]
     assert rank[plan.by_stage()["geometry"][0].key] > max(hull.values())
@@ -201,6 +206,10 @@ def _deps_oracle(st, index, ext):
             elif how == "window" and dl.get("camera", labels.get("camera")) == labels.get("camera"):
                 f = dl["raw_frame"] - ext.raw_offset if "raw_frame" in dl else dl["frame"]
                 if abs(f - labels["frame"]) <= st.frame_halo:
+                    out.append((dep_name, i))
+            elif how == "block":
+                B = max(ext.warm_start_block, 1)
+                if dl["frame"] // B == labels["frame"] // B:
                     out.append((dep_name, i))
         if how == "chain" and labels["frame"] % max(ext.warm_start_block, 1) != 0:
             out.append((dep_name, (labels["frame"] - 1,)))
