@@ -808,3 +808,8 @@ def test_block_support_gives_the_frames_own_system(setup, caplog):
     np.testing.assert_array_equal(w3, w1)
     with pytest.raises(ValueError, match="must contain"):
         solve_gradient(geom, rhs, hull, params=params, support=basis_set(other, 0))
+    # a frame with an empty hull inside a non-empty block, and an all-empty block
+    empty = np.zeros(grid.shape, bool)
+    for sup in (support, block_support([empty, empty], params.hull_dilation)):
+        ge, ie = solve_gradient(geom, rhs, empty, params=params, support=sup)
+        assert ie.stop_reason == "empty" and not ge.any()
