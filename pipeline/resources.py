@@ -15,7 +15,13 @@ here; a test keeps them equal to the recorded results. The model:
   includes one-off costs of a process's first task such as compiling numba kernels);
 * every estimate is multiplied by :data:`MODEL_MARGIN`, the fit's largest
   under-estimate of a measurement;
-* every worker process carries ``PROCESS_BYTES`` of code and libraries.
+* every worker process carries ``PROCESS_BYTES`` of code and libraries;
+* a worker that runs tomography tasks keeps one more block restriction of the projection
+  than its running task holds (``pipeline.tomography.operator.SHARED_RESTRICTIONS``):
+  :data:`HELD_BYTES_PER_CROSSING` per ray-voxel crossing, a bound rather than a fit (half
+  the session matrix's bytes, i.e. a hull over half the box, plus the buffers' 25 %
+  headroom; the paper-scale benchmark's hull covers 31 % of its box, the realistic
+  family's 8 %).
 
 Pure numpy: no files, no Dask.
 """
@@ -27,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["BYTES_PER_PIXEL", "BYTES_PER_VOXEL", "PROCESS_BYTES", "PIXEL_MODEL", "TASK_MODEL", "CACHE_MODEL",
+__all__ = ["BYTES_PER_PIXEL", "BYTES_PER_VOXEL", "PROCESS_BYTES", "HELD_BYTES_PER_CROSSING", "PIXEL_MODEL", "TASK_MODEL", "CACHE_MODEL",
            "MODEL_MARGIN",
            "ray_crossings",
            "MemoryEstimate", "estimate_memory", "estimate_disk"]
@@ -51,6 +57,9 @@ TASK_MODEL: dict[str, tuple[float, float, float, float]] = {
 CACHE_MODEL: tuple[float, float] = (90.66880794904968, 25.120435587894406)
 #: A worker process with the pipeline's libraries and ``distributed`` imported.
 PROCESS_BYTES = 194662400.0
+#: Bytes per ray-voxel crossing of a block restriction a tomography worker keeps between
+#: tasks (see the module docstring): half the geometry cache's bytes per crossing x 1.25.
+HELD_BYTES_PER_CROSSING = 0.5 * 1.25 * CACHE_MODEL[1]
 #: The largest under-estimate of any measurement by the fitted model; tasks are scaled by it.
 MODEL_MARGIN = 1.0636795834531168
 # -------------------------------------------------------------------------------------------
@@ -92,12 +101,15 @@ class MemoryEstimate:
     voxels: int
     crossings: float
     pixels: int
+    held_3d: float = 0.0
 
     def worker(self, slots: int = 1, tomo_slots: int = 1) -> float:
-        """A worker running ``slots`` tasks at once, at most ``tomo_slots`` of them 3-D."""
+        """A worker running ``slots`` tasks at once, at most ``tomo_slots`` of them 3-D, each
+        3-D thread keeping ``held_3d`` between its tasks."""
         slots = max(int(slots), 1)
         three_d = min(max(int(tomo_slots), 1), slots)
-        return PROCESS_BYTES + max(slots * self.task_2d, three_d * self.task_3d + (slots - three_d) * self.task_2d)
+        return PROCESS_BYTES + three_d * self.held_3d + max(
+            slots * self.task_2d, three_d * self.task_3d + (slots - three_d) * self.task_2d)
 
 
 def estimate_memory(cameras, grid, flow_grid, image_size) -> MemoryEstimate:
@@ -110,7 +122,8 @@ def estimate_memory(cameras, grid, flow_grid, image_size) -> MemoryEstimate:
     stage = max(per_stage, key=per_stage.get) if per_stage else "tomography"
     task_2d = MODEL_MARGIN * max((c + p * w * h for c, p in PIXEL_MODEL.values()), default=0.0)
     return MemoryEstimate(task_2d=task_2d, task_3d=per_stage.get(stage, 0.0), stage_3d=stage,
-                          voxels=nvox, crossings=crossings, pixels=int(w * h))
+                          voxels=nvox, crossings=crossings, pixels=int(w * h),
+                          held_3d=HELD_BYTES_PER_CROSSING * crossings)
 
 
 def estimate_disk(array_bytes: float, cameras, grid, flow_grid) -> float:

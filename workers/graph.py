@@ -9,7 +9,9 @@ memory-heavy solves at once than it advertises; when no worker advertises it, th
 annotation is dropped rather than letting tasks wait forever, DASK-ZARR.md pitfall 12).
 
 Each task's priority is its critical-path rank (:func:`~schlieren.workers.plan.critical_path_priorities`),
-so the chained tomography solves of all warm-start blocks advance together.
+so the warm-start blocks' chains of tomography solves start early and side by side; within a
+chain each solve is lifted to its head's rank (:func:`~schlieren.workers.plan.chain_first_priorities`),
+so the worker that advanced a block carries it on with the block's restriction it holds.
 
 The client then follows the futures' states, which the scheduler pushes to it, and
 fetches the receipts of finished tasks in batches (one ``gather`` per ``batch_interval``
@@ -30,7 +32,7 @@ from dask.task_spec import TaskRef
 from distributed import Client
 
 from schlieren.workers import interrupts
-from schlieren.workers.plan import Plan, critical_path_priorities
+from schlieren.workers.plan import Plan, chain_first_priorities, critical_path_priorities
 from schlieren.workers.tasks import run_tasks
 
 log = logging.getLogger(__name__)
@@ -100,8 +102,10 @@ def run_graph(client: Client, store_path: str, plan: Plan, *,
     have = worker_resources(client)
     if any(t.resources for t in plan.tasks) and not have:
         log.warning("no worker advertises the TOMO resource; solves are not limited per worker")
-    # critical path first; the scheduler calls the (picklable) dict.get once per key
-    priority = {k: int(round(1e4 * r)) for k, r in critical_path_priorities(plan).items()}
+    # critical path first, a warm-start chain carried on by the worker that advanced it;
+    # the scheduler calls the (picklable) dict.get once per key
+    ranks = chain_first_priorities(plan, critical_path_priorities(plan))
+    priority = {k: int(round(1e4 * r)) for k, r in ranks.items()}
     futures = {}
     for resources, dsk in plan_graphs(store_path, plan, have):
         got = client.get(dsk, list(dsk), resources=resources, retries=retries,

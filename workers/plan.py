@@ -206,6 +206,38 @@ def make_plan(ext: Extents, token: str, *, done=None, stages: tuple[Stage, ...] 
     return plan
 
 
+#: Priority step (rank seconds) between consecutive solves of a warm-start chain in
+#: :func:`chain_first_priorities`: above the chain head's rank, below anything a second costlier.
+CHAIN_STEP = 1e-3
+
+
+def chain_first_priorities(plan: Plan, rank: dict[str, float]) -> dict[str, float]:
+    """``rank`` with every task of a warm-start chain (a ``chain`` dependency, the
+    tomography solves) lifted to its chain head's rank plus ``CHAIN_STEP`` per position.
+
+    By rank alone a block's second solve ranks below every other block's first, so a
+    worker that finished one block's first solve went on to the next block's first, and
+    every solve missed the block restriction its worker had just built (``solve_gradient``'s
+    ``support``, kept per worker thread for one block). Lifted, the next solve of the block a
+    worker just advanced outranks other blocks' heads, so the worker that holds the block's
+    restriction (it also holds the previous solve's receipt) carries the chain on; blocks
+    still start side by side on idle workers, and at most one block per worker is left at
+    the end.
+    """
+    out = dict(rank)
+    chained = {st.name for st in STAGES if any(how == "chain" for _, how in st.after)}
+    by_key = {t.key: t for t in plan.tasks}
+    head_of: dict[str, tuple[str, int]] = {}
+    for t in plan.tasks:  # dependency order: a chain's predecessor comes first
+        if t.stage not in chained:
+            continue
+        prev = next((d for d in t.deps if d in head_of and by_key[d].stage == t.stage), None)
+        head_of[t.key] = (t.key, 0) if prev is None else (head_of[prev][0], head_of[prev][1] + 1)
+        head, pos = head_of[t.key]
+        out[t.key] = max(rank[t.key], rank[head] + CHAIN_STEP * pos)
+    return out
+
+
 def critical_path_priorities(plan: Plan, costs: dict[str, float] | None = None) -> dict[str, float]:
     """Each task's priority: the longest chain of work from its start to the run's end.
 

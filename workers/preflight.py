@@ -130,7 +130,8 @@ def preflight(session, cfg, layout, out_path, *, workers: list[WorkerSlots]) -> 
     local = sum(p for p, w in zip(peaks, workers) if w.local)
     how = (f"{human_bytes(est.task_3d)} per {est.stage_3d} task ({est.voxels} voxels, {est.crossings:.3g} "
            f"ray-voxel crossings) and {human_bytes(est.task_2d)} per 2-D task ({size[0]}x{size[1]} images), "
-           f"plus {human_bytes(resources.PROCESS_BYTES)} per process, as measured by benchmarks/memory.py")
+           f"plus {human_bytes(resources.PROCESS_BYTES)} per process, as measured by benchmarks/memory.py, and "
+           f"up to {human_bytes(est.held_3d)} of a warm-start block's projection kept between solves")
     for w, p in zip(workers, peaks):
         if w.memory_limit is not None and p > w.memory_limit:
             raise ResourceError(

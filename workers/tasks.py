@@ -552,7 +552,7 @@ def _integrate(ctx: RunContext, k: int) -> dict:
 
 def _info_dict(info) -> dict:
     out = {}
-    for name in ("iterations", "residual", "relative_residual", "converged", "unknowns", "rays"):
+    for name in ("iterations", "residual", "relative_residual", "converged", "unknowns", "rays", "restriction"):
         if hasattr(info, name):
             v = getattr(info, name)
             out[name] = v.tolist() if isinstance(v, np.ndarray) else v

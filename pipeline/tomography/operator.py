@@ -355,10 +355,11 @@ def _restrict_fill(indptr, indices, data, rows, colmap, new_indptr, new_indices,
         _restrict_row(indptr, indices, data, rows[k], colmap, new_indices, new_data, new_indptr[k])
 
 
-def _restricted_layout(S: sp.csr_matrix, rows: np.ndarray, colmap: np.ndarray, reuse_buffers: bool):
+def _restricted_layout(S: sp.csr_matrix, rows: np.ndarray, colmap: np.ndarray, reuse_buffers: bool,
+                       allocate: bool = True):
     """Count pass of a restriction: the rows of ``rows`` with at least one kept column,
     their CSR row pointer and (unfilled) index and value arrays (this thread's scratch
-    buffers with ``reuse_buffers``, see :func:`_scratch`)."""
+    buffers with ``reuse_buffers``, see :func:`_scratch`; None without ``allocate``)."""
     counts = np.empty(len(rows), np.int64)
     _restrict_count(S.indptr, S.indices, rows, colmap, counts)
     keep = counts > 0
@@ -366,6 +367,8 @@ def _restricted_layout(S: sp.csr_matrix, rows: np.ndarray, colmap: np.ndarray, r
     new_indptr = np.zeros(len(rows_k) + 1, np.int64)
     np.cumsum(counts[keep], out=new_indptr[1:])
     nnz = int(new_indptr[-1])
+    if not allocate:
+        return keep, rows_k, new_indptr, None, None
     if reuse_buffers:
         new_indices = _scratch("indices", nnz, np.int32)
         new_data = _scratch("data", nnz, np.float32)
@@ -448,11 +451,11 @@ def _scratch(name: str, size: int, dtype) -> np.ndarray:
 
     The restricted matrix of a paper-scale frame is ~0.5 GB: writing it into fresh memory
     every frame costs a page fault per 4 KiB (about a third of a second here). A buffer that
-    has to grow comes from :func:`large_empty` (huge pages where granted) with 25 % headroom:
-    on the session benchmark's growing plume the second warm-start block's restriction
-    (14 % larger than the first) faulted its fresh buffer for 0.6 s of its 0.8 s.
+    has to grow comes from :func:`large_empty` (huge pages where granted) with 25 % headroom,
+    as the shared restrictions' buffers do (:func:`shared_restriction`: on the session
+    benchmark's growing plume a block's restriction 14 % larger than the last one's faulted
+    its fresh buffer for 0.6 s of its 0.8 s).
     """
-    _SCRATCH.owner = None  # whatever the buffers held (a shared restriction) is overwritten
     buf = getattr(_SCRATCH, name, None)
     if buf is None or buf.size < size or buf.dtype != np.dtype(dtype):
         buf = None  # release the old buffer first
@@ -794,10 +797,17 @@ def _live_rows(indptr, indices, keep, valid, out):
         out[r] = hit
 
 
+#: Shared restrictions a thread keeps (:func:`shared_restriction`): two, because a Dask
+#: worker holds its next task before the one it runs finishes, so the solves of two
+#: warm-start blocks alternate on it.
+SHARED_RESTRICTIONS = 2
+
+
 def shared_restriction(S: sp.csr_matrix, support: np.ndarray, key, *, rhs=None, x: np.ndarray | None = None,
                        valid: np.ndarray | None = None):
     """``S`` restricted to the columns ``support`` marks and every ray that hits them, kept
-    in this thread's scratch buffers for the next call with the same ``key``.
+    by this thread for later calls with the same ``key`` (the :data:`SHARED_RESTRICTIONS`
+    most recently used ones, each in its own buffers; an evicted one's buffers are reused).
 
     The frames of a warm-start block differ little (the family's hulls: union 2-3 % above
     each frame's), so their systems are restricted once to the block's union and then
@@ -820,26 +830,45 @@ def shared_restriction(S: sp.csr_matrix, support: np.ndarray, key, *, rhs=None, 
     -------
     op : RestrictedOperator
     fused : tuple or None
-        ``(b, products)`` over all of ``op``'s rows when the products were computed.
+        ``(b, products)`` over all of ``op``'s rows when the products were computed (None
+        when ``op`` was kept from an earlier call).
     """
-    owner = getattr(_SCRATCH, "owner", None)
-    if owner is not None and owner[0] == key:
-        return owner[1], None
+    held = getattr(_SCRATCH, "shared", None)
+    if held is None:
+        held = _SCRATCH.shared = []  # [(key, op, indices buffer, data buffer)], most recent last
+    for i, entry in enumerate(held):
+        if entry[0] == key:
+            held.append(held.pop(i))
+            return entry[1], None
     flat = np.asarray(support, dtype=bool).ravel()
     if flat.size != S.shape[1]:
         raise ValueError(f"support has {flat.size} voxels, the projection {S.shape[1]} columns")
     n = int(flat.sum())
     colmap = np.full(flat.size, -1, np.int32)
     colmap[flat] = np.arange(n, dtype=np.int32)
+    spare = held.pop(0)[2:] if len(held) >= SHARED_RESTRICTIONS else None
+    rows = np.arange(S.shape[0], dtype=np.int64)
+    keep, rows_k, indptr, _, _ = _restricted_layout(S, rows, colmap, False, allocate=False)
+    nnz = int(indptr[-1])
+    bufs = []
+    for j, dtype in enumerate((np.int32, np.float32)):
+        old = spare[j] if spare is not None else None
+        bufs.append(old if old is not None and old.size >= nnz else large_empty(max(nnz + nnz // 4, 1), dtype))
+    del spare
+    indices, data = bufs[0][:nnz], bufs[1][:nnz]
     fused = None
     if rhs is not None:
-        op, b, prods = restrict_with_setup(S, colmap, n, rhs, x, reuse_buffers=True, valid=valid)
+        b = np.ascontiguousarray(rhs(rows_k), dtype=np.float64).reshape(len(rows_k), 3)
+        with_x = x is not None
+        xx = (np.ascontiguousarray(x, dtype=np.float32).reshape(n, 3) if with_x else np.zeros((0, 3), np.float32))
+        prods = _restrict_setup3(S.indptr, S.indices, S.data, rows_k, colmap, indptr, indices, data, b, xx, n,
+                                 ADJOINT_CHUNKS, with_x,
+                                 _ALL_ROWS if valid is None else np.ascontiguousarray(valid, dtype=bool).view(np.uint8))
         fused = (b, prods)
     else:
-        rows = np.arange(S.shape[0], dtype=np.int64)
-        indptr, indices, data, keep = restrict_rows_cols(S, rows, colmap, reuse_buffers=True)
-        op = RestrictedOperator(indptr, indices, data, n, rows[keep])
-    _SCRATCH.owner = (key, op)
+        _restrict_fill(S.indptr, S.indices, S.data, rows_k, colmap, indptr, indices, data)
+    op = RestrictedOperator(indptr, indices, data, n, rows_k)
+    held.append((key, op, bufs[0], bufs[1]))
     return op, fused
 
 

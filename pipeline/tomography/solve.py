@@ -78,6 +78,10 @@ class SolveInfo:
         ``"tol"``, ``"discrepancy"``, ``"max_iter"`` or ``"empty"``.
     setup_seconds, solve_seconds : float
         Restriction / right-hand side time and iteration time.
+    restriction : str
+        ``"frame"`` (restricted for this frame), ``"shared-built"`` / ``"shared-kept"``
+        (selected inside a shared restriction built by this call / kept from an earlier
+        one, ``solve_gradient``'s ``support``) or ``"given"`` (``system``).
     """
 
     iterations: int
@@ -89,6 +93,7 @@ class SolveInfo:
     stop_reason: str = ""
     setup_seconds: float = 0.0
     solve_seconds: float = 0.0
+    restriction: str = ""
 
 
 def basis_set(hull: np.ndarray, dilation: int) -> np.ndarray:
@@ -800,6 +805,7 @@ def solve_gradient(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarra
         raise ValueError("solve_gradient: give either blur (image space) or volume_blur, not both")
     products = None
     G = None
+    how = "given"
     if system is not None:
         sys_ = system
         if volume_blur > 0 and sys_.inset.any():
@@ -819,8 +825,9 @@ def solve_gradient(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarra
         if G is not None and x_warm is not None:  # the unknowns are G's input: S^T S G x0
             x_warm = G.apply(x_warm)
         if support is not None and blur is None:
-            op, b_k, products = _subset_system(geom, inset, support, valid_rays(data), rhs, x_warm)
+            op, b_k, products, how = _subset_system(geom, inset, support, valid_rays(data), rhs, x_warm)
         else:
+            how = "frame"
             op, b_k, products = restrict_with_setup(geom.S, colmap, n, rhs, x_warm if blur is None else None,
                                                     reuse_buffers=True, rows=valid_rays(data))
         sys_ = FrameSystem(op=op, inset=inset, LtL=regulariser(inset, params.prior), _colsumsq=products[0],
@@ -828,7 +835,7 @@ def solve_gradient(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarra
     op = sys_.op
     if op.n == 0 or op.m == 0:
         info = SolveInfo(iterations=0, residual=0.0, residual_components=(0.0, 0.0, 0.0),
-                         stop_reason="empty", setup_seconds=time.perf_counter() - t0)
+                         stop_reason="empty", setup_seconds=time.perf_counter() - t0, restriction=how)
         return np.zeros(geom.grid.shape + (3,), np.float32), info
     b = b_k if products is not None else rhs(op.rows)
     if blur is not None:
@@ -838,7 +845,7 @@ def solve_gradient(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.ndarra
     grad = _scatter(sys_.inset, x)
     info = SolveInfo(iterations=it, residual=float(np.max(res)), residual_components=tuple(map(float, res)),
                      n_unknowns=op.n, n_rays=op.m, nnz=op.nnz, stop_reason=reason,
-                     setup_seconds=t1 - t0 - t_solve, solve_seconds=t_solve)
+                     setup_seconds=t1 - t0 - t_solve, solve_seconds=t_solve, restriction=how)
     log.debug("solve_gradient: %s", info)
     return grad, info
 
@@ -867,6 +874,8 @@ def _subset_system(geom: TomoGeometry, inset: np.ndarray, support: np.ndarray, v
     op : SubsetOperator
     b : ndarray (op.m, 3) or None (without ``rhs``)
     products : tuple or None
+    how : str
+        ``"shared-built"`` or ``"shared-kept"`` (:attr:`SolveInfo.restriction`).
     """
     support = np.asarray(support, dtype=bool)
     if support.shape != inset.shape:
@@ -893,13 +902,14 @@ def _subset_system(geom: TomoGeometry, inset: np.ndarray, support: np.ndarray, v
     base, fused = shared_restriction(geom.S, support, (geom.key, geom.S.shape, geom.S.nnz, digest),
                                      rhs=rhs_valid, x=x_sup, valid=flag)
     op = SubsetOperator(base, sel, None if flag is None else flag[base.rows])
+    how = "shared-kept" if fused is None else "shared-built"
     if rhs is None:
-        return op, None, None
+        return op, None, None, how
     if fused is not None:  # products over the support's rows: keep the frame's rows and columns
         b_all, prods = fused
-        return op, b_all[op._live_idx], tuple(p[sel] for p in prods)
+        return op, b_all[op._live_idx], tuple(p[sel] for p in prods), how
     b = rhs(op.rows)
-    return op, b, op.setup_products(b, x_warm)
+    return op, b, op.setup_products(b, x_warm), how
 
 
 def _warm(x0, inset):

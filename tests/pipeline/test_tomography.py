@@ -791,20 +791,32 @@ def test_block_support_gives_the_frames_own_system(setup, caplog):
     assert abs(j1.iterations - j0.iterations) <= 1
     np.testing.assert_allclose(w1, w0, atol=1e-4 * np.abs(w0).max())
 
-    # the shared restriction is kept for the same support and rebuilt after another restriction
-    base = opmod._SCRATCH.owner[1]
-    solve_gradient(geom, rhs, other, params=params, support=support)
-    assert opmod._SCRATCH.owner[1] is base
-    solve_gradient(geom, rhs, hull, params=params)  # the frame's own restriction reuses the buffers
-    assert opmod._SCRATCH.owner is None
+    # a thread keeps the two most recent shared restrictions (a Dask worker alternates two
+    # blocks): kept for the same support, rebuilt (into an evicted one's buffers) after two others
+    assert i1.restriction == "shared-kept" and i0.restriction == "frame"  # sub built it above
+    base = opmod._SCRATCH.shared[-1][1]
+    _, ik = solve_gradient(geom, rhs, other, params=params, support=support)
+    assert ik.restriction == "shared-kept" and opmod._SCRATCH.shared[-1][1] is base
+    solve_gradient(geom, rhs, hull, params=params)  # the frame's own restriction: other buffers
+    assert opmod._SCRATCH.shared[-1][1] is base
+    second = block_support([hull], params.hull_dilation)
+    _, ib = solve_gradient(geom, rhs, hull, params=params, support=second)
+    _, ik2 = solve_gradient(geom, rhs, hull, params=params, support=support)
+    assert ib.restriction == "shared-built" and ik2.restriction == "shared-kept"
+    third = block_support([hull, hull], params.hull_dilation + 1)
+    solve_gradient(geom, rhs, hull, params=params, support=third)  # evicts `second`
+    assert len(opmod._SCRATCH.shared) == opmod.SHARED_RESTRICTIONS
     # (this call builds the restriction and its setup products in one pass: the same sums)
+    solve_gradient(geom, rhs, hull, params=params, support=second)  # evicts `support`
     with caplog.at_level(logging.WARNING):
-        g2, _ = solve_gradient(geom, rhs, hull, params=params, support=support)
+        g2, i2 = solve_gradient(geom, rhs, hull, params=params, support=support)
+    assert i2.restriction == "shared-built"
     assert not [r for r in caplog.records if "non-finite" in r.getMessage()]  # invalid rays never read
-    assert opmod._SCRATCH.owner[1] is not base
     np.testing.assert_array_equal(g2, g1)
-    w2, _ = solve_gradient(geom, rhs, other, params=params, x0=0.7 * g0)  # invalidates
-    w3, _ = solve_gradient(geom, rhs, hull, params=params, x0=0.7 * g0, support=support)  # fused, warm
+    for s_ in (third, second):  # evict it again, then a warm solve builds it with x0's product
+        solve_gradient(geom, rhs, hull, params=params, support=s_)
+    w3, i3 = solve_gradient(geom, rhs, hull, params=params, x0=0.7 * g0, support=support)  # fused, warm
+    assert i3.restriction == "shared-built"
     np.testing.assert_array_equal(w3, w1)
     with pytest.raises(ValueError, match="must contain"):
         solve_gradient(geom, rhs, hull, params=params, support=basis_set(other, 0))

@@ -117,6 +117,29 @@ def test_critical_path_priorities_are_upward_ranks():
     assert rank[plan.by_stage()["geometry"][0].key] > max(hull.values())
 
 
+def test_chain_first_priorities_lift_each_chain_to_its_head():
+    """A block's later solves outrank every other block's first solve (so a worker carries the
+    block it holds on), keep their order inside the chain, and nothing else changes."""
+    from schlieren.workers.plan import CHAIN_STEP, chain_first_priorities, critical_path_priorities
+
+    ext = Extents(camera=2, frame=10, raw_frame=12, raw_offset=1, warm_start_block=4)
+    plan = make_plan(ext, "tok")
+    rank = critical_path_priorities(plan)
+    prio = chain_first_priorities(plan, rank)
+    tomo = {t.index[0]: t.key for t in plan.by_stage()["tomography"]}
+    p = {k: prio[key] for k, key in tomo.items()}
+    heads = (0, 4, 8)
+    for h in heads:
+        chain = [k for k in range(h, min(h + 4, 10))]
+        assert [p[k] for k in chain] == sorted(p[k] for k in chain)  # order kept
+        for k in chain[1:]:
+            assert p[k] == pytest.approx(rank[tomo[h]] + CHAIN_STEP * (k - h))
+            assert all(p[k] > p[o] for o in heads if o != h and rank[tomo[o]] <= rank[tomo[h]])
+    assert rank[tomo[1]] < rank[tomo[4]] < p[1]  # by rank alone the next block's head went first
+    others = [t.key for t in plan.tasks if t.stage != "tomography"]
+    assert all(prio[k] == rank[k] for k in others)
+
+
 @settings(max_examples=40, deadline=None)
 @given(extents, st.integers(1, 5), st.integers(1, 5))
 def test_batched_tasks_cover_every_index_once_and_keep_every_dependency(ext, image_per_task, flow_per_task):

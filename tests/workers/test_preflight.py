@@ -37,6 +37,7 @@ def model(monkeypatch):
     monkeypatch.setattr(resources, "PIXEL_MODEL", {"deflection": (0.0, 10.0)})
     monkeypatch.setattr(resources, "PROCESS_BYTES", 100 * MiB)
     monkeypatch.setattr(resources, "MODEL_MARGIN", 1.0)
+    monkeypatch.setattr(resources, "HELD_BYTES_PER_CROSSING", 0.0)  # see the test below
 
 
 def test_memory_is_per_task_times_slots_times_workers(session, model, monkeypatch, tmp_path):
@@ -63,6 +64,27 @@ def test_memory_is_per_task_times_slots_times_workers(session, model, monkeypatc
     with pytest.raises(ResourceError, match="more than its memory limit"):
         pf.preflight(session, cfg, layout, tmp_path / "a.zarr",
                      workers=[pf.WorkerSlots(threads=2, tomo=2, memory_limit=1.2 * one, local=False)])
+
+
+def test_memory_counts_the_block_restriction_a_tomography_thread_keeps(session, model, monkeypatch, tmp_path):
+    """Each 3-D slot of a worker keeps one more block restriction between its solves:
+    HELD_BYTES_PER_CROSSING per ray-voxel crossing, once per TOMO slot, not per 2-D slot."""
+    cfg = RunConfig()
+    layout = run_layout(session, cfg)[0]
+
+    def peak(tomo):
+        return pf.preflight(session, cfg, layout, tmp_path / "a.zarr",
+                            workers=[pf.WorkerSlots(threads=2, tomo=tomo)]).worker_peak[0]
+
+    before = {t: peak(t) for t in (1, 2)}
+    monkeypatch.setattr(resources, "HELD_BYTES_PER_CROSSING", 7.0)
+    crossings = resources.estimate_memory(session.cameras, session.grid, FlowGrid(session.cameras[0].image_size,
+                                          cfg.flow_factor), session.cameras[0].image_size).crossings
+    assert crossings > 0
+    for t in (1, 2):
+        assert peak(t) == pytest.approx(before[t] + t * 7.0 * crossings)
+    with pytest.raises(ResourceError, match="kept between solves"):
+        pf.preflight(session, cfg, layout, tmp_path / "a.zarr", workers=[pf.WorkerSlots(memory_limit=1.0, local=False)])
 
 
 class _FakeClient:
