@@ -218,7 +218,8 @@ def chain_first_priorities(plan: Plan, rank: dict[str, float]) -> dict[str, floa
     By rank alone a block's second solve ranks below every other block's first, so a
     worker that finished one block's first solve went on to the next block's first, and
     every solve missed the block restriction its worker had just built (``solve_gradient``'s
-    ``support``, kept per worker thread for one block). Lifted, the next solve of the block a
+    ``support``; a worker thread keeps two, as Dask hands a worker its next task before the
+    running one ends). Lifted, the next solve of the block a
     worker just advanced outranks other blocks' heads, so the worker that holds the block's
     restriction (it also holds the previous solve's receipt) carries the chain on; blocks
     still start side by side on idle workers, and at most one block per worker is left at

@@ -27,6 +27,7 @@ from schlieren.pipeline import derived, flow as flowmod, frame_quality as fq, hu
 from schlieren.pipeline import poisson, sync, tomography
 from schlieren.pipeline.geometry import Camera, FlowGrid, pixel_footprint
 from schlieren.pipeline.stages import RunConfig, config_from_dict, frame_statistics, kernel_kwargs, stage
+from schlieren.pipeline.tomography.operator import SHARED_RESTRICTIONS
 from schlieren.storage import arrays_cache
 from schlieren.storage.errors import SessionError
 from schlieren.storage.frames import open_frames, read_reference
@@ -527,11 +528,13 @@ def _block_support(ctx: RunContext, k: int, dilation: int) -> np.ndarray:
     lo = k - k % B
     frames = range(lo, min(lo + B, len(ctx.times())))
     key = (lo, dilation)
-    held = ctx._small.get("block_support")  # only the latest block (a worker moves on)
-    if held is None or held[0] != key:
-        held = (key, tomography.block_support([ctx.store.read("hull", (i,)) for i in frames], dilation))
-        ctx._small["block_support"] = held
-    return held[1]
+    # as many blocks as the solver keeps restrictions for (a worker alternates two blocks)
+    held = ctx._small.setdefault("block_support", {})
+    if key not in held:
+        while len(held) >= SHARED_RESTRICTIONS:
+            held.pop(next(iter(held)))
+        held[key] = tomography.block_support([ctx.store.read("hull", (i,)) for i in frames], dilation)
+    return held[key]
 
 
 def _integrate(ctx: RunContext, k: int) -> dict:

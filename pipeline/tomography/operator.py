@@ -378,6 +378,24 @@ def _restricted_layout(S: sp.csr_matrix, rows: np.ndarray, colmap: np.ndarray, r
     return keep, rows_k, new_indptr, new_indices, new_data
 
 
+def _fill(S: sp.csr_matrix, rows_k, colmap, indptr, indices, data, n: int, rhs=None, x=None, valid=None):
+    """Fill a restriction laid out by :func:`_restricted_layout`; with ``rhs`` also run the
+    solver's setup pass on each row while it is hot (:func:`_restrict_setup3`; ``x`` the warm
+    start in the new numbering, ``valid`` (M,) bool rays left out of the products).
+    Returns None, or ``(b, products)`` over the kept rows."""
+    if rhs is None:
+        _restrict_fill(S.indptr, S.indices, S.data, rows_k, colmap, indptr, indices, data)
+        return None
+    b = np.ascontiguousarray(rhs(rows_k), dtype=np.float64).reshape(len(rows_k), 3)
+    with_x = x is not None
+    xx = (np.ascontiguousarray(x, dtype=np.float32).reshape(n, 3) if with_x
+          else np.zeros((0, 3), np.float32))
+    prods = _restrict_setup3(S.indptr, S.indices, S.data, rows_k, colmap, indptr, indices, data,
+                             b, xx, int(n), ADJOINT_CHUNKS, with_x,
+                             _ALL_ROWS if valid is None else np.ascontiguousarray(valid, dtype=bool).view(np.uint8))
+    return b, prods
+
+
 def restrict_rows_cols(S: sp.csr_matrix, rows: np.ndarray, colmap: np.ndarray, *, reuse_buffers: bool = False):
     """Rows ``rows`` of ``S`` with columns renumbered by ``colmap`` (-1 = dropped).
 
@@ -392,7 +410,7 @@ def restrict_rows_cols(S: sp.csr_matrix, rows: np.ndarray, colmap: np.ndarray, *
     rows = np.ascontiguousarray(rows, dtype=np.int64)
     colmap = np.ascontiguousarray(colmap, dtype=np.int32)
     keep, rows_k, new_indptr, new_indices, new_data = _restricted_layout(S, rows, colmap, reuse_buffers)
-    _restrict_fill(S.indptr, S.indices, S.data, rows_k, colmap, new_indptr, new_indices, new_data)
+    _fill(S, rows_k, colmap, new_indptr, new_indices, new_data, 0)
     return new_indptr, new_indices, new_data, keep
 
 
@@ -505,13 +523,7 @@ def restrict_with_setup(S: sp.csr_matrix, colmap: np.ndarray, n: int, rhs, x: np
     rows = np.arange(S.shape[0], dtype=np.int64) if rows is None else np.asarray(rows, dtype=np.int64)
     colmap = np.ascontiguousarray(colmap, dtype=np.int32)
     _, rows_k, new_indptr, new_indices, new_data = _restricted_layout(S, rows, colmap, reuse_buffers)
-    b = np.ascontiguousarray(rhs(rows_k), dtype=np.float64).reshape(len(rows_k), 3)
-    with_x = x is not None
-    xx = (np.ascontiguousarray(x, dtype=np.float32).reshape(n, 3) if with_x
-          else np.zeros((0, 3), np.float32))
-    prods = _restrict_setup3(S.indptr, S.indices, S.data, rows_k, colmap, new_indptr, new_indices, new_data,
-                             b, xx, int(n), ADJOINT_CHUNKS, with_x,
-                             _ALL_ROWS if valid is None else np.ascontiguousarray(valid, dtype=bool).view(np.uint8))
+    b, prods = _fill(S, rows_k, colmap, new_indptr, new_indices, new_data, n, rhs, x, valid)
     return RestrictedOperator(new_indptr, new_indices, new_data, n, rows_k), b, prods
 
 
@@ -848,7 +860,7 @@ def shared_restriction(S: sp.csr_matrix, support: np.ndarray, key, *, rhs=None, 
     colmap[flat] = np.arange(n, dtype=np.int32)
     spare = held.pop(0)[2:] if len(held) >= SHARED_RESTRICTIONS else None
     rows = np.arange(S.shape[0], dtype=np.int64)
-    keep, rows_k, indptr, _, _ = _restricted_layout(S, rows, colmap, False, allocate=False)
+    _, rows_k, indptr, _, _ = _restricted_layout(S, rows, colmap, False, allocate=False)
     nnz = int(indptr[-1])
     bufs = []
     for j, dtype in enumerate((np.int32, np.float32)):
@@ -856,17 +868,7 @@ def shared_restriction(S: sp.csr_matrix, support: np.ndarray, key, *, rhs=None, 
         bufs.append(old if old is not None and old.size >= nnz else large_empty(max(nnz + nnz // 4, 1), dtype))
     del spare
     indices, data = bufs[0][:nnz], bufs[1][:nnz]
-    fused = None
-    if rhs is not None:
-        b = np.ascontiguousarray(rhs(rows_k), dtype=np.float64).reshape(len(rows_k), 3)
-        with_x = x is not None
-        xx = (np.ascontiguousarray(x, dtype=np.float32).reshape(n, 3) if with_x else np.zeros((0, 3), np.float32))
-        prods = _restrict_setup3(S.indptr, S.indices, S.data, rows_k, colmap, indptr, indices, data, b, xx, n,
-                                 ADJOINT_CHUNKS, with_x,
-                                 _ALL_ROWS if valid is None else np.ascontiguousarray(valid, dtype=bool).view(np.uint8))
-        fused = (b, prods)
-    else:
-        _restrict_fill(S.indptr, S.indices, S.data, rows_k, colmap, indptr, indices, data)
+    fused = _fill(S, rows_k, colmap, indptr, indices, data, n, rhs, x, valid)
     op = RestrictedOperator(indptr, indices, data, n, rows_k)
     held.append((key, op, bufs[0], bufs[1]))
     return op, fused
