@@ -174,3 +174,25 @@ def _one_command_parser(func):
     sub = p.add_subparsers(dest="command", required=True)
     sub.add_parser("probe").set_defaults(func=func)
     return p
+
+
+def test_worker_log_filter_drops_a_dying_peer_only_after_ctrl_c(monkeypatch):
+    """The local workers' filter keeps every error before a Ctrl-C; after it, it drops the
+    two ends of a transfer cut by the cluster closing (the sender's and the receiver's
+    errors, the latter seen with a traceback in a CI run) and nothing else."""
+    import logging
+
+    from schlieren.workers import cluster
+
+    def rec(msg, level=logging.ERROR):
+        return logging.LogRecord("distributed.worker", level, __file__, 1, msg, None, None)
+
+    f = cluster._AfterCtrlC()
+    monkeypatch.setattr(cluster._AfterCtrlC, "interrupted", False)
+    died = rec("Worker stream died during communication: tcp://127.0.0.1:43183")
+    sent = rec("failed during get data with tcp://127.0.0.1:1 -> tcp://127.0.0.1:2")
+    other = rec("Compute Failed")
+    assert f.filter(died) and f.filter(sent) and f.filter(other)
+    monkeypatch.setattr(cluster._AfterCtrlC, "interrupted", True)
+    assert not f.filter(died) and not f.filter(sent)
+    assert f.filter(other) and f.filter(rec("Worker stream died during communication", logging.INFO))
