@@ -421,7 +421,9 @@ def _regularisation(ctx: RunContext) -> dict:
     The noise of the right-hand side is measured on the rays outside every camera's mask
     (no flow: pure measurement noise); the weight whose data residual matches it is
     chosen on the middle frame's hull and used for every frame (one weight per run keeps
-    the frames comparable and costs one frame's search, about 4-6 warm-started solves).
+    the frames comparable and costs one frame's search: a cold solve at the search's start
+    and about 1-5 warm-started ones bracketing the crossing, :func:`~schlieren.pipeline.
+    tomography.solve.choose_reg_weight`).
     """
     params = ctx.config.tomography
     out = {"reg_choice": params.reg_choice}
