@@ -15,6 +15,7 @@ import hashlib
 import os
 import subprocess
 import sys
+import time
 import venv
 from pathlib import Path
 
@@ -49,11 +50,24 @@ def ensure_env(extras=("test", "cluster", "bench")) -> None:
     want = sorted(have | set(extras))
     print("dev.py: installing schlieren" + (f" with {', '.join(want)}" if want else "") + " into .venv",
           file=sys.stderr)
-    pip = [str(BIN / "python"), "-m", "pip", "--disable-pip-version-check", "-q"]
-    subprocess.check_call(pip + ["install", "--upgrade", "pip"])
+    pip = [str(BIN / "python"), "-m", "pip", "--disable-pip-version-check", "-q", "--retries", "10"]
+    _pip(pip + ["install", "--upgrade", "pip"])
     spec = f"{ROOT}[{','.join(want)}]" if want else str(ROOT)
-    subprocess.check_call(pip + ["install", "-e", spec])
+    _pip(pip + ["install", "-e", spec])
     STAMP.write_text(_digest() + "\n" + ",".join(want))
+
+
+def _pip(cmd: list[str], attempts: int = 4) -> None:
+    """Run a pip command, again after a failure: a download cut short by the network
+    (pip gives up after a few resumes) is the usual cause, and what pip already fetched
+    stays in its cache."""
+    for k in range(1, attempts + 1):
+        if subprocess.call(cmd) == 0:
+            return
+        if k < attempts:
+            print(f"dev.py: pip failed (attempt {k} of {attempts}); trying again in {10 * k} s", file=sys.stderr)
+            time.sleep(10 * k)
+    sys.exit(f"dev.py: `{' '.join(cmd[3:])}` failed {attempts} times; see pip's messages above")
 
 
 def main(argv: list[str]) -> int:
