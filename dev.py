@@ -6,7 +6,9 @@
     python3 dev.py schlieren ARGS   # any other schlieren command inside the venv
 
 The virtual environment lives in .venv beside this file and is (re)installed whenever
-pyproject.toml changes; `demo` installs the runtime only, `test` adds the test extras.
+pyproject.toml (or the pinned versions) change; `demo` installs the runtime only, `test` adds
+the test extras. On CPython 3.11 / Linux the versions are pinned by deploy/constraints-dev.txt
+(the environment CI runs; SCHLIEREN_UNPINNED=1 resolves afresh).
 """
 
 from __future__ import annotations
@@ -25,8 +27,22 @@ BIN = VENV / ("Scripts" if os.name == "nt" else "bin")
 STAMP = VENV / ".schlieren-installed"
 
 
+#: Exact versions of the test environment (CPython 3.11 on Linux, where CI runs).
+CONSTRAINTS = ROOT / "deploy" / "constraints-dev.txt"
+
+
+def _pinned() -> bool:
+    """Install with :data:`CONSTRAINTS`: on the platform they were resolved for, unless
+    SCHLIEREN_UNPINNED is set (to resolve afresh, e.g. when regenerating them)."""
+    return (sys.version_info[:2] == (3, 11) and sys.platform.startswith("linux") and CONSTRAINTS.exists()
+            and not os.environ.get("SCHLIEREN_UNPINNED"))
+
+
 def _digest() -> str:
-    return hashlib.sha256((ROOT / "pyproject.toml").read_bytes()).hexdigest()
+    h = hashlib.sha256((ROOT / "pyproject.toml").read_bytes())
+    if _pinned():
+        h.update(CONSTRAINTS.read_bytes())
+    return h.hexdigest()
 
 
 #: Extras per command: the demo needs only the runtime; the tests also need the test,
@@ -53,7 +69,7 @@ def ensure_env(extras=("test", "cluster", "bench")) -> None:
     pip = [str(BIN / "python"), "-m", "pip", "--disable-pip-version-check", "-q", "--retries", "10"]
     _pip(pip + ["install", "--upgrade", "pip"])
     spec = f"{ROOT}[{','.join(want)}]" if want else str(ROOT)
-    _pip(pip + ["install", "-e", spec])
+    _pip(pip + ["install"] + (["-c", str(CONSTRAINTS)] if _pinned() else []) + ["-e", spec])
     STAMP.write_text(_digest() + "\n" + ",".join(want))
 
 

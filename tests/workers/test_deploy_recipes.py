@@ -883,3 +883,41 @@ def test_image_pins_its_base_and_every_package():
             project["optional-dependencies"]["s3"]:
         req = Requirement(raw)
         assert req.specifier.contains(pins[canonicalize_name(req.name)], prereleases=True), raw
+
+
+def _pins(path) -> dict[str, str]:
+    from packaging.requirements import Requirement
+    from packaging.utils import canonicalize_name
+
+    pins: dict[str, str] = {}
+    for line in path.read_text().splitlines():
+        line = line.split("#", 1)[0].strip()
+        if line:
+            req = Requirement(line)
+            (spec,) = req.specifier
+            assert spec.operator == "==", line
+            pins[canonicalize_name(req.name)] = spec.version
+    return pins
+
+
+def test_dev_pins_cover_the_test_environment_and_agree_with_the_image():
+    """deploy/constraints-dev.txt (dev.py's pins) holds every package of
+    schlieren[test,cluster,bench], satisfies pyproject's requirements, and pins each package
+    the image also pins to the same version (client and workers must match)."""
+    import tomllib
+
+    from packaging.requirements import Requirement
+    from packaging.utils import canonicalize_name
+
+    dev = _pins(DEPLOY / "constraints-dev.txt")
+    image = _pins(DEPLOY / "constraints.txt")
+    needed = _closure("schlieren", {"test", "cluster", "bench"}) - {"schlieren"}
+    assert needed - set(dev) == set(), "regenerate deploy/constraints-dev.txt (see its header)"
+    assert {n: (v, dev[n]) for n, v in image.items() if n in dev and dev[n] != v} == {}
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    extras = project["optional-dependencies"]
+    for raw in project["dependencies"] + extras["test"] + extras["cluster"] + extras["bench"]:
+        req = Requirement(raw)
+        if req.marker is not None and not req.marker.evaluate({"extra": ""}):
+            continue
+        assert req.specifier.contains(dev[canonicalize_name(req.name)], prereleases=True), raw
