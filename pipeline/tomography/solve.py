@@ -1226,8 +1226,9 @@ def choose_reg_weight(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.nda
     noise = np.asarray(noise, dtype=np.float64).reshape(3)
     if not np.all(np.isfinite(noise)) or not noise.any():
         raise ValueError(f"the noise estimate must be finite and positive, got {noise}")
-    if not (largest > 0 and factor > 1 and 0 < smallest <= largest):
-        raise ValueError(f"need largest >= smallest > 0 and factor > 1, got {largest}, {smallest}, {factor}")
+    if not (largest > 0 and factor > 1 and 0 < smallest <= largest and start > 0):
+        raise ValueError(f"need largest >= smallest > 0, factor > 1 and start > 0, got largest {largest}, "
+                         f"smallest {smallest}, factor {factor}, start {start}")
     data = np.asarray(rhs_or_flows)
     rows = valid_rays(data)
     sys_ = prepare_frame(geom, hull, dilation=params.hull_dilation, rows=rows, prior=params.prior)

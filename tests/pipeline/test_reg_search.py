@@ -69,3 +69,10 @@ def test_bracketing_search_finds_the_top_down_answer(blob, tau):
     assert len(mid.path) <= len(top.path), (mid.path, top.path)
     if tau == 1.0:
         assert len(mid.path) < len(top.path), (mid.path, top.path)
+
+
+def test_search_arguments_are_checked(blob):
+    _, _, geom, _, rhs, hull, noise = blob
+    for bad in (dict(start=0.0), dict(factor=1.0), dict(smallest=8.0)):
+        with pytest.raises(ValueError, match="start > 0"):
+            choose_reg_weight(geom, rhs, hull, noise, **bad)
