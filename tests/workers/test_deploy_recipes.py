@@ -850,41 +850,6 @@ def _closure(root: str, extras: set[str]) -> set[str]:
     return seen
 
 
-def test_image_pins_its_base_and_every_package():
-    from packaging.requirements import Requirement
-    from packaging.utils import canonicalize_name
-    from distributed.versions import required_packages
-
-    text = (DEPLOY / "Containerfile").read_text()
-    base = re.search(r"^FROM (\S+)", text, re.M).group(1)
-    assert re.fullmatch(r"python:3\.11\.\d+-slim-(bookworm|trixie)(@sha256:[0-9a-f]{64})?", base), base
-    assert re.search(r'^RUN pip install --constraint deploy/constraints\.txt "\.\[cluster,s3\]"$', text, re.M)
-    assert "COPY deploy/constraints.txt ./deploy/constraints.txt" in text
-    assert re.search(r"^COPY deploy/bin/dask-scheduler deploy/bin/dask-worker /usr/local/bin/$", text, re.M)
-
-    pins: dict[str, str] = {}
-    for line in (DEPLOY / "constraints.txt").read_text().splitlines():
-        line = line.split("#", 1)[0].strip()
-        if line:
-            req = Requirement(line)
-            (spec,) = req.specifier
-            assert spec.operator == "==", line
-            pins[canonicalize_name(req.name)] = spec.version
-    # every package of the install is pinned (names from the installed metadata of schlieren[cluster,s3])
-    needed = _closure("schlieren", {"cluster", "s3"}) - {"schlieren"}
-    assert needed - set(pins) == set(), "regenerate deploy/constraints.txt (see its header)"
-    # the version checks' packages in particular, and the pins satisfy pyproject's requirements
-    checked = {canonicalize_name(p) for p in [*_VERSION_PACKAGES, *required_packages]} - {"schlieren"}
-    assert checked <= set(pins)
-    import tomllib
-
-    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
-    for raw in project["dependencies"] + project["optional-dependencies"]["cluster"] + \
-            project["optional-dependencies"]["s3"]:
-        req = Requirement(raw)
-        assert req.specifier.contains(pins[canonicalize_name(req.name)], prereleases=True), raw
-
-
 def _pins(path) -> dict[str, str]:
     from packaging.requirements import Requirement
     from packaging.utils import canonicalize_name
@@ -898,6 +863,34 @@ def _pins(path) -> dict[str, str]:
             assert spec.operator == "==", line
             pins[canonicalize_name(req.name)] = spec.version
     return pins
+
+
+def test_image_pins_its_base_and_every_package():
+    from packaging.requirements import Requirement
+    from packaging.utils import canonicalize_name
+    from distributed.versions import required_packages
+
+    text = (DEPLOY / "Containerfile").read_text()
+    base = re.search(r"^FROM (\S+)", text, re.M).group(1)
+    assert re.fullmatch(r"python:3\.11\.\d+-slim-(bookworm|trixie)(@sha256:[0-9a-f]{64})?", base), base
+    assert re.search(r'^RUN pip install --constraint deploy/constraints\.txt "\.\[cluster,s3\]"$', text, re.M)
+    assert "COPY deploy/constraints.txt ./deploy/constraints.txt" in text
+    assert re.search(r"^COPY deploy/bin/dask-scheduler deploy/bin/dask-worker /usr/local/bin/$", text, re.M)
+
+    pins = _pins(DEPLOY / "constraints.txt")
+    # every package of the install is pinned (names from the installed metadata of schlieren[cluster,s3])
+    needed = _closure("schlieren", {"cluster", "s3"}) - {"schlieren"}
+    assert needed - set(pins) == set(), "regenerate deploy/constraints.txt (see its header)"
+    # the version checks' packages in particular, and the pins satisfy pyproject's requirements
+    checked = {canonicalize_name(p) for p in [*_VERSION_PACKAGES, *required_packages]} - {"schlieren"}
+    assert checked <= set(pins)
+    import tomllib
+
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    for raw in project["dependencies"] + project["optional-dependencies"]["cluster"] + \
+            project["optional-dependencies"]["s3"]:
+        req = Requirement(raw)
+        assert req.specifier.contains(pins[canonicalize_name(req.name)], prereleases=True), raw
 
 
 def test_dev_pins_cover_the_test_environment_and_agree_with_the_image():
