@@ -94,20 +94,35 @@ def clip_rays_to_box(origins: np.ndarray, dirs: np.ndarray, lo: np.ndarray, hi: 
     s0, s1 : ndarray, shape (M,)
         Entry and exit parameters (``s1 <= s0`` when the ray misses; ``s0 >= 0``).
     """
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / dirs
-        ta = (lo - origins) * inv
-        tb = (hi - origins) * inv
-    tmin = np.minimum(ta, tb)
-    tmax = np.maximum(ta, tb)
-    # Axis-parallel rays: inside the slab -> (-inf, inf); outside -> empty.
-    par = dirs == 0
-    inside = (origins >= lo) & (origins <= hi)
-    tmin = np.where(par, np.where(inside, -np.inf, np.inf), tmin)
-    tmax = np.where(par, np.where(inside, np.inf, -np.inf), tmax)
-    s0 = np.maximum(np.max(tmin, axis=1), 0.0)
-    s1 = np.min(tmax, axis=1)
+    o = np.ascontiguousarray(origins, dtype=np.float64).reshape(-1, 3)
+    d = np.ascontiguousarray(dirs, dtype=np.float64).reshape(-1, 3)
+    s0 = np.empty(len(o))
+    s1 = np.empty(len(o))
+    _clip_kernel(o, d, np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64), s0, s1)
     return s0, s1
+
+
+@nb.njit(parallel=True, cache=True)
+def _clip_kernel(o, d, lo, hi, s0, s1):
+    """One pass per ray (the numpy form made a dozen (M, 3) temporaries: 1.1 s for the 2.8M
+    rays of a paper-scale session). An axis-parallel ray inside a slab is unbounded along
+    that axis, outside it misses."""
+    for r in nb.prange(o.shape[0]):
+        t0 = 0.0
+        t1 = np.inf
+        for k in range(3):
+            if d[r, k] == 0.0:
+                if not (lo[k] <= o[r, k] <= hi[k]):
+                    t0 = np.inf
+                    t1 = -np.inf
+                continue
+            inv = 1.0 / d[r, k]
+            ta = (lo[k] - o[r, k]) * inv
+            tb = (hi[k] - o[r, k]) * inv
+            t0 = max(t0, min(ta, tb))
+            t1 = min(t1, max(ta, tb))
+        s0[r] = t0
+        s1[r] = t1
 
 
 @nb.njit(cache=True)
