@@ -557,7 +557,8 @@ def _integrate(ctx: RunContext, k: int) -> dict:
 
 def _info_dict(info) -> dict:
     out = {}
-    for name in ("iterations", "residual", "relative_residual", "converged", "unknowns", "rays", "restriction"):
+    for name in ("iterations", "residual", "relative_residual", "converged", "unknowns", "rays", "restriction",
+                 "sign", "clipped"):
         if hasattr(info, name):
             v = getattr(info, name)
             out[name] = v.tolist() if isinstance(v, np.ndarray) else v
