@@ -1,5 +1,6 @@
 """Flow masks: Poisson integration, the global threshold reduction, spatio-temporal dilation."""
 
+import cv2
 import numpy as np
 import pytest
 
@@ -169,3 +170,39 @@ def test_flow_noise_is_recovered_and_drives_the_deflection_threshold():
     assert fixed[far].mean() > 0.5            # the noise passes a fixed 0.015 px threshold
     assert adaptive[far].mean() < 0.05
     assert adaptive[core].mean() > 0.9
+
+
+def test_grow_factor_follows_faint_flanks_connected_to_the_plume_and_not_the_noise():
+    """Hysteresis of the deflection criterion: with noisy flow (the noise lifts the criterion
+    to 5 sigma) the flanks of a plume whose deflection decays smoothly are kept down to
+    ``grow_factor`` sigma where they connect to its core; noise far from the plume stays out;
+    with lower noise (the criterion within GROW_NOISE_RATIO times its 0.015 px floor, as on
+    lossless frames) the mask does not change."""
+    rng = np.random.default_rng(5)
+    h, w = 120, 160
+    yy, xx = np.mgrid[0:h, 0:w]
+    d = np.abs(xx - 80.0)
+    plume = np.zeros((h, w, 2), np.float32)
+    plume[..., 0] = np.where(yy > 20, 0.3 * np.exp(-0.5 * (d / 10.0) ** 2), 0.0)  # Gaussian flanks
+    far = d > 50
+    for sigma, grows in ((0.05, True), (0.0176, False), (0.001, False)):
+        flow = plume + rng.normal(scale=sigma, size=(h, w, 2)).astype(np.float32)
+        # the noise of the smoothed flow the criterion sees (flow_sigma 1.5 cells)
+        s = M.flow_noise(cv2.GaussianBlur(flow, (0, 0), 1.5, borderType=cv2.BORDER_REFLECT))
+        if sigma == 0.0176:  # criterion above its floor, but within GROW_NOISE_RATIO of it: no growth
+            assert 1.0 < 5 * s / 0.015 < M.GROW_NOISE_RATIO
+        P = M.flow_potential(flow)
+        thr = M.threshold_from_summaries([M.potential_summary(P)], percentile=95)
+        kw = dict(flows=flow[None], dilation_radius=0)
+        plain = M.make_mask(P[None], 0, thr, grow_factor=0.0, **kw)
+        grown = M.make_mask(P[None], 0, thr, grow_factor=2.0, **kw)
+        assert (grown >= plain).all()
+        if not grows:
+            np.testing.assert_array_equal(grown, plain)
+            continue
+        low = max(0.015, 2 * s)
+        assert 5 * s > 1.5 * low
+        flank = (yy > 30) & (plume[..., 0] > 1.2 * low) & (plume[..., 0] < 4 * s)  # between the two criteria
+        assert flank.sum() > 300
+        assert grown[flank].mean() > plain[flank].mean() + 0.3, (plain[flank].mean(), grown[flank].mean())
+        assert grown[far].mean() < plain[far].mean() + 0.01, (plain[far].mean(), grown[far].mean())

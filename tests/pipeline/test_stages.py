@@ -53,7 +53,7 @@ def test_kernel_kwargs_passes_only_accepted_fields():
 
     kw = stages.kernel_kwargs(masks.MaskParams(), masks.make_mask)
     assert set(kw) <= {"smooth_sigma", "dilation_radius", "temporal_radius", "deflection_threshold",
-                       "flow_sigma", "percentile", "n_quantiles", "noise_factor"}
+                       "flow_sigma", "percentile", "n_quantiles", "noise_factor", "grow_factor"}
     assert "dilation_radius" in kw
 
 
