@@ -194,7 +194,7 @@ def sign_constraint(r: np.ndarray, hull: np.ndarray, r_ambient: float, *, sign: 
     if sign == "auto":
         neg = float(-u[u < 0].sum())
         pos = float(u[u > 0].sum())
-        if neg + pos == 0.0:
+        if not np.isfinite(neg + pos) or neg + pos == 0.0:  # nothing to go by (or an infinite value)
             return r, "none", 0.0
         sign = "negative" if neg >= pos else "positive"
         opposite = min(neg, pos) / (neg + pos)

@@ -274,5 +274,10 @@ def test_sign_constraint_leaves_two_signed_flows_and_follows_an_explicit_sign():
     assert applied == "negative" and (out - R_AMB).max() <= 0 and clipped > 0
     out, applied, _ = sign_constraint(R_AMB - u + 1e-7 * (u < -1e-6), full, R_AMB)  # a denser (positive) flow
     assert applied == "positive" and (out - R_AMB).min() >= 0
+    broken = r + 1e-7 * (np.abs(u) < 1e-9)  # a negative flow with a positive margin ...
+    broken[0, 0, 0] = np.nan                 # ... and a voxel a failed step left undefined
+    out, applied, clipped = sign_constraint(broken, full, R_AMB)
+    assert applied == "negative" and np.isnan(out[0, 0, 0])  # left as it is, not made ambient
+    assert np.nanmax(out - R_AMB) <= 0 and clipped > 0
     with pytest.raises(ValueError, match="sign must be one of"):
         sign_constraint(both, full, R_AMB, sign="down")
