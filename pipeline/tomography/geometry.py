@@ -17,7 +17,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from schlieren.pipeline.geometry import Camera, FlowGrid, Grid
-from schlieren.pipeline.tomography.operator import build_projection
+from schlieren.pipeline.tomography.operator import build_projection, prune_rows
 from schlieren.pipeline.tomography.params import TomoParams
 
 __all__ = ["TomoGeometry", "build_geometry", "content_hash", "save_geometry", "load_geometry",
@@ -88,7 +88,7 @@ class TomoGeometry:
 
 
 def content_hash(cameras: list[Camera], grid: Grid, flow_grid: FlowGrid, params: TomoParams) -> str:
-    """SHA-256 over everything the geometry depends on (cameras, grid, flow grid, step)."""
+    """SHA-256 over everything the geometry depends on (cameras, grid, flow grid, step, prune)."""
     h = hashlib.sha256()
     h.update(f"schlieren-tomo-geometry/{GEOMETRY_VERSION}".encode())
     for cam in cameras:
@@ -98,6 +98,8 @@ def content_hash(cameras: list[Camera], grid: Grid, flow_grid: FlowGrid, params:
     h.update(repr((grid.vmin, grid.vmax, grid.voxel_size)).encode())
     h.update(repr((tuple(flow_grid.image_size), int(flow_grid.factor))).encode())
     h.update(repr(float(params.step)).encode())
+    if params.prune > 0:  # (absent when 0: the caches of unpruned geometries keep their keys)
+        h.update(repr(("prune", float(params.prune))).encode())
     return h.hexdigest()
 
 
@@ -153,6 +155,8 @@ def build_geometry(cameras: list[Camera], grid: Grid, flow_grid: FlowGrid, *,
     origins = np.repeat(np.stack([cam.center for cam in cameras]), rows * cols, axis=0)
     S = build_projection(origins, d_in.reshape(-1, 3), grid.shape, grid.origin, grid.voxel_size,
                          step=params.step)
+    if params.prune > 0:
+        S = prune_rows(S, params.prune)
     log.info("tomography geometry: %d rays, grid %s, S nnz %d (%.1f MB)", S.shape[0], grid.shape,
              S.nnz, (S.data.nbytes + S.indices.nbytes + S.indptr.nbytes) / 1e6)
     return TomoGeometry(

@@ -35,6 +35,7 @@ import scipy.sparse as sp
 
 __all__ = [
     "clip_rays_to_box",
+    "prune_rows",
     "build_projection",
     "restrict_rows_cols",
     "restrict_with_setup",
@@ -360,6 +361,71 @@ def build_projection(origins: np.ndarray, dirs: np.ndarray, shape_zyx, origin_xy
     if nnz < np.iinfo(np.int32).max:
         indptr = indptr.astype(np.int32)
     return sp.csr_matrix((data, indices, indptr), shape=(m, nx * ny * nz))
+
+
+def prune_rows(S: sp.csr_matrix, fraction: float) -> sp.csr_matrix:
+    """Drop the entries of each row below ``fraction`` of the row's largest, in place.
+
+    The kept entries of a row are scaled so that its sum is unchanged: the row's sum is
+    the ray's length through the basis (a constant field keeps its exact line integral).
+    The entries a ray only grazes (a node just under one voxel from it) are the row's
+    smallest; on the paper-scale session's rays 5 % of the row's largest drops 17 % of
+    the entries and 1 % of the row sums.
+
+    Parameters
+    ----------
+    S : scipy.sparse.csr_matrix
+        Float32 data; its arrays are compacted in place and returned as a new matrix.
+    fraction : float
+        In [0, 1).
+
+    Returns
+    -------
+    scipy.sparse.csr_matrix
+    """
+    if not 0.0 <= fraction < 1.0:
+        raise ValueError(f"fraction must be in [0, 1), not {fraction}")
+    indptr = np.asarray(S.indptr, dtype=np.int64).copy()
+    nnz = _prune_kernel(indptr, S.indices, S.data, np.float64(fraction))
+    if nnz < np.iinfo(np.int32).max:
+        indptr = indptr.astype(np.int32)
+    return sp.csr_matrix((S.data[:nnz], S.indices[:nnz], indptr), shape=S.shape)
+
+
+@nb.njit(cache=True)
+def _prune_kernel(indptr, indices, data, fraction):
+    """Compact every row to its entries >= ``fraction`` x its largest (kept entries move
+    left only, so one sequential pass works in place); rescale to the row's sum; returns
+    the new number of entries (``indptr`` is rewritten)."""
+    q = 0
+    start = indptr[0]
+    for r in range(indptr.shape[0] - 1):
+        end = indptr[r + 1]
+        mx = 0.0
+        total = 0.0
+        for p in range(start, end):
+            v = np.float64(data[p])
+            total += v
+            if v > mx:
+                mx = v
+        lim = fraction * mx
+        kept = 0.0
+        row_start = q
+        for p in range(start, end):
+            v = np.float64(data[p])
+            if v >= lim:
+                indices[q] = indices[p]
+                data[q] = data[p]
+                kept += v
+                q += 1
+        if kept > 0.0 and kept != total:
+            scale = total / kept
+            for p in range(row_start, q):
+                data[p] = np.float32(np.float64(data[p]) * scale)
+        indptr[r] = row_start
+        start = end
+    indptr[indptr.shape[0] - 1] = q
+    return q
 
 
 @nb.njit(parallel=True, cache=True)
