@@ -72,3 +72,25 @@ def test_lossy_video_frames_of_a_slow_flow_are_not_frozen(frames):
     nearly = prev.copy()
     nearly.flat[idx[: prev.size // 1000]] += 1.0
     assert int(frame_quality(nearly, prev, reference_mean=background.mean(), full_scale=255)[3]) == FROZEN
+
+
+def test_statistics_equal_the_float64_definition_for_every_frame_type():
+    """The OpenCV sums give the statistics of the float64 definition (mean grey level,
+    saturated share, mean absolute change) for 8/16-bit, float frames with NaN, other
+    integer types and mixed types (those take the numpy path)."""
+    rng = np.random.default_rng(2)
+    a = rng.integers(0, 256, (60, 80)).astype(np.uint8)
+    b = rng.integers(0, 256, (60, 80)).astype(np.uint8)
+    b[:10] = 255
+    f = rng.random((60, 80)).astype(np.float32) * 255
+    g = f.copy()
+    g[3, 4] = np.nan
+    w = rng.integers(0, 65536, (60, 80)).astype(np.uint16)
+    for frame, prev, full in ((b, a, 255), (w, w[::-1].copy(), 65535), (f, g, None), (g, f, None),
+                              (b.astype(np.int32), a.astype(np.int32), 255), (b, a.astype(np.float32), 255),
+                              (f, None, None)):
+        q = frame_quality(frame, prev, reference_mean=100.0, full_scale=full)
+        x = np.asarray(frame, dtype=np.float64)
+        want_change = np.nan if prev is None else np.mean(np.abs(x - np.asarray(prev, dtype=np.float64)))
+        want_sat = 0.0 if full is None else np.mean(x >= full)
+        np.testing.assert_allclose(q[:3], [x.mean(), want_sat, want_change], rtol=1e-6, equal_nan=True)
