@@ -205,9 +205,8 @@ def sign_constraint(r: np.ndarray, hull: np.ndarray, r_ambient: float, *, sign: 
     wrong = u > 0 if sign == "negative" else u < 0
     if not wrong.any():
         return r, sign, 0.0
-    u[wrong] = 0.0
     out = np.array(r, copy=True)
-    out[hull] = r_ambient + u
+    out.flat[np.flatnonzero(hull)[wrong]] = r_ambient  # the other voxels keep their exact values
     return out, sign, float(wrong.mean())
 
 
