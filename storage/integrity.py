@@ -32,6 +32,7 @@ missing or corrupt; ``workers/verify.py`` turns that into recomputation.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import os
@@ -135,6 +136,17 @@ def _parse_meta(raw: bytes | None) -> _Meta | None:
                  zstd="zstd" in names and names[0] == "bytes")
 
 
+def _integrity_attr(attrs) -> dict | None:
+    """The ``integrity`` root attribute (stored as JSON text, netCDF-safe), or None."""
+    info = attrs.get("integrity") if hasattr(attrs, "get") else None
+    if isinstance(info, str):
+        try:
+            info = json.loads(info)
+        except ValueError:
+            info = None
+    return info if isinstance(info, dict) else None
+
+
 def _chunk_key(key: str) -> tuple[str, tuple[int, ...]] | None:
     """``flow/c/0/3/0/0/0`` -> ``("flow", (0, 3, 0, 0, 0))``; None for other keys."""
     parts = key.split("/")
@@ -177,6 +189,10 @@ class CheckedStore(WrapperStore):
         self._meta: dict[str, _Meta | None] = {}
         self._integrity: dict | None = None
         self._integrity_read = False
+        # metadata fetches in flight, by key: zarr requests the chunks of a read together,
+        # and each would otherwise fetch the array's zarr.json again before the first
+        # answer is cached (one fetch per chunk of a multi-chunk read from an object store)
+        self._fetching: dict[str, asyncio.Task] = {}
 
     def _with_store(self, store):
         return type(self)(store, self.location)
@@ -184,9 +200,35 @@ class CheckedStore(WrapperStore):
     def __repr__(self) -> str:
         return f"CheckedStore({self._store!r})"
 
+    def seed(self, metadata: dict[str, dict], root_attrs: dict | None = None) -> None:
+        """Take array metadata (``{name: zarr.json as a dict}``) and the root attributes
+        already read by the caller (e.g. :meth:`ResultStore.open`'s concurrent fetch of every
+        member), so the first chunk read of each array needs no request of its own."""
+        for name, m in metadata.items():
+            if name not in self._meta:
+                meta = _parse_meta(json.dumps(m).encode())
+                if meta is not None:
+                    self._meta[name] = meta
+        if root_attrs is not None and not self._integrity_read:
+            self._integrity = _integrity_attr(root_attrs)
+            self._integrity_read = True
+
+    async def _fetch_once(self, key: str, prototype):
+        """``self._store.get(key)``, shared by the concurrent callers of one event loop."""
+        loop = asyncio.get_running_loop()
+        task = self._fetching.get(key)
+        if task is None or task.get_loop() is not loop:
+            task = loop.create_task(self._store.get(key, prototype))
+            self._fetching[key] = task
+        try:
+            return await asyncio.shield(task)
+        finally:
+            if task.done() and self._fetching.get(key) is task:
+                del self._fetching[key]
+
     async def _get_meta(self, name: str, prototype) -> _Meta | None:
         if name not in self._meta:
-            buf = await self._store.get(f"{name}/zarr.json", prototype)
+            buf = await self._fetch_once(f"{name}/zarr.json", prototype)
             meta = _parse_meta(buf.to_bytes() if buf is not None else None)
             if meta is None:
                 return None  # not cached: the array may be created later
@@ -195,18 +237,12 @@ class CheckedStore(WrapperStore):
 
     async def _get_integrity(self, prototype) -> dict | None:
         if not self._integrity_read:
-            buf = await self._store.get("zarr.json", prototype)
+            buf = await self._fetch_once("zarr.json", prototype)
             try:
                 attrs = json.loads(buf.to_bytes()).get("attributes") or {} if buf is not None else {}
             except ValueError:
                 attrs = {}
-            info = attrs.get("integrity")
-            if isinstance(info, str):  # nested attributes are stored as JSON text (netCDF-safe)
-                try:
-                    info = json.loads(info)
-                except ValueError:
-                    info = None
-            self._integrity = info if isinstance(info, dict) else None
+            self._integrity = _integrity_attr(attrs)
             self._integrity_read = buf is not None
         return self._integrity
 

@@ -45,6 +45,7 @@ from schlieren.storage.errors import ChunkError, StoreError
 from schlieren.storage.integrity import (
     INTEGRITY_VERSION,
     check_coverage,
+    CheckedStore,
     checked,
     chunk_error,
     covering_stage,
@@ -481,7 +482,11 @@ class ResultStore:
     def _prefetch(self, members: Mapping[str, Any]) -> None:
         """Keep the arrays of ``members`` (:meth:`_members`: one concurrent fetch of every
         array's metadata; in an object store, instead of two requests per array on first use)."""
-        self._arrays.update((k, self._configured(k, v)) for k, v in members.items() if isinstance(v, zarr.Array))
+        arrays = {k: v for k, v in members.items() if isinstance(v, zarr.Array)}
+        self._arrays.update((k, self._configured(k, v)) for k, v in arrays.items())
+        store = self._group.store
+        if isinstance(store, CheckedStore):  # its chunk checks need the same metadata: no refetch
+            store.seed({k: v.metadata.to_dict() for k, v in arrays.items()}, dict(self._group.attrs))
 
     def _configured(self, name: str, arr: zarr.Array) -> zarr.Array:
         """Data arrays of a checksummed store store fill-valued chunks too: a set marker then

@@ -5,6 +5,7 @@ stores of the older version (no checksums) stay readable and are not resumed."""
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import shutil
 from pathlib import Path
@@ -269,3 +270,48 @@ def test_object_store_chunks_are_checked_the_same_way(s3_server):
     assert [(p.array, p.kind) for p in quick.problems] == [("flow", "missing")]
     assert sorted((p.array, p.kind, p.stage) for p in full.problems) == \
         [("flow", "missing", "resample"), ("refractivity", "corrupt", "integrate")]
+
+
+class _CountingStore(zarr.storage.WrapperStore):
+    """Counts the ``get`` requests per key that reach the wrapped store; each waits a
+    moment first, as a request to an object store does (concurrent callers overlap)."""
+
+    def __init__(self, store, counts=None):
+        super().__init__(store)
+        self.counts = counts if counts is not None else {}
+
+    def _with_store(self, store):
+        return type(self)(store, self.counts)
+
+    async def get(self, key, prototype, byte_range=None):
+        self.counts[key] = self.counts.get(key, 0) + 1
+        await asyncio.sleep(0.001)
+        return await super().get(key, prototype, byte_range)
+
+
+def test_a_multi_chunk_read_fetches_the_array_metadata_once():
+    """zarr requests a read's chunks together; the check of each needs the array's metadata,
+    which must be fetched once, not once per chunk in flight (an object store pays a request
+    for each). Metadata handed over with ``seed`` (what ResultStore.open already fetched)
+    needs no request at all."""
+    from schlieren.storage.integrity import CheckedStore
+
+    mem = zarr.storage.MemoryStore()
+    a = zarr.create_array(mem, name="a", shape=(16, 8), chunks=(1, 8), dtype="f4",
+                          dimension_names=("frame", "x"))
+    values = np.arange(128, dtype=np.float32).reshape(16, 8)
+    a[...] = values
+
+    counting = _CountingStore(mem)
+    arr = zarr.open_array(CheckedStore(counting), path="a", mode="r")
+    opened = counting.counts.get("a/zarr.json", 0)
+    np.testing.assert_array_equal(arr[...], values)
+    assert sum(k.startswith("a/c/") for k in counting.counts) == 16
+    assert counting.counts["a/zarr.json"] - opened == 1  # the check's own fetch, once for 16 chunks
+
+    seeded_counts = _CountingStore(mem)
+    arr = zarr.open_array(CheckedStore(seeded_counts), path="a", mode="r")
+    arr.store.seed({"a": arr.metadata.to_dict()})  # the array's own (read-only) CheckedStore
+    opened = seeded_counts.counts.get("a/zarr.json", 0)
+    np.testing.assert_array_equal(arr[...], values)
+    assert seeded_counts.counts.get("a/zarr.json", 0) == opened  # no request for the checks
