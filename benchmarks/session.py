@@ -307,12 +307,12 @@ def profile_tomography(store: str, frame: int, out_json: str) -> None:
 
     ctx = tasks.context(store, "profile")
     cfg = ctx.config
-    key = tomography.content_hash(ctx.cameras, ctx.session.grid, ctx.flow_grid, cfg.tomography)
+    key = tomography.content_hash(ctx.cameras, ctx.session.grid, ctx.ray_grid, cfg.tomography)
     t0 = time.perf_counter()
     geom = tomography.load_geometry(arrays_cache.load_arrays(arrays_cache.cache_dir(store, "geometry", key)))
     t_load = time.perf_counter() - t0
     st = ResultStore.open(store)
-    flows = np.stack([st.read("flow", (c, frame)) for c in range(len(ctx.cameras))])
+    flows = ctx.tomography_flows(frame)  # on the tomography's ray grid, as the task reads them
     hull = st.read("hull", (frame,))
     x0 = st.read("gradient", (frame - 1,)) if frame % cfg.warm_start_block else None
     grad = np.asarray(st.read("gradient", (frame,)), dtype=np.float64)

@@ -50,8 +50,12 @@ from schlieren.pipeline.synthetic.tracer import trace_rays
 from schlieren.pipeline.tomography import (
     RefractivityParams,
     TomoParams,
+    bin_cells,
+    binned_sigma,
     block_support,
     build_geometry,
+    ray_binning,
+    ray_grid,
     rhs_from_d_out,
     solve_gradient,
     solve_refractivity,
@@ -264,7 +268,11 @@ def speed(args):
         grid = Grid(grid.vmin, grid.vmax, float(args.voxel))
         voxel_note = f"voxel {1e3 * grid.voxel_size:.2f} mm"
     tp = TomoParams(n_ambient=MEDIUM.n_ambient)
-    geom = build_geometry(cams, grid, fg, params=tp)
+    # the pipeline's rays: one per block of flow cells where the cells oversample the voxels
+    # (TomoParams.ray_binning, pipeline.tomography.binning; --ray-binning overrides)
+    b = ray_binning(cams, grid, fg, args.ray_binning)
+    rays = ray_grid(fg, b)
+    geom = build_geometry(cams, grid, rays, params=tp)
     t_geom = time.perf_counter() - t0
     # The flow's image averaging the pipeline models (TomoParams.model_flow_window): LK window
     # from each camera's voxel footprint, as workers.tasks.flow_blur builds it.
@@ -278,12 +286,14 @@ def speed(args):
     cell_sigmas = [flowmod.measurement_sigma(flowmod.FlowParams(window=w)) / fg.factor for w in windows]
     # the measurements are made with the image averaging; the solver models it as the
     # pipeline does (TomoParams.flow_window_space)
-    blur = MeasurementBlur(geom.flow_shape, cell_sigmas) if tp.model_flow_window and not args.no_blur else None
+    blur = (MeasurementBlur((len(cams),) + tuple(fg.shape), cell_sigmas)
+            if tp.model_flow_window and not args.no_blur else None)
     model = {}
     if blur is not None:
         space = args.window_space or tp.flow_window_space
-        model = ({"blur": blur} if space == "image"
-                 else {"volume_blur": volume_sigma(cell_sigmas, cams, grid, fg.factor)})
+        ray_sigmas = binned_sigma(cell_sigmas, b)
+        model = ({"blur": MeasurementBlur(geom.flow_shape, ray_sigmas)} if space == "image"
+                 else {"volume_blur": volume_sigma(ray_sigmas, cams, grid, rays.factor)})
     print(f"geometry: {t_geom:.1f}s, S {geom.S.shape} nnz {geom.S.nnz}, {geom.nbytes / 1e9:.2f} GB", flush=True)
     # A plume-like hull: a vertical cone-cylinder whose dilated basis set has ~150k voxels.
     X = grid.centres()
@@ -293,20 +303,31 @@ def speed(args):
     # Smooth synthetic gradient field inside it, evolving between frames; the hull breathes
     # with it (radius +-1.5 %: consecutive hulls differ by a few %, as the realistic
     # family's do, whose warm-start blocks' unions are 2-3 % above each frame's hull).
-    frames = []
-    rng = np.random.default_rng(0)
+    # The measurements: each flow cell's ray (one camera's projection at a time, so the data
+    # synthesis never holds more than the solver's geometry), the flow's window average, 1 %
+    # noise per cell, then the block means the pipeline's rays see.
+    fields = []
     for f in range(args.frames):
         radius = radius0 * (1 + 0.015 * np.sin(2.1 * f))  # not periodic: each block its own union
         hull = rho < radius
         w = np.clip(1 - (rho / radius) ** 2, 0, None) ** 2
         ph = 2 * np.pi * (z / 0.1 + 0.15 * f)
-        rfield = R_AMB - 8e-5 * w * (0.7 + 0.3 * np.sin(ph))
-        g = fine_gradient(rfield, grid.voxel_size)
-        rhs = np.stack([geom.S @ g[..., k].ravel() for k in range(3)], axis=1).reshape(*geom.flow_shape, 3)
-        if blur is not None:
-            rhs = blur.apply(rhs).astype(np.float64)
-        rhs += rng.normal(scale=0.01 * np.abs(rhs).max(), size=rhs.shape)
-        frames.append((rhs, rfield, hull))
+        fields.append((R_AMB - 8e-5 * w * (0.7 + 0.3 * np.sin(ph)), hull))
+    grads = [fine_gradient(rfield, grid.voxel_size).reshape(-1, 3) for rfield, _ in fields]
+    cells = np.empty((args.frames, len(cams)) + tuple(fg.shape) + (3,))
+    for c, cam in enumerate(cams):
+        Sc = build_geometry([cam], grid, fg, params=tp).S
+        for f, g in enumerate(grads):
+            cells[f, c] = np.stack([Sc @ g[:, k] for k in range(3)], axis=1).reshape(*fg.shape, 3)
+        del Sc
+    del grads
+    frames = []
+    rng = np.random.default_rng(0)
+    for f, (rfield, hull) in enumerate(fields):
+        rhs = blur.apply(cells[f]).astype(np.float64) if blur is not None else cells[f]
+        rhs = rhs + rng.normal(scale=0.01 * np.abs(rhs).max(), size=rhs.shape)
+        frames.append((bin_cells(rhs, b), rfield, hull))
+    del cells
     t_data = time.perf_counter() - t0 - t_geom
     # warm-start blocks as the pipeline runs them (RunConfig.warm_start_block): the first
     # frame of a block starts cold, the others from the previous frame; each frame's system
@@ -338,7 +359,7 @@ def speed(args):
         results.append(row)
         print(json.dumps(row), flush=True)
     warm = [r for r in results if r["frame"] % B] or results
-    out = {"grid": list(grid.shape), "voxel": voxel_note,
+    out = {"grid": list(grid.shape), "voxel": voxel_note, "ray_binning": b, "ray_grid": list(rays.shape),
            "flow_window_model": (f"LK windows {sorted(set(windows))} px -> image sigma "
                                  f"{', '.join(f'{v:.2f}' for v in sorted(set(blur.sigmas)))} cells, modelled "
                                  + (f"in the volume (sigma {model['volume_blur']:.2f} voxels)" if "volume_blur" in model
@@ -360,8 +381,9 @@ def speed(args):
     md = ["# Tomography + integration speed at paper scale", "",
           f"Load averages (1/5/15 min): {out['load_avg_start']} at the start, {out['load_avg_end']} at the end "
           "(2 cores; anything above ~1 means another process competed for them).", "",
-          f"Grid {out['grid']} ({voxel_note}), 16 cameras, flow grid {out['flow_grid']}, hull {out['hull_voxels']} "
-          "voxels; "
+          f"Grid {out['grid']} ({voxel_note}), 16 cameras, flow grid {out['flow_grid']}"
+          + (f" measured by one ray per {b}x{b} cells ({out['ray_grid'][0]} x {out['ray_grid'][1]} rays per camera, "
+             "`tomography.ray_binning`)" if b > 1 else "") + f", hull {out['hull_voxels']} voxels; "
           f"per-session geometry {out['geometry_seconds']} s ({geom.nbytes / 1e9:.2f} GB); peak RSS "
           f"{out['peak_rss_mb']} MB; Poisson solver {args.solver}; flow-window model "
           f"{out['flow_window_model']}. {out['note']}.", "",
@@ -396,6 +418,8 @@ def main(argv=None):
     ap.add_argument("--no-support", action="store_true",
                     help="speed run: restrict each frame on its own instead of inside its warm-start block's union")
     ap.add_argument("--hull-radius", type=float, default=0.06)
+    ap.add_argument("--ray-binning", type=int, default=0,
+                    help="speed run: flow cells per ray along each axis (0 = the pipeline's automatic choice)")
     ap.add_argument("--solver", default="mg")
     ap.add_argument("--window-space", choices=("volume", "image"), default="",
                     help="speed run: where the solver models the flow averaging (default: TomoParams')")

@@ -229,7 +229,8 @@ def truth_rows(session_path, store_path, truth_path, *, config: RunConfig | None
     truth = sio.read_truth(truth_path)
     times = np.asarray(store.read("time"), dtype=np.float64)
     fg = FlowGrid(session.cameras[0].image_size, cfg.flow_factor)
-    geom = _geometry(session, store_path, fg, cfg)
+    b = tomography.ray_binning(session.cameras, session.grid, fg, cfg.tomography.ray_binning)
+    geom = _geometry(session, store_path, tomography.ray_grid(fg, b), cfg)
     grid = session.grid
     r_amb = session.medium.refractivity_ambient
     n_amb = session.medium.n_ambient
@@ -246,8 +247,8 @@ def truth_rows(session_path, store_path, truth_path, *, config: RunConfig | None
         hull = np.asarray(store.read("hull", (k,)), dtype=bool)
         d_in = np.asarray(truth.group["d_in"][:, j], dtype=np.float64)
         d_out = np.asarray(truth.group["d_out"][:, j], dtype=np.float64)
-        data = {"exact": n_amb * (d_out - d_in),
-                "approximate": np.asarray(truth.group["deflection"][:, j], dtype=np.float64)}
+        data = {"exact": tomography.bin_cells(n_amb * (d_out - d_in), b),
+                "approximate": tomography.bin_cells(np.asarray(truth.group["deflection"][:, j], dtype=np.float64), b)}
         for v in variants:
             x0 = prev[v] if k % block != 0 else None
             grad, info = tomography.solve_gradient(geom, data[v], hull, params=tomo, x0=x0)

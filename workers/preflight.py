@@ -27,6 +27,7 @@ import numpy as np
 
 from schlieren.pipeline import resources
 from schlieren.pipeline.geometry import FlowGrid
+from schlieren.pipeline.tomography.binning import ray_binning, ray_grid
 from schlieren.storage import location
 from schlieren.storage.errors import ResourceError
 
@@ -123,7 +124,9 @@ def preflight(session, cfg, layout, out_path, *, workers: list[WorkerSlots]) -> 
     """
     cams = session.cameras
     size = cams[0].image_size
+    # the projection's rays: the tomography's ray grid (flow cells binned where they oversample the voxels)
     fg = FlowGrid(size, cfg.flow_factor)
+    fg = ray_grid(fg, ray_binning(cams, session.grid, fg, cfg.tomography.ray_binning))
     est = resources.estimate_memory(cams, session.grid, fg, size)
     peaks = [est.worker(w.threads, w.tomo) for w in workers]
     machine = _machine_memory()

@@ -63,6 +63,23 @@ class RunContext:
     def cameras(self) -> list[Camera]:
         return self.session.cameras
 
+    @property
+    def ray_binning(self) -> int:
+        """Flow cells per tomography ray along each image axis
+        (:func:`~schlieren.pipeline.tomography.ray_binning`; ``tomography.ray_binning``)."""
+        return self._once("ray_binning", lambda: tomography.ray_binning(
+            self.cameras, self.session.grid, self.flow_grid, self.config.tomography.ray_binning))
+
+    @property
+    def ray_grid(self) -> FlowGrid:
+        """The grid of the tomography's rays (the flow grid when :attr:`ray_binning` is 1)."""
+        return tomography.ray_grid(self.flow_grid, self.ray_binning)
+
+    def tomography_flows(self, k: int) -> np.ndarray:
+        """Frame ``k``'s flow of every camera on the ray grid (block means), (C, h, w, 2)."""
+        flows = np.stack(self.read_upstream_many("flow", [(c, k) for c in range(len(self.cameras))]))
+        return tomography.bin_cells(flows, self.ray_binning)
+
     _sources: dict = field(default_factory=dict, repr=False)
     _small: dict = field(default_factory=dict, repr=False)
     _chunks: OrderedDict = field(default_factory=OrderedDict, repr=False)
@@ -205,7 +222,7 @@ def _geometry(store_path: str, key: str):
 
 
 def _geometry_key(ctx: RunContext) -> str:
-    return tomography.content_hash(ctx.cameras, ctx.session.grid, ctx.flow_grid,
+    return tomography.content_hash(ctx.cameras, ctx.session.grid, ctx.ray_grid,
                                    ctx.config.tomography)
 
 
@@ -402,10 +419,14 @@ def _geometry_stage(ctx: RunContext) -> dict:
     if arrays_cache.has_arrays(path) and arrays_cache.verify_arrays(path, read=False):
         arrays_cache.remove_arrays(path)  # truncated or incomplete: build it again
     if not arrays_cache.has_arrays(path):
-        geom = tomography.build_geometry(ctx.cameras, ctx.session.grid, ctx.flow_grid,
+        geom = tomography.build_geometry(ctx.cameras, ctx.session.grid, ctx.ray_grid,
                                          params=ctx.config.tomography)
         arrays_cache.save_arrays(path, tomography.save_geometry(geom))
-    return {"key": key}
+    b = ctx.ray_binning
+    if b > 1:
+        log.info("tomography: one ray per %dx%d flow cells (%d rays per camera)", b, b,
+                 int(np.prod(ctx.ray_grid.shape)))
+    return {"key": key, "ray_binning": b, "ray_grid": list(ctx.ray_grid.shape)}
 
 
 def _hull(ctx: RunContext, k: int) -> dict:
@@ -442,9 +463,9 @@ def _regularisation(ctx: RunContext) -> dict:
         k = ctx.n_frames // 2
         geom = _geometry(ctx.store_path, _geometry_key(ctx))
         masks = np.stack([ctx.store.read("mask", (c, k)) for c in range(C)])
-        flows = np.stack([ctx.read_upstream("flow", (c, k)) for c in range(C)])
+        flows = ctx.tomography_flows(k)
         rhs = tomography.rhs_from_flows(geom, flows, n_ambient=params.n_ambient)
-        noise = tomography.rhs_noise(rhs, ~masks)
+        noise = tomography.rhs_noise(rhs, tomography.bin_quiet(~masks, ctx.ray_binning))
         hull = hullmod.visual_hull(masks, ctx.cameras, ctx.session.grid, ctx.flow_grid, params=ctx.config.hull)
         if np.all(np.isfinite(noise)) and noise.any() and hull.any():
             choice = tomography.choose_reg_weight(geom, flows, hull, noise, params=params, **blur)
@@ -477,9 +498,11 @@ def _window_model(ctx: RunContext, window: np.ndarray, space: str | None = None)
     window = np.asarray(window, dtype=np.float64)
     if not np.any(window > 0):
         return {}
+    window = tomography.binned_sigma(window, ctx.ray_binning)  # in ray-grid cells
+    rays = ctx.ray_grid
     if (space or ctx.config.tomography.flow_window_space) == "image":
-        return {"blur": tomography.MeasurementBlur((len(ctx.cameras),) + tuple(ctx.flow_grid.shape), window)}
-    return {"volume_blur": tomography.volume_sigma(window, ctx.cameras, ctx.session.grid, ctx.flow_grid.factor)}
+        return {"blur": tomography.MeasurementBlur((len(ctx.cameras),) + tuple(rays.shape), window)}
+    return {"volume_blur": tomography.volume_sigma(window, ctx.cameras, ctx.session.grid, rays.factor)}
 
 
 def flow_blur(ctx: RunContext) -> dict:
@@ -498,7 +521,7 @@ def tomo_params(ctx: RunContext):
 
 def _tomography(ctx: RunContext, k: int) -> dict:
     geom = _geometry(ctx.store_path, _geometry_key(ctx))
-    flows = np.stack(ctx.read_upstream_many("flow", [(c, k) for c in range(len(ctx.cameras))]))
+    flows = ctx.tomography_flows(k)
     hull = ctx.store.read("hull", (k,))
     x0 = None
     if k % max(ctx.config.warm_start_block, 1) != 0:

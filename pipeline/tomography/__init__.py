@@ -6,6 +6,7 @@ deflections or right-hand sides), :func:`solve_gradient_d_out` (from exact exit
 directions) or :func:`solve_refractivity` (direct ``n - 1`` reconstruction).
 """
 
+from schlieren.pipeline.tomography.binning import bin_cells, bin_quiet, binned_sigma, ray_binning, ray_grid
 from schlieren.pipeline.tomography.direct import RefractivityInfo, solve_refractivity
 from schlieren.pipeline.tomography.geometry import (
     TomoGeometry,
@@ -34,5 +35,6 @@ __all__ = [
     "save_geometry", "load_geometry", "approximate_d_out", "rhs_from_d_out", "rhs_from_flows",
     "SolveInfo", "solve_gradient", "solve_gradient_d_out", "RefractivityInfo",
     "solve_refractivity", "RegularisationChoice", "choose_reg_weight", "rhs_noise", "MeasurementBlur",
-    "VolumeBlur", "volume_sigma", "block_support",
+    "VolumeBlur", "volume_sigma", "block_support", "ray_binning", "ray_grid", "bin_cells", "bin_quiet",
+    "binned_sigma",
 ]

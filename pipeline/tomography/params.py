@@ -28,6 +28,19 @@ class TomoParams:
         single-threaded, the same 19 iterations); the realistic family's tune cases are
         unchanged to the reported digit (16-camera H.264 +0.01 dB). 0.1 cut another
         4-6 % of the time and lost 0.01-0.02 dB on every lossless tune case.
+    ray_binning : int
+        Flow cells per tomography ray along each image axis
+        (:mod:`schlieren.pipeline.tomography.binning`): 1 = a ray per flow cell (the
+        paper); ``b`` = one ray through the centre of each ``b x b`` block of cells,
+        measuring the block's mean flow; 0 (default) chooses the largest ``b`` that leaves
+        at least 1.25 rays per voxel edge at the box centre, so only flow grids finer than
+        the voxels are binned (paper scale, 16 cameras at 1440x1080 with 2.5 mm voxels:
+        2.7 cells per voxel edge, ``b = 2``; every realistic-family rig and Table 1 keep
+        1). There it quarters the projection and the solve: paper-scale frame 1.18 ->
+        0.56 s (benchmarks/tomography.py --speed), whole session 5.07 -> 3.46 s per time
+        step on 2 workers, its phantom 51.92 -> 51.84 dB (the ray through a block's centre
+        is not quite the mean of its cells' rays; docs/design.md). The chosen value is in
+        the geometry receipt.
     hull_dilation : int
         Basis functions kept per frame: the hull dilated by this many voxels (3x3x3
         structuring element). 1 keeps every basis function whose support (radius one
@@ -108,6 +121,7 @@ class TomoParams:
 
     step: float = param(0.25, unit="voxels", gt=0, le=1)
     prune: float = param(0.05, unit="1", ge=0, lt=1)
+    ray_binning: int = param(0, unit="flow cells", ge=0, le=16)
     hull_dilation: int = param(1, unit="voxels", ge=0, le=10)
     prior: str = param("second-differences", choices=("first-differences", "second-differences"))
     reg_weight: float = param(0.1, unit="1", ge=0, le=1e6)

@@ -183,3 +183,32 @@ def test_a_corrupt_frame_fails_only_its_tasks(tiny_session, tmp_path):
     raw_bad = first + 1 - int(decode_attrs(g.attrs)["run"]["raw_first"])
     assert not defl[1, raw_bad] and defl[1].sum() == defl.shape[1] - 1
     assert not np.asarray(g["status/integrate"][...]).any()
+
+
+def test_forced_ray_binning_runs_on_the_ray_grid_and_keeps_the_flow_grid(serial_store, tiny_session, tmp_path):
+    """``tomography.ray_binning: 2``: the geometry is built on the ray grid (one ray per 2x2
+    flow cells, its receipt says so), the flows, masks and hulls stay on the flow grid, and
+    the reconstruction still meets the truth's floor of the default run. (This rig has 0.73
+    cells per voxel edge, so the automatic choice keeps one ray per cell; forced, the block
+    means halve the flow noise of its smooth blob: 42.7 dB against the default's 40.8.)"""
+    import dataclasses
+
+    from schlieren.pipeline.stages import RunConfig
+    from schlieren.pipeline.tomography import load_geometry
+    from schlieren.storage import arrays_cache
+    from schlieren.workers.evaluate import evaluate
+
+    base = RunConfig()
+    cfg = dataclasses.replace(base, tomography=dataclasses.replace(base.tomography, ray_binning=2))
+    out = tmp_path / "binned.zarr"
+    summary = run_session(tiny_session.session, out, serial=True, config=cfg)
+    assert summary.ok, summary.failures
+    geo = [r for r in summary.receipts if r.get("stage") == "geometry"]
+    assert len(geo) == 1 and geo[0]["ray_binning"] == 2
+    g = zarr.open_group(str(out), mode="r")
+    C, F, h, w, _ = g["flow"].shape
+    assert geo[0]["ray_grid"] == [h // 2, w // 2]
+    assert g["mask"].shape[-2:] == (h, w)
+    geom = load_geometry(arrays_cache.load_arrays(arrays_cache.cache_dir(out, "geometry", geo[0]["key"])))
+    assert geom.flow_shape == (C, h // 2, w // 2)
+    assert evaluate(out, tiny_session.truth)["overall"]["psnr"] > 30.0
