@@ -25,7 +25,7 @@
    deflection and resample tasks (cProfile, in a child process on the serial store) and
    lists the top costs.
 
-Writes ``benchmarks/results/session.json`` and ``session.md``.
+Writes ``benchmarks/results/session[SUFFIX].json`` and ``.md``.
 """
 
 from __future__ import annotations
@@ -47,6 +47,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
+SUFFIX = [""]  # --suffix: results go to session<SUFFIX>.json / .md
 CACHE = HERE / "cache"
 IDLE_PROBE_SECONDS = 5.0
 BATCHED = 4  # --frames-per-task of the model's alternative prediction
@@ -358,7 +359,7 @@ def _gb(x: float) -> str:
 
 def write_report(res: dict) -> None:
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "session.json").write_text(json.dumps(res, indent=2))
+    (RESULTS / f"session{SUFFIX[0]}.json").write_text(json.dumps(res, indent=2))
     s = res["session"]
     F = s["frames"]
     runs = res["runs"]
@@ -501,7 +502,7 @@ def write_report(res: dict) -> None:
     if res.get("notes"):
         md += ["## Notes", ""] + [f"* {n}" for n in res["notes"]]
     md.append("")
-    (RESULTS / "session.md").write_text("\n".join(md))
+    (RESULTS / f"session{SUFFIX[0]}.md").write_text("\n".join(md))
     print("\n".join(md))
 
 
@@ -520,11 +521,13 @@ def main(argv=None) -> int:
     ap.add_argument("--no-profile", action="store_true", help="no cProfile of a tomography frame")
     ap.add_argument("--cache", default=str(CACHE), help="where the session and the stores go (git-ignored)")
     ap.add_argument("--predict-frames", type=int, default=1000)
+    ap.add_argument("--suffix", default="", help="results go to session<SUFFIX>.json / .md (e.g. _f32)")
     ap.add_argument("--predict-workers", default="2,8,32,128")
     ap.add_argument("--profile-store", default=None, help=argparse.SUPPRESS)  # internal: child process
     ap.add_argument("--profile-frame", type=int, default=1, help=argparse.SUPPRESS)
     ap.add_argument("--profile-out", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    SUFFIX[0] = args.suffix
     if args.profile_store:
         profile_tomography(args.profile_store, args.profile_frame, args.profile_out)
         return 0
