@@ -183,9 +183,16 @@ def producers(cfg: RunConfig, names) -> dict[str, str]:
     return out
 
 
-def excluded_frames(store: ResultStore) -> list[tuple[str, int, list[str]]]:
+def excluded_frames(store: ResultStore, receipts: list[dict] | None = None) -> list[tuple[str, int, list[str]]]:
     """``(camera, capture frame, reasons)`` of every frame flagged dark, saturated, frozen or
-    dropped by the camera."""
+    dropped by the camera.
+
+    ``receipts``: the run's task receipts. When this run's deflection tasks covered every raw
+    frame of every camera, their receipts (``excluded``: the same flag names the stored
+    ``frame_quality`` holds) answer without reading the store; otherwise (a resumed run,
+    failed tasks) the flags are read from ``frame_quality``: one small chunk per camera-frame,
+    which from an object store is one request each.
+    """
     import numpy as np
 
     from schlieren.pipeline.frame_quality import flag_names
@@ -193,6 +200,15 @@ def excluded_frames(store: ResultStore) -> list[tuple[str, int, list[str]]]:
 
     if "frame_quality" not in store:
         return []
+    if receipts:
+        C, n_raw = (int(v) for v in store.array("frame_quality").shape[:2])
+        known = {}
+        for r in receipts:
+            if r.get("stage") == "deflection" and not r.get("skipped") and "camera" in r:
+                c, j = (int(v) for v in r["index"][:2])
+                known[(c, j)] = (r["camera"], int(r["frame"]), list(r.get("excluded") or []))
+        if len(known) == C * n_raw:
+            return [v for _, v in sorted(known.items()) if v[2]]
     try:
         flags = np.asarray(store.array("frame_quality")[..., 3])
     except ChunkError:
@@ -343,7 +359,7 @@ def _run_leased(session, out_path, cfg, *, client, serial, report, on_receipt, o
         if s in stage_first:
             times[s] = {"started": stage_first[s], "completed": stage_last[s],
                         "task_seconds": stage_busy.get(s, 0.0), "executor": summary.executor}
-    summary.bad_frames = excluded_frames(store)
+    summary.bad_frames = excluded_frames(store, receipts)
     try:
         store.update_attrs({"stage_times": times})
     except OSError as exc:  # only the timing attributes are lost; every chunk and marker stays

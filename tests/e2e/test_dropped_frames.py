@@ -119,6 +119,14 @@ def test_dropped_frame_keeps_the_accuracy_that_ignoring_it_loses(moving_session,
     summary = run_session(gap, tmp_path / "gap.zarr", serial=True)
     assert not summary.failures and summary.bad_frames == [("cam01", k, ["dropped by the camera (no frame at "
                                                                            "this time)"])]
+    # the run answered from its tasks' receipts; the stored frame-quality flags say the same
+    from schlieren.storage.store import ResultStore
+    from schlieren.workers.run import excluded_frames
+
+    assert excluded_frames(ResultStore.open(tmp_path / "gap.zarr", mode="r")) == summary.bad_frames
+    # a rerun of the finished store runs no deflection task: the flags come from the store
+    again = run_session(gap, tmp_path / "gap.zarr", serial=True)
+    assert again.ok and again.bad_frames == summary.bad_frames
     # the drop ignored: the later frames renumbered (index != time), the last one repeated
     ign = _copy(moving_session, tmp_path / "ignored")
     files = _frames_of(ign, "cam01")
