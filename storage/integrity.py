@@ -121,6 +121,11 @@ def _parse_meta(raw: bytes | None) -> _Meta | None:
         m = json.loads(raw)
     except ValueError:
         return None
+    return _meta_from_dict(m) if isinstance(m, dict) else None
+
+
+def _meta_from_dict(m: dict) -> _Meta | None:
+    """The checks' view of an array's ``zarr.json`` (parsed), or None if it is not one they handle."""
     if m.get("node_type") != "array" or m.get("zarr_format") != 3:
         return None
     enc = m.get("chunk_key_encoding") or {}
@@ -206,7 +211,7 @@ class CheckedStore(WrapperStore):
         member), so the first chunk read of each array needs no request of its own."""
         for name, m in metadata.items():
             if name not in self._meta:
-                meta = _parse_meta(json.dumps(m).encode())
+                meta = _meta_from_dict(m)
                 if meta is not None:
                     self._meta[name] = meta
         if root_attrs is not None and not self._integrity_read:
@@ -220,11 +225,10 @@ class CheckedStore(WrapperStore):
         if task is None or task.get_loop() is not loop:
             task = loop.create_task(self._store.get(key, prototype))
             self._fetching[key] = task
-        try:
-            return await asyncio.shield(task)
-        finally:
-            if task.done() and self._fetching.get(key) is task:
-                del self._fetching[key]
+            # forgotten when it ends, even if every caller was cancelled meanwhile (a finished
+            # fetch left here would answer later calls with a stale "no such array")
+            task.add_done_callback(lambda t: self._fetching.pop(key) if self._fetching.get(key) is t else None)
+        return await asyncio.shield(task)
 
     async def _get_meta(self, name: str, prototype) -> _Meta | None:
         if name not in self._meta:

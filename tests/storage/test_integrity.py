@@ -315,3 +315,26 @@ def test_a_multi_chunk_read_fetches_the_array_metadata_once():
     opened = seeded_counts.counts.get("a/zarr.json", 0)
     np.testing.assert_array_equal(arr[...], values)
     assert seeded_counts.counts.get("a/zarr.json", 0) == opened  # no request for the checks
+
+
+def test_a_metadata_fetch_whose_callers_were_cancelled_is_not_reused():
+    """A shared metadata fetch that finishes after its only caller was cancelled must not
+    answer a later call: that later call (e.g. after the array was created) fetches again."""
+    from zarr.core.buffer import default_buffer_prototype
+
+    from schlieren.storage.integrity import CheckedStore
+
+    counting = _CountingStore(zarr.storage.MemoryStore())
+    cs = CheckedStore(counting)
+    proto = default_buffer_prototype()
+
+    async def scenario():
+        first = asyncio.ensure_future(cs._fetch_once("a/zarr.json", proto))
+        await asyncio.sleep(0)  # the fetch is under way
+        first.cancel()
+        await asyncio.sleep(0.01)  # ... and ends with nobody waiting for it
+        assert cs._fetching == {}
+        await cs._fetch_once("a/zarr.json", proto)
+
+    asyncio.run(scenario())
+    assert counting.counts["a/zarr.json"] == 2
