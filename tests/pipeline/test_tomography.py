@@ -659,12 +659,19 @@ def test_curl_coupling_recovers_more_from_few_views():
 
 
 def test_measurement_sigma_adds_the_averaging_variances():
-    """Box window w: (w^2 - 1) / 12 + smoothing^2 + (factor^2 - 1) / 12 px^2, exactly."""
-    from schlieren.pipeline.flow import FlowParams, measurement_sigma
+    """Per-pixel LK, box window w: (w^2 - 1) / 12 + smoothing^2 + (factor^2 - 1) / 12 px^2,
+    exactly. Per-cell LK (the default): the window's weights per cell; a 9 px box window is
+    then exactly the 9 pixels of three cells (no further block mean)."""
+    from schlieren.pipeline.flow import FlowParams, measurement_sigma, uses_cell_solve
 
-    p = FlowParams(window=9, window_type="box", smoothing_sigma=0.5, factor=3)
+    p = FlowParams(window=9, window_type="box", smoothing_sigma=0.5, factor=3, cell_solve="off")
+    assert not uses_cell_solve(p)
     assert measurement_sigma(p) ** 2 == pytest.approx(80 / 12 + 0.25 + 8 / 12, rel=1e-12)
+    c = FlowParams(window=9, window_type="box", smoothing_sigma=0.5, factor=3, cell_solve="on")
+    assert uses_cell_solve(c)
+    assert measurement_sigma(c) ** 2 == pytest.approx(80 / 12 + 0.25, rel=1e-6)
     g = FlowParams(window=9, window_type="gaussian", smoothing_sigma=0.0, factor=1)
+    assert not uses_cell_solve(g)  # factor 1: every pixel is a cell
     assert 1.5 < measurement_sigma(g) < 2.25  # the truncated Gaussian of sigma window / 4
 
 
