@@ -48,6 +48,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
 SUFFIX = [""]  # --suffix: results go to session<SUFFIX>.json / .md
+PARAMS = [None]  # --params: a run-parameter file both runs use (A/B of a setting)
 CACHE = HERE / "cache"
 IDLE_PROBE_SECONDS = 5.0
 BATCHED = 4  # --frames-per-task of the model's alternative prediction
@@ -165,7 +166,7 @@ def run_cli_serial(session: Path, out: Path, log: Path) -> dict:
     fresh_store(out)
     log.unlink(missing_ok=True)
     cmd = [sys.executable, "-m", "schlieren.workers.cli", "run", str(session), "--out", str(out), "--serial",
-           "--log", str(log), "--no-progress"]
+           "--log", str(log), "--no-progress"] + (["--params", PARAMS[0]] if PARAMS[0] else [])
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd)
 
@@ -193,6 +194,7 @@ def run_dask(session: Path, out: Path, log: Path, workers: int) -> dict:
 
     from schlieren.storage.session import load_session
     from schlieren.workers.cluster import ClusterOptions, open_client
+    from schlieren.workers.commands.run import load_params
     from schlieren.workers.monitoring import RunLog
     from schlieren.workers.run import run_session
     from schlieren.workers.throughput import ready_gaps
@@ -214,7 +216,8 @@ def run_dask(session: Path, out: Path, log: Path, workers: int) -> dict:
                 get_task_stream(client) as ts:
             cpu0 = _thread_cpu(me)
             t0 = time.perf_counter()
-            summary = run_session(loaded, out, client=client, on_receipt=run_log.receipt, on_plan=plans.append)
+            summary = run_session(loaded, out, client=client, on_receipt=run_log.receipt, on_plan=plans.append,
+                                  config=load_params(PARAMS[0]))
             wall = time.perf_counter() - t0
             cpu1 = _thread_cpu(me)
             run_log.finished(store=str(out), executor="dask", tasks=summary.tasks, skipped=summary.skipped,
@@ -523,11 +526,13 @@ def main(argv=None) -> int:
     ap.add_argument("--predict-frames", type=int, default=1000)
     ap.add_argument("--suffix", default="", help="results go to session<SUFFIX>.json / .md (e.g. _f32)")
     ap.add_argument("--predict-workers", default="2,8,32,128")
+    ap.add_argument("--params", default=None, help="run-parameter file (YAML/JSON) for both runs (A/B of a setting)")
     ap.add_argument("--profile-store", default=None, help=argparse.SUPPRESS)  # internal: child process
     ap.add_argument("--profile-frame", type=int, default=1, help=argparse.SUPPRESS)
     ap.add_argument("--profile-out", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     SUFFIX[0] = args.suffix
+    PARAMS[0] = str(Path(args.params).resolve()) if args.params else None
     if args.profile_store:
         profile_tomography(args.profile_store, args.profile_frame, args.profile_out)
         return 0
