@@ -502,53 +502,53 @@ def _ici_kernel(sxx, sxy, syy, lam, bx, by, mxx, mxy, myy, s2, gamma, code, lo, 
 
 
 @nb.njit(fastmath=True, cache=True, nogil=True)
-def _block_moments_kernel(gx, gy, f, out):
-    # Per f x f block (i, j) of the flow grid, for a in (gx gx, gx gy, gy gy): the block
-    # sum of a, of a * xl and of a * yl, where (xl, yl) is the pixel offset from the block
-    # centre. out: (3, rows, cols, 3): out[0] = A, out[1] = X (x-moment), out[2] = Y
-    # (y-moment), channels (xx, xy, yy).
-    _, rows, cols, _ = out.shape
+def _block_moments_kernel(ga, gb, f, out):
+    # Per f x f block (i, j) of the flow grid and channel q: the block sum of q, of q * xl
+    # and of q * yl, where (xl, yl) is the pixel offset from the block centre. out: (3,
+    # rows, cols, k): out[0] = sums, out[1] = x-moments, out[2] = y-moments. k = 3: the
+    # channels are the products (a a, a b, b b) of the inputs (the structure tensor from
+    # gx, gy); k = 2: the inputs themselves (a, b).
+    _, rows, cols, k = out.shape
     c0 = _F32(0.5) * _F32(f - 1)
+    products = k == 3
     for i in range(rows):
         for j in range(cols):
-            s0 = _F32(0.0)
-            s1 = _F32(0.0)
-            s2 = _F32(0.0)
-            x0 = _F32(0.0)
-            x1 = _F32(0.0)
-            x2 = _F32(0.0)
-            y0 = _F32(0.0)
-            y1 = _F32(0.0)
-            y2 = _F32(0.0)
+            s0 = s1 = s2 = x0 = x1 = x2 = y0 = y1 = y2 = _F32(0.0)
             for dr in range(f):
                 yl = _F32(dr) - c0
-                ga = gx[i * f + dr]
-                gb = gy[i * f + dr]
+                ra = ga[i * f + dr]
+                rb = gb[i * f + dr]
                 for dc in range(f):
                     xl = _F32(dc) - c0
-                    a = ga[j * f + dc]
-                    b = gb[j * f + dc]
-                    pxx = a * a
-                    pxy = a * b
-                    pyy = b * b
-                    s0 += pxx
-                    s1 += pxy
-                    s2 += pyy
-                    x0 += pxx * xl
-                    x1 += pxy * xl
-                    x2 += pyy * xl
-                    y0 += pxx * yl
-                    y1 += pxy * yl
-                    y2 += pyy * yl
+                    a = ra[j * f + dc]
+                    b = rb[j * f + dc]
+                    if products:
+                        p0 = a * a
+                        p1 = a * b
+                        p2 = b * b
+                    else:
+                        p0 = a
+                        p1 = b
+                        p2 = _F32(0.0)
+                    s0 += p0
+                    s1 += p1
+                    s2 += p2
+                    x0 += p0 * xl
+                    x1 += p1 * xl
+                    x2 += p2 * xl
+                    y0 += p0 * yl
+                    y1 += p1 * yl
+                    y2 += p2 * yl
             out[0, i, j, 0] = s0
             out[0, i, j, 1] = s1
-            out[0, i, j, 2] = s2
             out[1, i, j, 0] = x0
             out[1, i, j, 1] = x1
-            out[1, i, j, 2] = x2
             out[2, i, j, 0] = y0
             out[2, i, j, 1] = y1
-            out[2, i, j, 2] = y2
+            if products:
+                out[0, i, j, 2] = s2
+                out[1, i, j, 2] = x2
+                out[2, i, j, 2] = y2
 
 
 @nb.njit(fastmath=True, cache=True, nogil=True)
@@ -777,42 +777,6 @@ def _block_window_linear_taps(window: int, window_type: str, f: int):
     B = (w * rho[None, :]).sum(axis=1) / r2 if r2 > 0 else np.zeros_like(A)
     norm = A.sum()
     return (A / norm).astype(np.float32), (B / norm).astype(np.float32)
-
-
-@nb.njit(fastmath=True, cache=True, nogil=True)
-def _block_moments2_kernel(a, b, f, out):
-    # out[0] = block sums of (a, b), out[1] = their x-moments, out[2] = y-moments (offsets
-    # from the block centre)
-    _, rows, cols, _ = out.shape
-    c0 = _F32(0.5) * _F32(f - 1)
-    for i in range(rows):
-        for j in range(cols):
-            s0 = _F32(0.0)
-            s1 = _F32(0.0)
-            x0 = _F32(0.0)
-            x1 = _F32(0.0)
-            y0 = _F32(0.0)
-            y1 = _F32(0.0)
-            for dr in range(f):
-                yl = _F32(dr) - c0
-                ra = a[i * f + dr]
-                rb = b[i * f + dr]
-                for dc in range(f):
-                    xl = _F32(dc) - c0
-                    va = ra[j * f + dc]
-                    vb = rb[j * f + dc]
-                    s0 += va
-                    s1 += vb
-                    x0 += va * xl
-                    x1 += vb * xl
-                    y0 += va * yl
-                    y1 += vb * yl
-            out[0, i, j, 0] = s0
-            out[0, i, j, 1] = s1
-            out[1, i, j, 0] = x0
-            out[1, i, j, 1] = x1
-            out[2, i, j, 0] = y0
-            out[2, i, j, 1] = y1
 
 
 def _texture_bias(gx: np.ndarray, gy: np.ndarray, u: np.ndarray, v: np.ndarray, *,
@@ -1322,7 +1286,7 @@ def _lk_cells(coef, frame, gx, gy, u, v, *, window, window_type, iterations, reg
         if it:  # later iterations warp every pixel by its cell's flow (bilinear)
             u, v = _upsample_cells(uc, vc, f, (H, W))
         _lk_residual_kernel(coef, frame, gx, gy, u, v, ex, ey)
-        _block_moments2_kernel(ex, ey, f, e2)
+        _block_moments_kernel(ex, ey, f, e2)
         b = window_sums(e2)
         _lk_solve_kernel(sxx, sxy, syy, lam, np.ascontiguousarray(b[..., 0]),
                          np.ascontiguousarray(b[..., 1]), uc, vc)

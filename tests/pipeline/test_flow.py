@@ -202,7 +202,7 @@ def test_cell_helpers_block_moments_window_lines_and_upsampling():
     a = rng.normal(size=(31, 44)).astype(np.float32)
     b = rng.normal(size=(31, 44)).astype(np.float32)
     out = np.empty((3, 10, 14, 2), np.float32)
-    F._block_moments2_kernel(a, b, 3, out)
+    F._block_moments_kernel(a, b, 3, out)  # k = 2: the inputs themselves
     off = np.arange(3) - 1.0  # offsets from the block centre
     for k, x in enumerate((a, b)):
         blocks = x[:30, :42].reshape(10, 3, 14, 3)
