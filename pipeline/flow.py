@@ -744,17 +744,9 @@ def _window_taps(window: int, window_type: str) -> np.ndarray:
 
 def _block_window_taps(window: int, window_type: str, f: int) -> np.ndarray:
     """LK window weights per f x f block: ``w~_k`` = mean of the window over the pixel
-    offsets ``f k + r - (f - 1) / 2`` of block ``k`` (box: half-open extent window / 2)."""
-    half = (window - 1) // 2
-    K = (half + f // 2 + f - 1) // f
-    r = np.arange(f) - (f - 1) / 2.0
-    d = (np.arange(-K, K + 1)[:, None] * f + r[None, :]).astype(np.float64)
-    if window_type == "box":
-        w = (np.abs(d) <= half + 1e-9).astype(np.float64)
-    else:
-        w = np.where(np.abs(d) <= half + 1e-9, np.exp(-0.5 * (d / (window / 4.0)) ** 2), 0.0)
-    wk = w.mean(axis=1)
-    return (wk / wk.sum()).astype(np.float32)
+    offsets ``f k + r - (f - 1) / 2`` of block ``k`` (box: half-open extent window / 2);
+    the constant part ``A`` of :func:`_block_window_linear_taps`."""
+    return _block_window_linear_taps(window, window_type, f)[0]
 
 
 def _block_window_linear_taps(window: int, window_type: str, f: int):

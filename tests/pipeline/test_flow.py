@@ -211,7 +211,10 @@ def test_cell_helpers_block_moments_window_lines_and_upsampling():
         np.testing.assert_allclose(out[2, ..., k], (blocks * off[None, :, None, None]).sum(axis=(1, 3)), atol=1e-5)
     # the window per block as a line: exact for a linear window, the block mean for A
     A, B = F._block_window_linear_taps(25, "gaussian", 3)
-    np.testing.assert_allclose(A, F._block_window_taps(25, "gaussian", 3), rtol=1e-6)
+    d = 3 * np.arange(-5, 6)[:, None] + np.arange(3)[None, :] - 1  # offsets of the 3 pixels of each block
+    w = np.where(np.abs(d) <= 12, np.exp(-0.5 * (d / 6.25) ** 2), 0.0)  # 25 px window: sigma 6.25, half 12
+    assert len(A) == 11 and np.allclose(A, w.mean(axis=1) / w.mean(axis=1).sum(), rtol=1e-6)  # the block means
+    np.testing.assert_array_equal(F._block_window_taps(25, "gaussian", 3), A)
     np.testing.assert_allclose(B, -B[::-1], atol=1e-9)  # odd: the window is symmetric
     assert B[len(B) // 2 + 2] < 0 < B[len(B) // 2 - 2]  # falling right of the centre
     # a linear field on the cell centres comes back linear on the pixels (interior)
