@@ -45,7 +45,7 @@ import scipy.ndimage as ndi
 
 from schlieren.pipeline import metrics, poisson, tomography
 from schlieren.pipeline.geometry import FlowGrid, Grid
-from schlieren.pipeline.stages import RunConfig, bind_medium
+from schlieren.pipeline.stages import RunConfig, bind_medium, config_from_dict
 from schlieren.storage import arrays_cache, bench_io
 from schlieren.storage import synthetic_io as sio
 from schlieren.storage.session import load_session
@@ -122,6 +122,9 @@ class Table1Config:
     support_threshold : float
         A voxel belongs to the truth's support where ``|r - r_ambient|`` exceeds this
         fraction of the frame's range.
+    params : dict or None
+        Run parameters (the ``--params`` mapping, :func:`~schlieren.pipeline.stages.config_from_dict`)
+        instead of the defaults; ``flow.factor`` is always ``flow_factor``.
     """
 
     rigs: tuple[tuple[str, int], ...] = DEFAULT_RIGS
@@ -137,6 +140,13 @@ class Table1Config:
     hull_rig: tuple[str, int] | None = ("half", 16)
     bound_dilation: int = 2
     support_threshold: float = 1e-3
+    params: dict | None = None
+
+    def run_config(self) -> RunConfig:
+        """The pipeline's configuration for every rig: ``params`` (or the defaults) with the
+        flow grid's factor of this benchmark."""
+        base = config_from_dict(self.params) if self.params else RunConfig()
+        return dataclasses.replace(base, flow=dataclasses.replace(base.flow, factor=self.flow_factor))
 
 
 def parse_rigs(text: str) -> tuple[tuple[str, int], ...]:
@@ -371,7 +381,7 @@ def bench_rig(work_dir, rig: tuple[str, int], config: Table1Config, *, client=No
     t1 = time.perf_counter()
     res["seconds"]["synth"] = t1 - t0
     store_path = d / "store.zarr"
-    cfg = RunConfig(flow=dataclasses.replace(RunConfig().flow, factor=config.flow_factor))
+    cfg = config.run_config()
     summary = run_session(syn.session, store_path, client=client, serial=client is None, config=cfg)
     t2 = time.perf_counter()
     res["seconds"]["pipeline"] = t2 - t1

@@ -28,6 +28,23 @@ def test_bad_rigs_is_a_user_error(capsys, tmp_path):
     assert "--rigs" in capsys.readouterr().err
 
 
+def test_table1_params_and_realistic_only_options(capsys, tmp_path):
+    # --params reaches every rig's run (the benchmark's flow factor kept); checked before any work
+    cfg = bench.Table1Config(params={"flow": {"cell_solve": "on", "factor": 5}, "tomography": {"max_iter": 7}})
+    run = cfg.run_config()
+    assert run.flow.cell_solve == "on" and run.flow.factor == cfg.flow_factor == 3 and run.tomography.max_iter == 7
+    assert bench.Table1Config().run_config().flow.cell_solve == "auto"
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("flow:\n  cell_solve: sometimes\n")
+    assert main(["bench", "table1", "--quick", "--params", str(bad), "--out", str(tmp_path / "w")]) == 2
+    err = capsys.readouterr().err
+    assert "bad.yaml" in err and "cell_solve" in err
+    assert not (tmp_path / "w").exists() or not any((tmp_path / "w").iterdir())  # nothing rendered
+    # options of `bench realistic` are refused by table1, not silently ignored
+    assert main(["bench", "table1", "--quick", "--cases", "plume1", "--out", str(tmp_path / "w")]) == 2
+    assert "--cases" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("shift", [0.0, 0.3])
 def test_bound_gradient_of_a_quadratic(shift):
     """Central differences are exact for a quadratic; block means / trilinear resampling of a

@@ -44,7 +44,8 @@ def add_parser(subparsers) -> None:
     r = p.add_argument_group("realistic")
     r.add_argument("--cases", default=None, help="comma-separated case names or prefixes (default: all)")
     r.add_argument("--role", choices=["tune", "report"], default=None, help="only the tune or the report cases")
-    r.add_argument("--params", metavar="FILE", default=None, help="run parameters (YAML) instead of the defaults")
+    p.add_argument("--params", metavar="FILE", default=None,
+                   help="run parameters (YAML) instead of the defaults (table1: flow.factor stays the benchmark's)")
     r.add_argument("--label", default="", help="results go to realistic_LABEL.md/.json (default: realistic.md)")
     r.add_argument("--manifest-voxel", type=float, default=None, metavar="METRES",
                    help="run on manifests that give this voxel_size (default: the pipeline chooses it)")
@@ -80,6 +81,21 @@ def _config(args):
         if args.workers < 0:
             raise CLIError("--workers must be >= 0")
         kw["workers"] = args.workers
+    only_realistic = {"--cases": args.cases, "--role": args.role, "--label": args.label or None,
+                      "--manifest-voxel": args.manifest_voxel, "--no-truth-rows": args.no_truth_rows or None}
+    given = [k for k, v in only_realistic.items() if v is not None]
+    if given:
+        raise CLIError(f"{', '.join(given)}: options of `schlieren bench realistic`, not of table1")
+    if args.params:
+        from schlieren.pipeline.stages import config_from_dict
+        from schlieren.storage.params_io import read_params
+
+        try:
+            data = read_params(args.params)
+            config_from_dict(data)  # checked before any rig is rendered
+        except (TypeError, ValueError) as exc:
+            raise CLIError(f"--params {args.params}: {exc}") from None
+        kw["params"] = data
     import dataclasses
 
     return dataclasses.replace(base, **kw)
