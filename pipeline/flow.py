@@ -774,7 +774,7 @@ def _block_window_linear_taps(window: int, window_type: str, f: int):
 
 def _texture_bias(gx: np.ndarray, gy: np.ndarray, u: np.ndarray, v: np.ndarray, *,
                   window: int, window_type: str, factor: int, mom: np.ndarray | None = None,
-                  linear: bool = False) -> tuple[np.ndarray, np.ndarray]:
+                  linear: bool = False, T: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """First-order bias of the LK window mean on the flow grid, to subtract from ``(u, v)``.
 
     The LK displacement of pixel ``p`` is ``T_p^-1 sum_q w(q - p) g_q g_q^T d(q)`` (see
@@ -799,6 +799,9 @@ def _texture_bias(gx: np.ndarray, gy: np.ndarray, u: np.ndarray, v: np.ndarray, 
         The flow comes from :func:`_lk_cells` (its window, linear inside each cell: at
         paper scale the flow's RMS error in the plume 0.02182 -> 0.02170 px against the
         constant-per-block model).
+    T : ndarray, shape (rows, cols, 3), optional
+        With ``linear``: the window sums of ``g g^T`` that :func:`_lk_cells` solved with
+        (computed here when not given).
 
     Returns
     -------
@@ -826,7 +829,8 @@ def _texture_bias(gx: np.ndarray, gy: np.ndarray, u: np.ndarray, v: np.ndarray, 
         fk = (f * np.arange(-K, K + 1)).astype(np.float32)
         k1 = fk * A + B * np.float32((f * f - 1) / 12.0)
         k2 = A + fk * B
-        T = filt(mom[0], A, A) + filt(mom[1], B, A) + filt(mom[2], A, B)
+        if T is None:
+            T = filt(mom[0], A, A) + filt(mom[1], B, A) + filt(mom[2], A, B)
         Sx = filt(mom[0], k1, A) + filt(mom[1], k2, A) + filt(mom[2], fk * A, B)
         Sy = filt(mom[0], A, k1) + filt(mom[2], A, k2) + filt(mom[1], B, fk * A)
     else:
@@ -1241,15 +1245,17 @@ def _lk_cells(coef, frame, gx, gy, u, v, *, window, window_type, iterations, reg
     plume at paper scale (RMS error 0.02266 against 0.02231 per pixel; the line: 0.02182)
     and the phantom 0.2 dB. ``u``, ``v`` (H, W) are the per-pixel warps of the residual
     (the coarser level's flow); the result is (rows, cols) = (H // f, W // f). ``keep``
-    receives ``gx``, ``gy`` and the block moments ``mom`` (reused by :func:`_texture_bias`).
+    receives ``gx``, ``gy``, the block moments ``mom`` and the window sums ``T`` of
+    ``g g^T`` (reused by :func:`_texture_bias`).
 
     The coarser pyramid levels, which only initialise the finest, are solved on f x f
     cells of their own pixels too (:func:`_pyramid_flow`; their cell flow is interpolated
-    back to their pixels before it is prolonged): at 1440x1080 with a 25 px window the
-    stage takes 69 instead of 79 ms and the flow's in-plume end-point error against the
-    rendered truth is 0.01784 px (per-pixel coarse levels 0.01804, the per-pixel solve
-    0.01778). With a 9 px window at 640x480 (which ``cell_solve: auto`` leaves per pixel)
-    it rose from 0.0187 to 0.0190 px.
+    back to their pixels before it is prolonged). Measured with the staircase window, at
+    1440x1080 with a 25 px window: the stage 69 instead of 79 ms, the flow's in-plume
+    end-point error against the rendered truth 0.01784 px (per-pixel coarse levels
+    0.01804, the per-pixel solve 0.01778; with the line window now 0.01722). With a 9 px
+    window at 640x480 (which ``cell_solve: auto`` leaves per pixel) it rose from 0.0187
+    to 0.0190 px.
     """
     H, W = frame.shape
     rows, cols = H // f, W // f
@@ -1266,6 +1272,8 @@ def _lk_cells(coef, frame, gx, gy, u, v, *, window, window_type, iterations, reg
                 + cv2.sepFilter2D(m[2], cv2.CV_32F, A, B, borderType=bt))
 
     T = window_sums(mom)
+    if keep is not None:
+        keep["T"] = T
     sxx = np.ascontiguousarray(T[..., 0])
     sxy = np.ascontiguousarray(T[..., 1])
     syy = np.ascontiguousarray(T[..., 2])
@@ -1681,7 +1689,7 @@ def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowPara
     if keep and params.texture_correction:
         bu, bv = _texture_bias(keep["gx"], keep["gy"], comps[0], comps[1], window=params.window,
                                window_type=params.window_type, factor=params.factor, mom=keep.get("mom"),
-                               linear=on_cells)
+                               linear=on_cells, T=keep.get("T"))
         comps = [comps[0] - bu, comps[1] - bv]
     out = np.empty((rows, cols, 2), np.float32)
     sigma = params.smoothing_sigma / params.factor

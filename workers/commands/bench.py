@@ -87,18 +87,23 @@ def _config(args):
     if given:
         raise CLIError(f"{', '.join(given)}: options of `schlieren bench realistic`, not of table1")
     if args.params:
-        from schlieren.pipeline.stages import config_from_dict
-        from schlieren.storage.params_io import read_params
-
-        try:
-            data = read_params(args.params)
-            config_from_dict(data)  # checked before any rig is rendered
-        except (TypeError, ValueError) as exc:
-            raise CLIError(f"--params {args.params}: {exc}") from None
-        kw["params"] = data
+        kw["params"] = _run_params(args.params)
     import dataclasses
 
     return dataclasses.replace(base, **kw)
+
+
+def _run_params(path: str) -> dict:
+    """The ``--params`` file as a mapping, checked against the run parameters before any work."""
+    from schlieren.pipeline.stages import config_from_dict
+    from schlieren.storage.params_io import read_params
+
+    try:
+        data = read_params(path)
+        config_from_dict(data)
+    except (TypeError, ValueError) as exc:
+        raise CLIError(f"--params {path}: {exc}") from None
+    return data
 
 
 def _machine() -> str:
@@ -130,14 +135,7 @@ def _realistic(args) -> int:
         raise CLIError(f"--cases: {exc}") from None
     if not cases:
         raise CLIError("no case selected")
-    config = None
-    if args.params:
-        from schlieren.storage.params_io import read_params
-
-        try:
-            config = config_from_dict(read_params(args.params))
-        except (TypeError, ValueError) as exc:
-            raise CLIError(f"--params {args.params}: {exc}") from None
+    config = config_from_dict(_run_params(args.params)) if args.params else None
     if not args.quick and not _has_bench_extra():
         raise CLIError("the realistic family needs PhiFlow and imageio-ffmpeg: pip install 'schlieren[bench]' "
                        "(python3 dev.py installs them)")
