@@ -98,14 +98,16 @@ class RunContext:
         return src
 
     def frame(self, c: int, f: int) -> np.ndarray:
-        """Capture frame ``f`` of camera ``c``; the last two read per camera are kept (a
-        task over consecutive frames compares each with the one before)."""
-        kept = self._small.setdefault(("frames", c), OrderedDict())
+        """Capture frame ``f`` of camera ``c``; the two latest frames read per camera are kept
+        (a deflection task compares its frame with the one before, which the task of the
+        previous frame read as its own). The earliest frame is dropped, not the earliest
+        read: a task reads frame ``f`` and then ``f - 1``, and the next one needs ``f``."""
+        kept = self._small.setdefault(("frames", c), {})
         img = kept.get(f)
         if img is None:
             img = kept[f] = self.frames(c).read(f)
             while len(kept) > 2:
-                kept.popitem(last=False)
+                del kept[min(kept)]
         return img
 
     #: Entries kept by :meth:`memo` per process.
