@@ -45,11 +45,16 @@ log = logging.getLogger(__name__)
 __all__ = ["run_session", "RunSummary", "prepare_store"]
 
 RAW_MARGIN = 2  # raw frames either side of the output range used by rolling-shutter resampling
-#: Image pixels per task the cheap per-camera-frame stages aim for by default (their
-#: cost grows with the image; deflection takes ~12 ms per 480x360 frame here): 8 frames
-#: per task at 480x360, 2 at 960x720, 1 from 1440x1080 up. On benchmarks/scaling.py's
-#: 480x360 session (8 cameras x 16 frames) it takes the plan from 730 tasks to 150.
-PIXELS_PER_TASK = 1.4e6
+#: Image pixels per task the deflection aims for by default (its cost grows with the
+#: image: ~12 ms per 480x360 frame, ~75 ms per 1440x1080 one here): 8 frames per task at
+#: 480x360, 4 at 960x720, 2 at 1440x1080, 1 from 2560x1440 up. On benchmarks/scaling.py's
+#: 480x360 session (8 cameras x 16 frames) batching took the plan from 730 tasks to 150.
+#: A task also decodes the frame before its first (the frozen-frame test): at 1440x1080 two
+#: frames per task decode three frames instead of four (one task per frame decoded two
+#: each, the tasks of one camera's neighbouring frames landing on different workers) and
+#: the paper-scale session benchmark's deflection went from 2.71-2.91 to 2.58-2.84 s per
+#: time step (2 workers, runs alternated), its tasks from 348 to 252.
+PIXELS_PER_TASK = 3.1e6
 MAX_FRAMES_PER_TASK = 8
 #: Image pixels per task of the frame-statistics stage (``frames``), which only decodes
 #: each frame and sums it (~12 ms per 1440x1080 PNG here, an eighth of a deflection):

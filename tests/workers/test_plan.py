@@ -189,14 +189,15 @@ def test_default_frames_per_task_follows_the_image_size():
     from schlieren.workers.run import MAX_FRAMES_PER_TASK, default_frames_per_task
 
     assert default_frames_per_task((480, 360)) == 8
-    assert default_frames_per_task((960, 720)) == 2
-    assert default_frames_per_task((1440, 1080)) == 1
+    assert default_frames_per_task((960, 720)) == 4
+    assert default_frames_per_task((1440, 1080)) == 2
+    assert default_frames_per_task((2560, 1440)) == 1
     assert default_frames_per_task((4096, 3072)) == 1
     assert default_frames_per_task((32, 24)) == MAX_FRAMES_PER_TASK
     # with the flow grid: its stages batch by flow cells (480 x 360 at factor 3: 4 frames)
     sizes = default_frames_per_task((1440, 1080), 3)
     # and the frame statistics (a decode and a sum per frame) by about 8x the pixels
-    assert sizes == {"frames": 8, "deflection": 1, "resample": 4, "potential": 4, "mask": 4}
+    assert sizes == {"frames": 8, "deflection": 2, "resample": 4, "potential": 4, "mask": 4}
     assert default_frames_per_task((480, 360), 3) == dict.fromkeys(sizes, MAX_FRAMES_PER_TASK)
     assert default_frames_per_task((4096, 3072), 3)["frames"] == 1
 

@@ -46,7 +46,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--frames-per-task", type=positive_int, default=None, metavar="N",
                    help="frames of one camera per task in the cheap 2D stages "
-                        "(default: about 1.4 megapixels per task)")
+                        "(default: the deflection about 3.1 megapixels per task)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace a result store of another session or configuration at --out (a store of "
                         "this same run is resumed either way)")
