@@ -427,9 +427,20 @@ def _digest(a: np.ndarray) -> bytes:
     return hashlib.sha256(memoryview(a).cast("B")).digest() + repr(a.shape).encode()
 
 
-def cached_field_motion(source: np.ndarray, target: np.ndarray, **kwargs) -> np.ndarray:
-    """:func:`field_motion`, remembered for the last few frame pairs of this process."""
-    key = (_digest(source), _digest(target), tuple(sorted(kwargs.items())))
+def field_digest(field: np.ndarray) -> bytes:
+    """The motion cache's key of one flow field (its contents and shape): pass it to
+    :func:`cached_field_motion` / :func:`resample_flow` where the caller has it already."""
+    return _digest(field)
+
+
+def cached_field_motion(source: np.ndarray, target: np.ndarray, *, digests: tuple[bytes, bytes] | None = None,
+                        **kwargs) -> np.ndarray:
+    """:func:`field_motion`, remembered for the last few frame pairs of this process.
+
+    ``digests``: :func:`field_digest` of ``source`` and ``target`` if the caller kept them
+    (the resampling of neighbouring instants meets each raw field several times)."""
+    ds, dt = digests if digests is not None else (_digest(source), _digest(target))
+    key = (ds, dt, tuple(sorted(kwargs.items())))
     with _MOTION_LOCK:
         hit = _MOTION_CACHE.get(key)
         if hit is not None:
@@ -528,7 +539,8 @@ def field_motion(source: np.ndarray, target: np.ndarray, *, window: int = 15, le
 
 def resample_flow(raw: np.ndarray, first_frame: int, target_time: float, *, offset: float,
                   frame_rate: float, line_time: float, flow_grid: FlowGrid,
-                  excluded_frames=(), params: ResampleParams = ResampleParams()) -> np.ndarray:
+                  excluded_frames=(), params: ResampleParams = ResampleParams(),
+                  digests: list | None = None) -> np.ndarray:
     """One camera's flow field at the session instant ``target_time``, row by row.
 
     Paper sec. 4 and Figure 5: flow-grid row ``i`` of raw frame ``f`` was exposed at
@@ -556,6 +568,9 @@ def resample_flow(raw: np.ndarray, first_frame: int, target_time: float, *, offs
     excluded_frames : iterable of int
         Absolute indices of frames that must not be used (the flash).
     params : ResampleParams
+    digests : list of bytes, optional
+        :func:`field_digest` of each ``raw[j]`` (``None`` entries computed here): the
+        motion cache's keys, which a caller resampling neighbouring instants can keep.
 
     Returns
     -------
@@ -608,9 +623,12 @@ def resample_flow(raw: np.ndarray, first_frame: int, target_time: float, *, offs
         if params.method == "linear":
             out[rows] = (1 - al) * fa[rows] + al * fb[rows]
             continue
+        keys = None
+        if digests is not None:
+            keys = tuple(digests[j] if digests[j] is not None else _digest(raw[j]) for j in (a, b))
         m = cached_field_motion(fa, fb, window=params.window, levels=params.levels,
                                 iterations=params.iterations, regularisation=params.regularisation,
-                                finest=params.finest_level)
+                                finest=params.finest_level, digests=keys)
         # only the rows that use this frame pair are warped
         mr = m[rows]
         wa = _warp_channel_rows(coefs(a), rows, -al * mr)

@@ -358,10 +358,15 @@ def _resample(ctx: RunContext, c: int, k: int) -> dict:
                                 height=cam.height, excluded_frames=excluded, frame_range=window)
     lo = max(ctx.raw_first, min(f0, ctx.raw_first + ctx.n_raw - 1))
     hi = max(lo, min(f1 - 1, ctx.raw_first + ctx.n_raw - 1))
-    raw = np.stack([ctx.store.read("flow_raw", (c, f - ctx.raw_first)) for f in range(lo, hi + 1)])
+    # the raw flows are final once their deflection tasks (this task's dependencies) are
+    # done: neighbouring instants of a batched task share them, read and keyed once
+    fields = [ctx.read_upstream("flow_raw", (c, f - ctx.raw_first)) for f in range(lo, hi + 1)]
+    raw = np.stack(fields)
+    digests = [ctx.memo(("flow_raw_digest", c, f), lambda a=a: sync.field_digest(a))
+               for f, a in zip(range(lo, hi + 1), fields)]
     out = sync.resample_flow(raw, lo, t, offset=off, frame_rate=s.frame_rate,
                              line_time=cam.line_time, flow_grid=ctx.flow_grid,
-                             excluded_frames=excluded, params=ctx.config.resample)
+                             excluded_frames=excluded, params=ctx.config.resample, digests=digests)
     ctx.store.write("flow", (c, k), np.asarray(out, dtype=np.float32))
     return {"raw_frames": [lo, hi], **({"excluded_frames": list(bad)} if bad else {})}
 

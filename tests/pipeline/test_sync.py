@@ -310,3 +310,12 @@ def test_row_warps_and_the_motion_cache_change_nothing(moving_case):
     cold = S.resample_flow(raw, f0, 0.1, **kw)
     warm = S.resample_flow(raw, f0, 0.1, **kw)
     np.testing.assert_array_equal(cold, warm)
+    # the digests a caller kept are the cache's keys: the same result, with or without them
+    # (None entries are computed), and no new entry
+    n = len(S._MOTION_CACHE)
+    kept = [S.field_digest(r) for r in raw]
+    np.testing.assert_array_equal(S.resample_flow(raw, f0, 0.1, digests=kept, **kw), cold)
+    np.testing.assert_array_equal(S.resample_flow(raw, f0, 0.1, digests=[None] * len(raw), **kw), cold)
+    assert len(S._MOTION_CACHE) == n
+    S._MOTION_CACHE.clear()
+    np.testing.assert_array_equal(S.resample_flow(raw, f0, 0.1, digests=kept, **kw), cold)
