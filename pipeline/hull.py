@@ -11,13 +11,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
-import scipy.ndimage as ndi
 
 from schlieren.pipeline.geometry import Camera, FlowGrid, Grid
 from schlieren.pipeline.params import param
 
-__all__ = ["HullParams", "visual_hull"]
+__all__ = ["HullParams", "HullProjection", "hull_projection", "visual_hull"]
 
 
 @dataclass(frozen=True)
@@ -37,8 +37,67 @@ class HullParams:
     min_views: int = param(1, unit="cameras", ge=1, le=1000)
 
 
+@dataclass(frozen=True)
+class HullProjection:
+    """Where every voxel centre of a grid falls in each camera's flow grid, and how close to
+    a mask pixel it must come (:func:`hull_projection`): everything :func:`visual_hull`
+    needs that does not depend on the masks, so the hulls of a sequence share it.
+
+    Attributes
+    ----------
+    pixel : ndarray, shape (C, N) int32
+        Flat flow-grid index of the pixel nearest to each voxel's projection; -1 where the
+        voxel does not project inside the flow grid, in front of the camera.
+    tol : ndarray, shape (C, N) float32
+        The voxel's projected bounding-sphere radius plus half a pixel diagonal plus
+        ``margin_px`` (flow pixels).
+    """
+
+    pixel: np.ndarray
+    tol: np.ndarray
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.pixel.nbytes + self.tol.nbytes)
+
+
+def hull_projection(cameras: list[Camera], grid: Grid, flow_grid: FlowGrid, *,
+                    params: HullParams = HullParams(), voxels: np.ndarray | None = None) -> HullProjection:
+    """The mask-independent part of :func:`visual_hull` for the voxels ``voxels`` (flat
+    indices into the grid; default all of them). 8 bytes per voxel and camera."""
+    X = grid.centres().reshape(-1, 3)
+    if voxels is not None:
+        X = X[voxels]
+    h_rows, h_cols = flow_grid.shape
+    f = flow_grid.factor
+    rad_world = 0.5 * np.sqrt(3.0) * grid.voxel_size
+    pixel = np.full((len(cameras), len(X)), -1, np.int32)
+    tol = np.zeros((len(cameras), len(X)), np.float32)
+    for c, cam in enumerate(cameras):
+        uv = cam.project(X)
+        depth = (X @ cam.R.T + cam.t)[:, 2]
+        col = (uv[:, 0] - (f - 1) / 2.0) / f
+        row = (uv[:, 1] - (f - 1) / 2.0) / f
+        finite = np.isfinite(col) & np.isfinite(row) & (depth > 0)
+        inside = finite & (col >= -0.5) & (col <= h_cols - 0.5) & (row >= -0.5) & (row <= h_rows - 0.5)
+        ri = np.clip(np.rint(row[inside]).astype(np.int64), 0, h_rows - 1)
+        ci = np.clip(np.rint(col[inside]).astype(np.int64), 0, h_cols - 1)
+        pixel[c, inside] = ri * h_cols + ci
+        # Projected radius of the voxel's bounding sphere (pinhole scale; distortion is
+        # close to 1 near the volume), in flow pixels, plus the rounding to a pixel centre.
+        fpx = 0.5 * (cam.K[0, 0] + cam.K[1, 1])
+        tol[c, inside] = rad_world * fpx / depth[inside] / f + np.sqrt(0.5) + params.margin_px
+    return HullProjection(pixel, tol)
+
+
+def _distance_to_mask(mask: np.ndarray) -> np.ndarray:
+    """Euclidean distance (flow pixels) from every pixel centre to the nearest mask pixel
+    centre, float32 (OpenCV's exact transform: 4-5x faster than scipy's at 480x360)."""
+    return cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+
+
 def visual_hull(masks: np.ndarray, cameras: list[Camera], grid: Grid, flow_grid: FlowGrid, *,
-                params: HullParams = HullParams()) -> np.ndarray:
+                params: HullParams = HullParams(), projection: HullProjection | None = None) -> np.ndarray:
     """Carve the voxels whose projection falls outside the mask of any camera that sees them.
 
     Parameters
@@ -52,6 +111,10 @@ def visual_hull(masks: np.ndarray, cameras: list[Camera], grid: Grid, flow_grid:
     flow_grid : FlowGrid
         Maps image pixels to mask pixels (``(h, w) == flow_grid.shape``).
     params : HullParams
+    projection : HullProjection, optional
+        :func:`hull_projection` of these cameras, grid, flow grid and ``params`` (the same
+        for every frame; a sequence computes it once). Without it, each camera projects
+        only the voxels every earlier camera kept.
 
     Returns
     -------
@@ -61,42 +124,32 @@ def visual_hull(masks: np.ndarray, cameras: list[Camera], grid: Grid, flow_grid:
     if masks.ndim != 3 or masks.shape[0] != len(cameras) or masks.shape[1:] != flow_grid.shape:
         raise ValueError(f"masks {masks.shape} must be (len(cameras), *flow_grid.shape) = "
                          f"({len(cameras)}, {flow_grid.shape})")
-    X = grid.centres().reshape(-1, 3)
-    h_rows, h_cols = flow_grid.shape
-    f = flow_grid.factor
+    n_vox = int(np.prod(grid.shape))
+    if projection is not None and projection.pixel.shape != (len(cameras), n_vox):
+        raise ValueError(f"projection {projection.pixel.shape} is not of {len(cameras)} cameras x {n_vox} voxels")
     # Only the voxels every earlier camera kept are tested (the result is the same: a
     # carved voxel stays carved, and a kept voxel has been seen by all earlier cameras),
-    # so the later cameras project a hull-sized set instead of the whole grid.
-    cand = np.arange(len(X))
-    views = np.zeros(len(X), np.int32)
-    rad_world = 0.5 * np.sqrt(3.0) * grid.voxel_size
+    # so the later cameras look up (or project) a hull-sized set instead of the whole grid.
+    cand = np.arange(n_vox)
+    views = np.zeros(n_vox, np.int32)
     for c, cam in enumerate(cameras):
         if cand.size == 0:  # everything carved already
             break
-        Xk = X[cand]
-        uv = cam.project(Xk)
-        depth = (Xk @ cam.R.T + cam.t)[:, 2]
-        col = (uv[:, 0] - (f - 1) / 2.0) / f
-        row = (uv[:, 1] - (f - 1) / 2.0) / f
-        finite = np.isfinite(col) & np.isfinite(row) & (depth > 0)
-        inside = finite & (col >= -0.5) & (col <= h_cols - 0.5) & (row >= -0.5) & (row <= h_rows - 0.5)
+        if projection is not None:
+            pix, tol = projection.pixel[c, cand], projection.tol[c, cand]
+        else:
+            one = hull_projection([cam], grid, flow_grid, params=params, voxels=cand)
+            pix, tol = one.pixel[0], one.tol[0]
+        inside = pix >= 0
         views[cand] += inside
         if not masks[c].any():
             cand = cand[~inside]
             continue
-        # Distance (flow pixels) from every pixel centre to the nearest mask pixel centre.
-        dist = ndi.distance_transform_edt(~masks[c])
-        ri = np.clip(np.rint(row[inside]).astype(np.int64), 0, h_rows - 1)
-        ci = np.clip(np.rint(col[inside]).astype(np.int64), 0, h_cols - 1)
-        # Projected radius of the voxel's bounding sphere (pinhole scale; distortion is
-        # close to 1 near the volume), in flow pixels, plus the rounding to a pixel centre.
-        fpx = 0.5 * (cam.K[0, 0] + cam.K[1, 1])
-        r_px = rad_world * fpx / depth[inside] / f
-        tol = r_px + np.sqrt(0.5) + params.margin_px
+        dist = _distance_to_mask(masks[c]).ravel()
         ok = np.ones(len(cand), bool)
-        ok[inside] = dist[ri, ci] <= tol
+        ok[inside] = dist[pix[inside]] <= tol[inside]
         cand = cand[ok]
-    keep = np.zeros(len(X), bool)
+    keep = np.zeros(n_vox, bool)
     keep[cand] = True
     keep &= views >= params.min_views
     return keep.reshape(grid.shape)

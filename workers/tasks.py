@@ -436,9 +436,21 @@ def _geometry_stage(ctx: RunContext) -> dict:
     return {"key": key, "ray_binning": b, "ray_grid": list(ctx.ray_grid.shape)}
 
 
+#: Largest :func:`~schlieren.pipeline.hull.hull_projection` a process keeps for the hulls of
+#: a sequence (8 bytes per voxel and camera: 55 MB for 16 cameras on the paper-scale
+#: session's 432,000 voxels, where it takes the hull task from about 240 to 70 ms); above
+#: it each hull projects its candidates itself.
+HULL_PROJECTION_BYTES = 256 * 2 ** 20
+
+
 def _hull(ctx: RunContext, k: int) -> dict:
     ms = np.stack(ctx.store.read_many("mask", [(c, k) for c in range(len(ctx.cameras))]))
-    h = hullmod.visual_hull(ms, ctx.cameras, ctx.session.grid, ctx.flow_grid, params=ctx.config.hull)
+    grid = ctx.session.grid
+    proj = None
+    if 8 * len(ctx.cameras) * int(np.prod(grid.shape)) <= HULL_PROJECTION_BYTES:
+        proj = ctx._once("hull_projection", lambda: hullmod.hull_projection(
+            ctx.cameras, grid, ctx.flow_grid, params=ctx.config.hull))
+    h = hullmod.visual_hull(ms, ctx.cameras, grid, ctx.flow_grid, params=ctx.config.hull, projection=proj)
     ctx.store.write("hull", (k,), np.asarray(h, dtype=bool))
     return {"voxels": int(h.sum())}
 

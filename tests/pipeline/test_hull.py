@@ -94,3 +94,33 @@ def test_rejects_bad_shapes():
     cams = ring(2, grid, (80, 60))
     with pytest.raises(ValueError):
         visual_hull(np.ones((3,) + fg.shape, bool), cams, grid, fg)
+
+
+@pytest.mark.parametrize("dist", [None, np.array([-0.1, 0.03, 0.0, 0.0, 0.0])])
+def test_shared_projection_carves_the_same_hull_for_every_frame(dist):
+    """A sequence computes the mask-independent projection once (hull_projection): the hulls of
+    moving spheres and of ragged masks equal the ones each frame carves on its own, and the
+    OpenCV distance transform equals scipy's exact one."""
+    from scipy import ndimage
+
+    from schlieren.pipeline.hull import _distance_to_mask, hull_projection
+
+    grid = Grid((-0.05, -0.05, -0.05), (0.05, 0.05, 0.05), 0.0025)
+    image = (160, 120)
+    fg = FlowGrid(image, 2)
+    cams = ring(8, grid, image, dist=dist)
+    params = HullParams(margin_px=0.5, min_views=2)
+    proj = hull_projection(cams, grid, fg, params=params)
+    assert proj.pixel.shape == (8, 40 ** 3) and proj.nbytes == 8 * 8 * 40 ** 3
+    rng = np.random.default_rng(5)
+    for k in range(3):
+        masks = sphere_masks(cams, fg, np.array([0.004 * k, -0.004, 0.01 * k - 0.01]), 0.015 + 0.004 * k)
+        masks &= rng.random(masks.shape) > 0.05  # holes
+        masks[k] = False if k == 2 else masks[k]  # a camera without flow
+        alone = visual_hull(masks, cams, grid, fg, params=params)
+        assert alone.any() or k == 2
+        np.testing.assert_array_equal(visual_hull(masks, cams, grid, fg, params=params, projection=proj), alone)
+        for m in masks[:2]:
+            np.testing.assert_allclose(_distance_to_mask(m), ndimage.distance_transform_edt(~m), atol=1e-4)
+    with pytest.raises(ValueError, match="projection"):
+        visual_hull(masks[:4], cams[:4], grid, fg, projection=proj)
