@@ -788,26 +788,60 @@ def _normal3(indptr, indices, data, x, n, nchunks):
     return _scatter_blocks_f32(indptr, indices, data, x, x, n, nchunks, True, _ALL_ROWS)
 
 
+@nb.njit(cache=True, fastmath=True, inline="always")
+def _scatter_block(indptr, indices, data, x, y, lo, hi, fused, live, a):
+    """Rows ``lo <= r < hi`` of :func:`_scatter_blocks_f32` into the float32 sums ``a``."""
+    masked = live.shape[0] > 0
+    for r in range(lo, hi):
+        if masked and live[r] == 0:
+            continue
+        if fused:
+            t0, t1, t2 = row_dot3_f32(indptr, indices, data, x, r)
+        else:
+            t0, t1, t2 = y[r, 0], y[r, 1], y[r, 2]
+        row_scatter3(indptr, indices, data, r, t0, t1, t2, a)
+
+
 @nb.njit(parallel=True, cache=True, fastmath=True)
-def _scatter_blocks_f32(indptr, indices, data, x, y, n, nchunks, fused, live):
-    """``S^T t`` with float32 per-block sums, ``t_r = S_r x`` (``fused``, i.e. ``S^T S x``) or
-    ``t_r = y_r``; the blocks are summed in float64 in block order. Rows with ``live[r] ==
-    0`` are skipped (``live`` uint8; empty: every row)."""
+def _scatter_blocks_f32_parallel(indptr, indices, data, x, y, n, nchunks, fused, live):
     m = indptr.shape[0] - 1
     acc = np.zeros((nchunks, n, 3), np.float32)
     bounds = np.linspace(0, m, nchunks + 1).astype(np.int64)
-    masked = live.shape[0] > 0
     for c in nb.prange(nchunks):
-        a = acc[c]
-        for r in range(bounds[c], bounds[c + 1]):
-            if masked and live[r] == 0:
-                continue
-            if fused:
-                t0, t1, t2 = row_dot3_f32(indptr, indices, data, x, r)
-            else:
-                t0, t1, t2 = y[r, 0], y[r, 1], y[r, 2]
-            row_scatter3(indptr, indices, data, r, t0, t1, t2, a)
+        _scatter_block(indptr, indices, data, x, y, bounds[c], bounds[c + 1], fused, live, acc[c])
     return _reduce_chunks3(acc)
+
+
+@nb.njit(cache=True, fastmath=True)
+def _scatter_blocks_f32_serial(indptr, indices, data, x, y, n, nchunks, fused, live):
+    m = indptr.shape[0] - 1
+    out = np.zeros((n, 3))
+    a = np.empty((n, 3), np.float32)
+    bounds = np.linspace(0, m, nchunks + 1).astype(np.int64)
+    for c in range(nchunks):
+        a[:] = 0.0
+        _scatter_block(indptr, indices, data, x, y, bounds[c], bounds[c + 1], fused, live, a)
+        for j in range(n):
+            out[j, 0] += a[j, 0]
+            out[j, 1] += a[j, 1]
+            out[j, 2] += a[j, 2]
+    return out
+
+
+def _scatter_blocks_f32(indptr, indices, data, x, y, n, nchunks, fused, live):
+    """``S^T t`` with float32 per-block sums, ``t_r = S_r x`` (``fused``, i.e. ``S^T S x``) or
+    ``t_r = y_r``; the blocks are summed in float64 in block order. Rows with ``live[r] ==
+    0`` are skipped (``live`` uint8; empty: every row).
+
+    With several numba threads the blocks run in parallel, each into its own partial sums
+    (``nchunks`` float32 copies of the result, summed at the end). On one thread (the
+    workers, the serial executor) they run one after another into one reused buffer, each
+    added to the result as it is done: the same sums in the same order (bit-identical), with
+    a working set of one buffer instead of ``nchunks`` (paper-scale session matrix, 70 % of
+    its rows live: 170 -> 130 ms).
+    """
+    kernel = _scatter_blocks_f32_serial if nb.get_num_threads() == 1 else _scatter_blocks_f32_parallel
+    return kernel(indptr, indices, data, x, y, n, nchunks, fused, live)
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)

@@ -567,23 +567,15 @@ class MeasurementBlur:
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
-def _scatter3(x, idx, a):
-    """``a[idx[i]] = x[i]`` (three components)."""
+def _move3(src, dst, idx, scatter):
+    """``dst[idx[i]] = src[i]`` (``scatter``) or ``dst[i] = src[idx[i]]``, three components."""
     for i in nb.prange(idx.shape[0]):
         j = idx[i]
-        a[j, 0] = x[i, 0]
-        a[j, 1] = x[i, 1]
-        a[j, 2] = x[i, 2]
-
-
-@nb.njit(parallel=True, cache=True, fastmath=True)
-def _gather3(a, idx, out):
-    """``out[i] = a[idx[i]]`` (three components)."""
-    for i in nb.prange(idx.shape[0]):
-        j = idx[i]
-        out[i, 0] = a[j, 0]
-        out[i, 1] = a[j, 1]
-        out[i, 2] = a[j, 2]
+        for c in range(3):
+            if scatter:
+                dst[j, c] = src[i, c]
+            else:
+                dst[i, c] = src[j, c]
 
 
 def volume_sigma(cell_sigmas, cameras, grid, factor: int) -> float:
@@ -648,11 +640,11 @@ class VolumeBlur:
         x = np.ascontiguousarray(x, dtype=np.float32).reshape(-1, 3)
         out = np.empty((len(self.idx), 3))
         if len(self.idx):
-            _scatter3(x, self._pidx, self._a.reshape(-1, 3))
+            _move3(x, self._a.reshape(-1, 3), self._pidx, True)
             xy = cv2.sepFilter2D(self._a, cv2.CV_32F, self.taps, self.taps, borderType=cv2.BORDER_CONSTANT)
             xyz = cv2.sepFilter2D(xy.reshape(self.shape[0], -1), cv2.CV_32F, self._ONE, self.taps,
                                   borderType=cv2.BORDER_CONSTANT)
-            _gather3(xyz.reshape(-1, 3), self._pidx, out)
+            _move3(xyz.reshape(-1, 3), out, self._pidx, False)
         return out
 
 

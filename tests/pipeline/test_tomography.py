@@ -189,6 +189,11 @@ def test_products_do_not_depend_on_thread_count(setup):
         numba.set_num_threads(before)
     for a, b in zip(outs[0], outs[-1]):
         assert np.array_equal(a, b)
+    # one thread runs the blocks one after another into one buffer (the workers' path):
+    # the same products as the matrix's own, to float32 accuracy
+    S = fs.op.to_scipy().astype(np.float64)
+    np.testing.assert_allclose(outs[0][0], S.T @ y, rtol=1e-4, atol=1e-5 * np.abs(S.T @ y).max())
+    np.testing.assert_allclose(outs[0][1], S.T @ (S @ x), rtol=1e-4, atol=1e-5 * np.abs(S.T @ (S @ x)).max())
 
 
 def test_regulariser_dot_test():
