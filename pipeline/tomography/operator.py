@@ -870,9 +870,7 @@ def _colsumsq(indices, data, n, nchunks):
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
-def _setup3(indptr, indices, data, b, x, n, nchunks, with_x, live):
-    """``diag(S^T S)``, ``S^T b`` and (if ``with_x``) ``S^T S x`` in one pass over ``S``
-    (rows with ``live[r] == 0`` skipped, as in :func:`_scatter_blocks_f32`)."""
+def _setup3_parallel(indptr, indices, data, b, x, n, nchunks, with_x, live):
     acc, bounds = _setup_accumulators(indptr.shape[0] - 1, n, nchunks)
     masked = live.shape[0] > 0
     for c in nb.prange(nchunks):
@@ -882,6 +880,39 @@ def _setup3(indptr, indices, data, b, x, n, nchunks, with_x, live):
                 continue
             _row_setup(indptr, indices, data, r, b, x, with_x, a)
     return _sum_chunks(acc, n, nchunks)
+
+
+@nb.njit(cache=True, fastmath=True)
+def _setup3_serial(indptr, indices, data, b, x, n, nchunks, with_x, live):
+    bounds = np.linspace(0, indptr.shape[0] - 1, nchunks + 1).astype(np.int64)
+    masked = live.shape[0] > 0
+    a = np.empty((n, 8), np.float32)
+    out_s = np.zeros(n)
+    out_b = np.zeros((n, 3))
+    out_x = np.zeros((n, 3))
+    for c in range(nchunks):
+        a[:] = 0.0
+        for r in range(bounds[c], bounds[c + 1]):
+            if masked and live[r] == 0:
+                continue
+            _row_setup(indptr, indices, data, r, b, x, with_x, a)
+        for j in range(n):  # as _sum_chunks: block c added after blocks 0 .. c-1
+            out_s[j] += a[j, 0]
+            out_b[j, 0] += a[j, 1]
+            out_b[j, 1] += a[j, 2]
+            out_b[j, 2] += a[j, 3]
+            out_x[j, 0] += a[j, 4]
+            out_x[j, 1] += a[j, 5]
+            out_x[j, 2] += a[j, 6]
+    return out_s, out_b, out_x
+
+
+def _setup3(indptr, indices, data, b, x, n, nchunks, with_x, live):
+    """``diag(S^T S)``, ``S^T b`` and (if ``with_x``) ``S^T S x`` in one pass over ``S``
+    (rows with ``live[r] == 0`` skipped, as in :func:`_scatter_blocks_f32`; on one thread
+    the blocks run one after another into one buffer, bit-identical, as there)."""
+    kernel = _setup3_serial if nb.get_num_threads() == 1 else _setup3_parallel
+    return kernel(indptr, indices, data, b, x, n, nchunks, with_x, live)
 
 
 class RestrictedOperator:
