@@ -290,12 +290,18 @@ def flow_noise(flow: np.ndarray) -> float:
     -------
     float
     """
-    f = np.asarray(flow, dtype=np.float64).reshape(-1, 2)
-    f = f[np.isfinite(f).all(axis=1)]
-    if f.shape[0] < 10:
+    f = np.asarray(flow).reshape(-1, 2)
+    ok = np.isfinite(f[:, 0]) & np.isfinite(f[:, 1])
+    n = int(np.count_nonzero(ok))
+    if n < 10:
         return 0.0
-    s = 1.4826 * np.median(np.abs(f - np.median(f, axis=0)), axis=0)
-    return float(np.sqrt(0.5 * np.sum(s ** 2)))
+    s2 = 0.0
+    for k in range(2):  # each component as one contiguous float64 copy, medians in place
+        a = np.array(f[:, k] if n == len(ok) else f[:, k][ok], dtype=np.float64)
+        m = np.median(a, overwrite_input=True)  # reorders a; |a - m| keeps its values
+        s = 1.4826 * np.median(np.abs(a - m), overwrite_input=True)
+        s2 += s * s
+    return float(np.sqrt(0.5 * s2))
 
 
 def make_mask(potentials: np.ndarray, centre: int, threshold: float, *, flows=None,
