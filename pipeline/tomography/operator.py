@@ -701,6 +701,19 @@ def row_scatter3(indptr, indices, data, r, t0, t1, t2, a):
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
+def _move3(src, dst, idx, scatter):
+    """``dst[idx[i]] = src[i]`` (``scatter``) or ``dst[i] = src[idx[i]]``, three components
+    (cast to ``dst``'s type)."""
+    for i in nb.prange(idx.shape[0]):
+        j = idx[i]
+        for c in range(3):
+            if scatter:
+                dst[j, c] = src[i, c]
+            else:
+                dst[i, c] = src[j, c]
+
+
+@nb.njit(parallel=True, cache=True, fastmath=True)
 def _reduce_chunks3(acc):
     """Sum per-block partial products (nchunks, n, 3) in block order (thread-count independent)."""
     nchunks, n = acc.shape[0], acc.shape[1]
@@ -1124,16 +1137,27 @@ class SubsetOperator:
         return self.base.nnz
 
     def _embed(self, x: np.ndarray) -> np.ndarray:
-        out = np.zeros((self.base.n, 3), np.float32)
-        out[self.sel] = np.asarray(x).reshape(self.n, 3)
+        """``x`` (n, 3) on the base's columns, float32, zero off ``sel``: one buffer per
+        operator, rewritten in place at ``sel`` only (its other entries stay zero), valid until
+        the next call (each product uses it at once)."""
+        out = self.__dict__.get("_xe")
+        if out is None:
+            out = self._xe = np.zeros((self.base.n, 3), np.float32)
+        _move3(np.ascontiguousarray(x).reshape(self.n, 3), out, self.sel, True)
+        return out
+
+    def _restrict(self, full: np.ndarray) -> np.ndarray:
+        """The ``sel`` rows of a (base.n, 3) product."""
+        out = np.empty((self.n, 3), full.dtype)
+        _move3(full, out, self.sel, False)
         return out
 
     def normal3(self, x: np.ndarray) -> np.ndarray:
         """``S^T S x`` of the frame's system (x of shape (n, 3))."""
         b = self.base
         xe = self._embed(x)
-        return _scatter_blocks_f32(b.indptr, b.indices, b.data, xe, xe, b.n, self._nchunks, True,
-                                   self.live)[self.sel]
+        return self._restrict(_scatter_blocks_f32(b.indptr, b.indices, b.data, xe, xe, b.n, self._nchunks, True,
+                                                  self.live))
 
     def setup_products(self, b: np.ndarray, x: np.ndarray | None = None):
         """As :meth:`RestrictedOperator.setup_products`, ``b`` over the frame's rows (m, 3)."""
@@ -1143,4 +1167,4 @@ class SubsetOperator:
         with_x = x is not None
         xx = self._embed(x) if with_x else np.zeros((0, 3), np.float32)
         d, sb, sx = _setup3(base.indptr, base.indices, base.data, bb, xx, base.n, self._nchunks, with_x, self.live)
-        return d[self.sel], sb[self.sel], sx[self.sel]
+        return d[self.sel], self._restrict(sb), self._restrict(sx)

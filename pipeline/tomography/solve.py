@@ -45,7 +45,8 @@ import scipy.ndimage as ndi
 import scipy.sparse as sp
 
 from schlieren.pipeline.tomography.geometry import TomoGeometry
-from schlieren.pipeline.tomography.operator import (RestrictedOperator, SubsetOperator, matvec3, restrict_with_setup,
+from schlieren.pipeline.tomography.operator import (RestrictedOperator, SubsetOperator, _move3, matvec3,
+                                                    restrict_with_setup,
                                                     row_dot3, shared_restriction)
 from schlieren.pipeline.tomography.params import TomoParams
 from schlieren.pipeline.tomography.rays import rhs_from_d_out, rhs_from_flows
@@ -564,18 +565,6 @@ class MeasurementBlur:
         full = np.zeros((C * h * w, k), np.float32)
         full[rows] = values
         return self.apply(full.reshape(C, h, w, k)).reshape(-1, k)[rows]
-
-
-@nb.njit(parallel=True, cache=True, fastmath=True)
-def _move3(src, dst, idx, scatter):
-    """``dst[idx[i]] = src[i]`` (``scatter``) or ``dst[i] = src[idx[i]]``, three components."""
-    for i in nb.prange(idx.shape[0]):
-        j = idx[i]
-        for c in range(3):
-            if scatter:
-                dst[j, c] = src[i, c]
-            else:
-                dst[i, c] = src[j, c]
 
 
 def volume_sigma(cell_sigmas, cameras, grid, factor: int) -> float:
