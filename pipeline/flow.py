@@ -772,6 +772,17 @@ def _block_window_linear_taps(window: int, window_type: str, f: int):
     return (A / norm).astype(np.float32), (B / norm).astype(np.float32)
 
 
+def _cell_window_sums(m: np.ndarray, A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """The LK window sums on the cell grid from per-cell sums ``m[0]`` and first moments
+    ``m[1]`` (x), ``m[2]`` (y), shape (3, rows, cols, k), with the window linear inside each
+    cell (:func:`_block_window_linear_taps`: ``A (x) A`` on the sums, ``B (x) A`` on the
+    x-moments, ``A (x) B`` on the y-moments)."""
+    bt = cv2.BORDER_REFLECT
+    return (cv2.sepFilter2D(m[0], cv2.CV_32F, A, A, borderType=bt)
+            + cv2.sepFilter2D(m[1], cv2.CV_32F, B, A, borderType=bt)
+            + cv2.sepFilter2D(m[2], cv2.CV_32F, A, B, borderType=bt))
+
+
 def _texture_bias(gx: np.ndarray, gy: np.ndarray, u: np.ndarray, v: np.ndarray, *,
                   window: int, window_type: str, factor: int, mom: np.ndarray | None = None,
                   linear: bool = False, T: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -830,7 +841,7 @@ def _texture_bias(gx: np.ndarray, gy: np.ndarray, u: np.ndarray, v: np.ndarray, 
         k1 = fk * A + B * np.float32((f * f - 1) / 12.0)
         k2 = A + fk * B
         if T is None:
-            T = filt(mom[0], A, A) + filt(mom[1], B, A) + filt(mom[2], A, B)
+            T = _cell_window_sums(mom, A, B)
         Sx = filt(mom[0], k1, A) + filt(mom[1], k2, A) + filt(mom[2], fk * A, B)
         Sy = filt(mom[0], A, k1) + filt(mom[2], A, k2) + filt(mom[1], B, fk * A)
     else:
@@ -850,8 +861,8 @@ def _window_filter(a: np.ndarray, taps: np.ndarray) -> np.ndarray:
     return cv2.sepFilter2D(a, cv2.CV_32F, taps, taps, borderType=cv2.BORDER_REFLECT)
 
 
-def _upsample_flow(u: np.ndarray, v: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """Prolong a coarse-level flow to the next finer level (values doubled).
+def prolong_flow(u: np.ndarray, v: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Prolong a coarse pyramid level's flow (or motion) to the next finer level (values doubled).
 
     ``cv2.pyrDown`` centres coarse pixel ``i`` on fine pixel ``2 i``, so fine pixel ``x``
     reads the coarse flow at ``x / 2`` (an affine map; bilinear, edges replicated).
@@ -1264,14 +1275,7 @@ def _lk_cells(coef, frame, gx, gy, u, v, *, window, window_type, iterations, reg
     if keep is not None:
         keep["gx"], keep["gy"], keep["mom"] = gx, gy, mom
     A, B = _block_window_linear_taps(window, window_type, f)
-
-    def window_sums(m):  # m: (3, rows, cols, k) block sums, x- and y-moments -> window sums
-        bt = cv2.BORDER_REFLECT
-        return (cv2.sepFilter2D(m[0], cv2.CV_32F, A, A, borderType=bt)
-                + cv2.sepFilter2D(m[1], cv2.CV_32F, B, A, borderType=bt)
-                + cv2.sepFilter2D(m[2], cv2.CV_32F, A, B, borderType=bt))
-
-    T = window_sums(mom)
+    T = _cell_window_sums(mom, A, B)
     if keep is not None:
         keep["T"] = T
     sxx = np.ascontiguousarray(T[..., 0])
@@ -1288,7 +1292,7 @@ def _lk_cells(coef, frame, gx, gy, u, v, *, window, window_type, iterations, reg
             u, v = _upsample_cells(uc, vc, f, (H, W))
         _lk_residual_kernel(coef, frame, gx, gy, u, v, ex, ey)
         _block_moments_kernel(ex, ey, f, e2)
-        b = window_sums(e2)
+        b = _cell_window_sums(e2, A, B)
         _lk_solve_kernel(sxx, sxy, syy, lam, np.ascontiguousarray(b[..., 0]),
                          np.ascontiguousarray(b[..., 1]), uc, vc)
     return uc, vc
@@ -1315,7 +1319,7 @@ def _pyramid_flow(level_solver, prep: PreparedReference, frame_pyr, *, iteration
         if "gradient" in kw0:  # coarse levels only initialise: frame gradient (cheapest)
             kw = dict(kw0, gradient=kw0["gradient"] if lev == 0 else "frame")
         if u.shape != prep.pyramid[lev].shape:
-            u, v = _upsample_flow(u, v, prep.pyramid[lev].shape)
+            u, v = prolong_flow(u, v, prep.pyramid[lev].shape)
         it = fine_iterations if lev == 0 else iterations
         w = weights[lev] if weights is not None and lev < len(weights) else None
         extra = {} if lev == 0 or "ici" not in kw else {"ici": None}

@@ -61,33 +61,38 @@ class HullProjection:
         return int(self.pixel.nbytes + self.tol.nbytes)
 
 
-def hull_projection(cameras: list[Camera], grid: Grid, flow_grid: FlowGrid, *,
-                    params: HullParams = HullParams(), voxels: np.ndarray | None = None) -> HullProjection:
-    """The mask-independent part of :func:`visual_hull` for the voxels ``voxels`` (flat
-    indices into the grid; default all of them). 8 bytes per voxel and camera."""
-    X = grid.centres().reshape(-1, 3)
-    if voxels is not None:
-        X = X[voxels]
+def _project_voxels(cam: Camera, X: np.ndarray, grid: Grid, flow_grid: FlowGrid,
+                    params: HullParams) -> tuple[np.ndarray, np.ndarray]:
+    """One camera's ``(pixel, tol)`` rows of :class:`HullProjection` for the voxel centres ``X``."""
     h_rows, h_cols = flow_grid.shape
     f = flow_grid.factor
+    pixel = np.full(len(X), -1, np.int32)
+    tol = np.zeros(len(X), np.float32)
+    uv = cam.project(X)
+    depth = (X @ cam.R.T + cam.t)[:, 2]
+    col = (uv[:, 0] - (f - 1) / 2.0) / f
+    row = (uv[:, 1] - (f - 1) / 2.0) / f
+    finite = np.isfinite(col) & np.isfinite(row) & (depth > 0)
+    inside = finite & (col >= -0.5) & (col <= h_cols - 0.5) & (row >= -0.5) & (row <= h_rows - 0.5)
+    ri = np.clip(np.rint(row[inside]).astype(np.int64), 0, h_rows - 1)
+    ci = np.clip(np.rint(col[inside]).astype(np.int64), 0, h_cols - 1)
+    pixel[inside] = ri * h_cols + ci
+    # Projected radius of the voxel's bounding sphere (pinhole scale; distortion is close
+    # to 1 near the volume), in flow pixels, plus the rounding to a pixel centre.
     rad_world = 0.5 * np.sqrt(3.0) * grid.voxel_size
-    pixel = np.full((len(cameras), len(X)), -1, np.int32)
-    tol = np.zeros((len(cameras), len(X)), np.float32)
-    for c, cam in enumerate(cameras):
-        uv = cam.project(X)
-        depth = (X @ cam.R.T + cam.t)[:, 2]
-        col = (uv[:, 0] - (f - 1) / 2.0) / f
-        row = (uv[:, 1] - (f - 1) / 2.0) / f
-        finite = np.isfinite(col) & np.isfinite(row) & (depth > 0)
-        inside = finite & (col >= -0.5) & (col <= h_cols - 0.5) & (row >= -0.5) & (row <= h_rows - 0.5)
-        ri = np.clip(np.rint(row[inside]).astype(np.int64), 0, h_rows - 1)
-        ci = np.clip(np.rint(col[inside]).astype(np.int64), 0, h_cols - 1)
-        pixel[c, inside] = ri * h_cols + ci
-        # Projected radius of the voxel's bounding sphere (pinhole scale; distortion is
-        # close to 1 near the volume), in flow pixels, plus the rounding to a pixel centre.
-        fpx = 0.5 * (cam.K[0, 0] + cam.K[1, 1])
-        tol[c, inside] = rad_world * fpx / depth[inside] / f + np.sqrt(0.5) + params.margin_px
-    return HullProjection(pixel, tol)
+    fpx = 0.5 * (cam.K[0, 0] + cam.K[1, 1])
+    tol[inside] = rad_world * fpx / depth[inside] / f + np.sqrt(0.5) + params.margin_px
+    return pixel, tol
+
+
+def hull_projection(cameras: list[Camera], grid: Grid, flow_grid: FlowGrid, *,
+                    params: HullParams = HullParams()) -> HullProjection:
+    """The mask-independent part of :func:`visual_hull` for every voxel of the grid. 8 bytes
+    per voxel and camera."""
+    X = grid.centres().reshape(-1, 3)
+    rows = [_project_voxels(cam, X, grid, flow_grid, params) for cam in cameras]
+    return HullProjection(np.stack([r[0] for r in rows]).reshape(len(cameras), len(X)),
+                          np.stack([r[1] for r in rows]).reshape(len(cameras), len(X)))
 
 
 def _distance_to_mask(mask: np.ndarray) -> np.ndarray:
@@ -132,14 +137,14 @@ def visual_hull(masks: np.ndarray, cameras: list[Camera], grid: Grid, flow_grid:
     # so the later cameras look up (or project) a hull-sized set instead of the whole grid.
     cand = np.arange(n_vox)
     views = np.zeros(n_vox, np.int32)
+    X = grid.centres().reshape(-1, 3) if projection is None else None
     for c, cam in enumerate(cameras):
         if cand.size == 0:  # everything carved already
             break
         if projection is not None:
             pix, tol = projection.pixel[c, cand], projection.tol[c, cand]
         else:
-            one = hull_projection([cam], grid, flow_grid, params=params, voxels=cand)
-            pix, tol = one.pixel[0], one.tol[0]
+            pix, tol = _project_voxels(cam, X[cand], grid, flow_grid, params)
         inside = pix >= 0
         views[cand] += inside
         if not masks[c].any():

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from schlieren.pipeline.flow import spline_coefficients, warp_coefficient_rows, warp_coefficients
+from schlieren.pipeline.flow import prolong_flow, spline_coefficients, warp_coefficient_rows, warp_coefficients
 from schlieren.pipeline.geometry import FlowGrid
 from schlieren.pipeline.params import param
 
@@ -501,10 +501,7 @@ def field_motion(source: np.ndarray, target: np.ndarray, *, window: int = 15, le
         s_ch, t_ch = pyr_s[lev], pyr_t[lev]
         h, w = s_ch[0].shape
         if mu.shape != (h, w):
-            M = np.array([[0.5, 0.0, 0.0], [0.0, 0.5, 0.0]])
-            flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-            mu = 2 * cv2.warpAffine(mu, M, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
-            mv = 2 * cv2.warpAffine(mv, M, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+            mu, mv = prolong_flow(mu, mv, (h, w))
         gx = [cv2.Scharr(a, cv2.CV_32F, 1, 0, scale=1 / 32) for a in s_ch]
         gy = [cv2.Scharr(a, cv2.CV_32F, 0, 1, scale=1 / 32) for a in s_ch]
         sxx = box(sum(g * g for g in gx))
@@ -529,11 +526,7 @@ def field_motion(source: np.ndarray, target: np.ndarray, *, window: int = 15, le
             mu = ((pyy * bx - sxy * by) / det).astype(np.float32)
             mv = ((pxx * by - sxy * bx) / det).astype(np.float32)
     for lev in range(stop - 1, -1, -1):  # levels below ``finest``: the motion prolonged only
-        h, w = pyr_s[lev][0].shape
-        M = np.array([[0.5, 0.0, 0.0], [0.0, 0.5, 0.0]])
-        flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-        mu = 2 * cv2.warpAffine(mu, M, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
-        mv = 2 * cv2.warpAffine(mv, M, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+        mu, mv = prolong_flow(mu, mv, pyr_s[lev][0].shape)
     return np.stack([mu, mv], -1)
 
 

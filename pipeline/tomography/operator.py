@@ -882,33 +882,34 @@ def _colsumsq(indices, data, n, nchunks):
     return out
 
 
+@nb.njit(cache=True, fastmath=True, inline="always")
+def _setup_block(indptr, indices, data, b, x, lo, hi, with_x, live, a):
+    """Rows ``lo <= r < hi`` of :func:`_setup3` into the float32 sums ``a``."""
+    masked = live.shape[0] > 0
+    for r in range(lo, hi):
+        if masked and live[r] == 0:
+            continue
+        _row_setup(indptr, indices, data, r, b, x, with_x, a)
+
+
 @nb.njit(parallel=True, cache=True, fastmath=True)
 def _setup3_parallel(indptr, indices, data, b, x, n, nchunks, with_x, live):
     acc, bounds = _setup_accumulators(indptr.shape[0] - 1, n, nchunks)
-    masked = live.shape[0] > 0
     for c in nb.prange(nchunks):
-        a = acc[c]
-        for r in range(bounds[c], bounds[c + 1]):
-            if masked and live[r] == 0:
-                continue
-            _row_setup(indptr, indices, data, r, b, x, with_x, a)
+        _setup_block(indptr, indices, data, b, x, bounds[c], bounds[c + 1], with_x, live, acc[c])
     return _sum_chunks(acc, n, nchunks)
 
 
 @nb.njit(cache=True, fastmath=True)
 def _setup3_serial(indptr, indices, data, b, x, n, nchunks, with_x, live):
     bounds = np.linspace(0, indptr.shape[0] - 1, nchunks + 1).astype(np.int64)
-    masked = live.shape[0] > 0
     a = np.empty((n, 8), np.float32)
     out_s = np.zeros(n)
     out_b = np.zeros((n, 3))
     out_x = np.zeros((n, 3))
     for c in range(nchunks):
         a[:] = 0.0
-        for r in range(bounds[c], bounds[c + 1]):
-            if masked and live[r] == 0:
-                continue
-            _row_setup(indptr, indices, data, r, b, x, with_x, a)
+        _setup_block(indptr, indices, data, b, x, bounds[c], bounds[c + 1], with_x, live, a)
         for j in range(n):  # as _sum_chunks: block c added after blocks 0 .. c-1
             out_s[j] += a[j, 0]
             out_b[j, 0] += a[j, 1]
@@ -1131,6 +1132,7 @@ class SubsetOperator:
         self.n = len(self.sel)
         self.m = len(self.rows)
         self._nchunks = base._nchunks
+        self._xe: np.ndarray | None = None  # _embed's buffer
 
     @property
     def nnz(self) -> int:
@@ -1140,7 +1142,7 @@ class SubsetOperator:
         """``x`` (n, 3) on the base's columns, float32, zero off ``sel``: one buffer per
         operator, rewritten in place at ``sel`` only (its other entries stay zero), valid until
         the next call (each product uses it at once)."""
-        out = self.__dict__.get("_xe")
+        out = self._xe
         if out is None:
             out = self._xe = np.zeros((self.base.n, 3), np.float32)
         _move3(np.ascontiguousarray(x).reshape(self.n, 3), out, self.sel, True)
