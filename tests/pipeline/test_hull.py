@@ -124,3 +124,45 @@ def test_shared_projection_carves_the_same_hull_for_every_frame(dist):
             np.testing.assert_allclose(_distance_to_mask(m), ndimage.distance_transform_edt(~m), atol=1e-4)
     with pytest.raises(ValueError, match="projection"):
         visual_hull(masks[:4], cams[:4], grid, fg, projection=proj)
+
+
+@pytest.mark.parametrize("shared", [False, True])
+def test_max_misses_keeps_voxels_one_noisy_mask_cut_off(shared):
+    """``max_misses`` = k: a voxel is carved only when more than k of the cameras that see it
+    reject it. One camera whose mask lost part of the sphere (noisy masks of a lossy capture)
+    cuts it out of the strict hull; with k = 1 the sphere survives whole while a region two
+    cameras reject is still carved, and k = 1 equals the brute-force count of rejections."""
+    from schlieren.pipeline.hull import _distance_to_mask, hull_projection
+
+    grid = Grid((-0.05, -0.05, -0.05), (0.05, 0.05, 0.05), 0.0025)
+    image = (160, 120)
+    fg = FlowGrid(image, 2)
+    cams = ring(8, grid, image)
+    centre, R = np.array([0.0, 0.0, 0.0]), 0.02
+    masks = sphere_masks(cams, fg, centre, R)
+    cut = masks.copy()
+    cut[3, : fg.shape[0] // 2] = False  # camera 3 misses the sphere's upper half
+    r = np.linalg.norm(grid.centres() - centre, axis=-1)
+    inside = r <= R + 0.5 * grid.voxel_size
+    for k, expect_whole in ((0, False), (1, True)):
+        params = HullParams(max_misses=k)
+        proj = hull_projection(cams, grid, fg, params=params) if shared else None
+        hull = visual_hull(cut, cams, grid, fg, params=params, projection=proj)
+        assert hull[inside].all() == expect_whole, k
+        # brute force: count each voxel's rejections over all cameras
+        pr = hull_projection(cams, grid, fg, params=params)
+        misses = np.zeros(pr.pixel.shape[1], int)
+        for c in range(len(cams)):
+            d = _distance_to_mask(cut[c]).ravel()
+            seen = pr.pixel[c] >= 0
+            misses[seen] += d[pr.pixel[c][seen]] > pr.tol[c][seen]
+        np.testing.assert_array_equal(hull.ravel(), misses <= k)
+    # a second camera missing the same half: two rejections, carved again with k = 1
+    cut[5, : fg.shape[0] // 2] = False
+    assert not visual_hull(cut, cams, grid, fg, params=HullParams(max_misses=1))[inside].all()
+    assert visual_hull(cut, cams, grid, fg, params=HullParams(max_misses=2))[inside].all()
+    # an empty mask counts as one rejection of everything its camera sees
+    empty = masks.copy()
+    empty[0] = False
+    assert not visual_hull(empty, cams, grid, fg).any()
+    assert visual_hull(empty, cams, grid, fg, params=HullParams(max_misses=1))[inside].all()
