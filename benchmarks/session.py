@@ -423,14 +423,14 @@ def write_report(res: dict) -> None:
     cs = m["costs"]["seconds"]
     md += ["", f"## Model: a {s['cameras']}-camera x {m['predict_frames']}-frame capture on N workers", "",
            "The model (`workers/throughput.py`, its docstring has the derivation): the threshold task is "
-           "the run's one global barrier, so a run is phase A (frame statistics, sync, clock, deflection, "
+           "the run's one global barrier, so a run is phase A (sync, clock, deflection, "
            "resample, potential, and the geometry task), then the barrier, then phase C (mask, hull, "
            "tomography, integrate). A greedy scheduler takes between max(W/N, L) and W/N + (1 - 1/N) L for a "
            "phase of work W whose longest chain is L (Graham's bound for list scheduling), so", "",
            "    T(N) = P + W_A/N + (1-1/N) L_A  +  T_threshold  +  W_C/N + (1-1/N) L_C  +  G  +  o (tasks/N + chain tasks)",
            "    T(N) >= P + max(max(W_A'/N, L_A) + T_threshold + max(W_C/N, L_C),  W/N,  geometry + block chain,  tasks x s)", "",
            "where W = tasks x seconds per task summed over the phase's stages (seconds per task fitted to "
-           "the receipts: the mean per stage; W_A' leaves out the frame statistics and the geometry, which "
+           "the receipts: the mean per stage; W_A' leaves out the geometry, which "
            "may run after the barrier), L_A = max(sync + clock, deflection) + resample + potential, "
            "T_threshold = cameras x frames x its seconds per summary (it pools every camera-frame's summary), "
            "L_C = mask + hull + cold solve + (B-1) warm solves + integrate (B = 4, the warm-start block), "

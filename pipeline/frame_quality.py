@@ -27,7 +27,7 @@ __all__ = ["DARK", "SATURATED", "FROZEN", "DROPPED", "QUALITY_NAMES", "FrameQual
 DARK, SATURATED, FROZEN, DROPPED = 1, 2, 4, 8
 _CV_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16), np.dtype(np.int16), np.dtype(np.float32), np.dtype(np.float64))
 #: Entries of the vector :func:`frame_quality` returns.
-QUALITY_NAMES = ("mean", "saturated_fraction", "mean_abs_change", "flags")
+QUALITY_NAMES = ("mean", "saturated_fraction", "mean_abs_change", "flags", "std", "min", "max")
 _NAMES = {DARK: "dark", SATURATED: "saturated", FROZEN: "frozen (repeats the previous frame)",
           DROPPED: "dropped by the camera (no frame at this time)"}
 
@@ -75,35 +75,44 @@ def frame_quality(frame: np.ndarray, previous: np.ndarray | None, *, reference_m
 
     Returns
     -------
-    ndarray, shape (4,), float32
-        ``mean``, ``saturated_fraction``, ``mean_abs_change`` (NaN without a previous
-        frame) and ``flags`` (bit sum of :data:`DARK`, :data:`SATURATED`, :data:`FROZEN`).
+    ndarray, shape (7,), float32
+        :data:`QUALITY_NAMES`: ``mean``, ``saturated_fraction``, ``mean_abs_change`` (NaN
+        without a previous frame), ``flags`` (bit sum of :data:`DARK`, :data:`SATURATED`,
+        :data:`FROZEN`), and the grey levels' ``std``, ``min`` and ``max`` (exposure drift,
+        the strobe flash; NaN for a frame with NaN pixels). These are the run's per-frame
+        statistics: every frame a reconstruction uses passes through one deflection task.
     """
     f = np.asarray(frame)
     p = None if previous is None else np.asarray(previous)
-    if f.ndim == 2 and f.dtype in _CV_DTYPES and (p is None or p.dtype == f.dtype):
+    if f.ndim == 2 and f.dtype in _CV_DTYPES and (p is None or p.dtype == f.dtype) and \
+            (f.dtype.kind != "f" or cv2.checkRange(f)[0]):
         # OpenCV's sums accumulate in double without float64 copies of the frame (7.2 ->
         # 0.7 ms at 1440x1080; one deflection task per camera-frame calls this)
-        mean = float(cv2.mean(f)[0])
+        m, sd = cv2.meanStdDev(f)
+        mean, std = float(m[0, 0]), float(sd[0, 0])
+        lo, hi = (float(v) for v in cv2.minMaxLoc(f)[:2])
         change = float(cv2.mean(cv2.absdiff(f, p))[0]) if p is not None else np.nan
-    else:
+    else:  # other types, and frames with NaN (whose statistics are NaN)
         f = f.astype(np.float64)
-        mean = float(f.mean())
+        mean, std, lo, hi = float(f.mean()), float(f.std()), float(f.min()), float(f.max())
         change = float(np.mean(np.abs(f - p.astype(np.float64)))) if p is not None else np.nan
-    sat = float(np.count_nonzero(f >= full_scale)) / f.size if full_scale is not None else 0.0
+    if full_scale is None:
+        sat = 0.0
+    else:  # no pixel at full scale when the maximum is below it (skips a pass over the frame)
+        sat = float(np.count_nonzero(f >= full_scale)) / f.size if not hi < full_scale else 0.0
     flags = 0
     if mean < params.dark_fraction * float(reference_mean):
         flags |= DARK
     if sat > params.saturated_fraction:
         flags |= SATURATED
-    if previous is not None and change <= params.frozen_level * float(full_scale or max(f.max(), 1.0)):
+    if previous is not None and change <= params.frozen_level * float(full_scale or max(hi, 1.0)):
         flags |= FROZEN
-    return np.array([mean, sat, change, flags], dtype=np.float32)
+    return np.array([mean, sat, change, flags, std, lo, hi], dtype=np.float32)
 
 
 def dropped_quality() -> np.ndarray:
     """The :func:`frame_quality` vector of a time slot with no frame (statistics NaN)."""
-    return np.array([np.nan, np.nan, np.nan, DROPPED], dtype=np.float32)
+    return np.array([np.nan, np.nan, np.nan, DROPPED, np.nan, np.nan, np.nan], dtype=np.float32)
 
 
 def flag_names(flags: float) -> list[str]:

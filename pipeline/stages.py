@@ -29,42 +29,8 @@ from schlieren.pipeline import tomography as _tomo
 from schlieren.pipeline.params import validate as _validate
 from schlieren.pipeline.params import param
 
-__all__ = ["Stage", "RunConfig", "STAGES", "stage", "FrameStatsParams", "frame_statistics",
+__all__ = ["Stage", "RunConfig", "STAGES", "stage",
            "config_from_dict", "config_to_dict", "check_config", "kernel_kwargs", "bind_medium"]
-
-
-@dataclass(frozen=True)
-class FrameStatsParams:
-    """Parameters of the ``frames`` stage (none needed; kept for a uniform table)."""
-
-
-def frame_statistics(frame, *, params: FrameStatsParams | None = None):
-    """Mean, standard deviation, minimum and maximum grey level of one frame.
-
-    The cheapest stage that touches every input frame: it proves every frame decodes,
-    and the statistics (exposure drift, the strobe flash) go into the report.
-
-    Parameters
-    ----------
-    frame : ndarray, shape (H, W)
-        Grey levels.
-
-    Returns
-    -------
-    stats : ndarray, shape (4,), float32
-    """
-    import cv2
-    import numpy as np
-
-    f = np.asarray(frame)
-    if f.ndim == 2 and f.dtype in (np.uint8, np.uint16, np.int16, np.float32, np.float64) and \
-            (f.dtype.kind != "f" or cv2.checkRange(f)[0]):
-        # OpenCV's sums in double, no float64 copy of the frame (4 -> 1 ms at 1440x1080)
-        mean, std = cv2.meanStdDev(f)
-        lo, hi, _, _ = cv2.minMaxLoc(f)
-        return np.array([mean[0, 0], std[0, 0], lo, hi], dtype=np.float32)
-    f = f.astype(np.float64)  # other types, and frames with NaN (whose statistics are NaN)
-    return np.array([f.mean(), f.std(), f.min(), f.max()], dtype=np.float32)
 
 
 @dataclass(frozen=True)
@@ -175,8 +141,6 @@ class Stage:
 
 
 STAGES: tuple[Stage, ...] = (
-    Stage("frames", frame_statistics, None, ("images",), ("frame_stats",), ("camera", "frame"),
-          batch=True, cost=0.005),
     Stage("sync", _sync.offset_from_flash, None, ("images",), ("time_offset", "flash_frames"), ("camera",),
           cost=0.011),
     Stage("clock", _sync.output_times, None, ("time_offset",), ("time",), (),

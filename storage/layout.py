@@ -21,11 +21,11 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from schlieren.pipeline.frame_quality import QUALITY_NAMES
 from schlieren.pipeline.geometry import Grid
 
 __all__ = [
     "STORE_FORMAT",
-    "STAT_NAMES",
     "ArraySpec",
     "AlignmentError",
     "result_layout",
@@ -37,7 +37,6 @@ __all__ = [
 ]
 
 STORE_FORMAT = "schlieren-store/1"
-STAT_NAMES = ("mean", "std", "min", "max")
 
 
 class AlignmentError(ValueError):
@@ -96,7 +95,7 @@ def _f32(name, dims, shape, chunks, attrs, fill=np.nan, dtype="float32") -> Arra
 
 
 def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tuple[int, int],
-                  grid: Grid, n_stats: int = 4, first_frame: int = 0, n_raw: int | None = None,
+                  grid: Grid, first_frame: int = 0, n_raw: int | None = None,
                   raw_first: int | None = None, n_summary: int = 2001,
                   flow_factor: int | None = None) -> list[ArraySpec]:
     """Every array of a run's store (SPEC section 2 and docs/design.md).
@@ -111,8 +110,6 @@ def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tup
         ``(rows, cols)`` of the flow grid (``FlowGrid.shape``), the same for every camera.
     grid : Grid
         Reconstruction grid; volume arrays are ``grid.shape`` = (nz, ny, nx).
-    n_stats : int
-        Statistics per frame in ``frame_stats`` (mean, std, min, max).
     first_frame : int
         Index ``A`` of the first processed frame (values of the ``frame`` coordinate).
     n_raw : int, optional
@@ -155,7 +152,6 @@ def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tup
                                  "flow_factor": f},
                                 data=f * np.arange(n, dtype=np.float64) + (f - 1) / 2.0))
     cam: dict = {}  # camera names: the `camera` coordinate (a list attribute would not survive netCDF)
-    stat_names = list(STAT_NAMES[:n_stats]) + [f"stat{i}" for i in range(len(STAT_NAMES), n_stats)]
 
     specs = [
         # ---- coordinates -----------------------------------------------------------
@@ -173,12 +169,9 @@ def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tup
         ArraySpec("axis", ("axis",), (3,), (3,), "str", "",
                   {"long_name": "world axis of the gradient component"},
                   data=np.asarray(["x", "y", "z"], dtype=object)),
-        ArraySpec("stat", ("stat",), (n_stats,), (n_stats,), "str", "",
-                  {"long_name": "statistic of the frame's grey levels"},
-                  data=np.asarray(stat_names, dtype=object)),
-        ArraySpec("quality", ("quality",), (4,), (4,), "str", "",
+        ArraySpec("quality", ("quality",), (len(QUALITY_NAMES),), (len(QUALITY_NAMES),), "str", "",
                   {"long_name": "entry of frame_quality"},
-                  data=np.asarray(["mean", "saturated_fraction", "mean_abs_change", "flags"], dtype=object)),
+                  data=np.asarray(QUALITY_NAMES, dtype=object)),
         ArraySpec("x", ("x",), (nx,), (nx,), "float64", np.nan,
                   {"long_name": "world x of voxel centres", "units": "m", "axis": "X"}, data=x.astype(np.float64)),
         ArraySpec("y", ("y",), (ny,), (ny,), "float64", np.nan,
@@ -191,9 +184,6 @@ def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tup
                   {"long_name": "session-clock time of each reconstructed frame", "units": "s",
                    "stage": "resample"}),
         # ---- per camera ----------------------------------------------------------------
-        _f32("frame_stats", ("camera", "frame", "stat"), (C, F, n_stats), (1, 1, n_stats),
-             {"long_name": "grey-level statistics of each frame", "units": "grey level",
-              "stage": "frames", **cam, **t}),
         _f32("time_offset", ("camera",), (C,), (1,),
              {"long_name": "session-clock time at which row 0 of frame 0 starts", "units": "s",
               "stage": "sync", **cam}, dtype="float64"),
@@ -203,9 +193,11 @@ def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tup
         _f32("flow_raw", ("camera", "raw_frame", "v", "u", "component"), (C, R, h, w, 2), (1, 1, h, w, 2),
              {"long_name": "BOS deflection at each frame's own rolling-shutter times",
               "units": "pixel", "stage": "deflection", **cam}),
-        _f32("frame_quality", ("camera", "raw_frame", "quality"), (C, R, 4), (1, 1, 4),
+        _f32("frame_quality", ("camera", "raw_frame", "quality"), (C, R, len(QUALITY_NAMES)),
+             (1, 1, len(QUALITY_NAMES)),
              {"long_name": "mean grey level, saturated fraction, mean absolute change from the previous "
-                           "frame, flags (1 dark, 2 saturated, 4 frozen: excluded from resampling)",
+                           "frame, flags (1 dark, 2 saturated, 4 frozen, 8 dropped: excluded from "
+                           "resampling), standard deviation, minimum and maximum grey level",
               "units": "1", "stage": "deflection", **cam}),
         _f32("flow", ("camera", "frame", "v", "u", "component"), (C, F, h, w, 2), (1, 1, h, w, 2),
              {"long_name": "BOS deflection resampled to the output times", "units": "pixel",
@@ -259,7 +251,6 @@ def stage_markers() -> dict[str, tuple[str, ...]]:
     is a single (0-d) marker for stages that run once.
     """
     return {
-        "frames": ("camera", "frame"),
         "sync": ("camera",),
         "clock": (),
         "deflection": ("camera", "raw_frame"),

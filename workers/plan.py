@@ -167,7 +167,7 @@ def make_plan(ext: Extents, token: str, *, done=None, stages: tuple[Stage, ...] 
         Completion-marker lookup; complete indices are dropped and so are edges to them.
     frames_per_task : int or dict
         Consecutive frames of one camera per task for the cheap per-camera-frame stages
-        (``Stage.batch``: frame statistics, deflection, resampling, potential, mask); one
+        (``Stage.batch``: deflection, resampling, potential, mask); one
         number for all or ``{stage: frames}`` (:func:`batch_sizes`).
         Their per-frame work is 3-20 ms at 480x360, and each Dask task costs a few ms
         more in the scheduler, the client and the worker. Completion markers stay per
@@ -248,8 +248,7 @@ def critical_path_priorities(plan: Plan, costs: dict[str, float] | None = None) 
     masks and hulls of each warm-start block (its first solve waits for all of them, to
     restrict the projection once to their union) go before other work, so the chained
     tomography solves of all blocks proceed side by side and
-    the run does not end on one worker finishing a chain alone. Tasks nothing waits
-    for (frame statistics) rank lowest and fill idle slots.
+    the run does not end on one worker finishing a chain alone.
 
     Parameters
     ----------

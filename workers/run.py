@@ -56,12 +56,6 @@ RAW_MARGIN = 2  # raw frames either side of the output range used by rolling-shu
 #: time step (2 workers, runs alternated), its tasks from 348 to 252.
 PIXELS_PER_TASK = 3.1e6
 MAX_FRAMES_PER_TASK = 8
-#: Image pixels per task of the frame-statistics stage (``frames``), which only decodes
-#: each frame and sums it (~12 ms per 1440x1080 PNG here, an eighth of a deflection):
-#: 8 frames per task at 1440x1080. A 16-camera x 1000-frame capture then plans 2,000
-#: statistics tasks instead of 16,000 (a third of all its tasks), and every task costs the
-#: scheduler and the client a few ms whatever its size.
-STATS_PIXELS_PER_TASK = 1.25e7
 
 
 #: Flow-grid cells per task the batched stages on the flow grid (resampling, potential,
@@ -78,8 +72,7 @@ def default_frames_per_task(image_size: tuple[int, int], flow_factor: int | None
 
     With ``flow_factor`` (the flow grid's downsampling) a mapping ``{stage: frames}``:
     the stages on the flow grid (``Stage.grid == "flow"``) aim for
-    :data:`FLOW_CELLS_PER_TASK` flow cells instead, and the frame statistics for
-    :data:`STATS_PIXELS_PER_TASK` pixels.
+    :data:`FLOW_CELLS_PER_TASK` flow cells instead.
     """
     w, h = image_size
 
@@ -91,8 +84,7 @@ def default_frames_per_task(image_size: tuple[int, int], flow_factor: int | None
         return image
     fh, fw = FlowGrid((w, h), flow_factor).shape
     cells = fh * fw
-    return {s.name: frames(cells, FLOW_CELLS_PER_TASK) if s.grid == "flow"
-            else frames(w * h, STATS_PIXELS_PER_TASK) if s.name == "frames" else image
+    return {s.name: frames(cells, FLOW_CELLS_PER_TASK) if s.grid == "flow" else image
             for s in STAGES if s.batch}
 
 

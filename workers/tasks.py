@@ -26,7 +26,7 @@ import numpy as np
 from schlieren.pipeline import derived, flow as flowmod, frame_quality as fq, hull as hullmod, masks as masksmod
 from schlieren.pipeline import poisson, sync, tomography
 from schlieren.pipeline.geometry import Camera, FlowGrid, pixel_footprint
-from schlieren.pipeline.stages import RunConfig, config_from_dict, frame_statistics, kernel_kwargs, stage
+from schlieren.pipeline.stages import RunConfig, config_from_dict, kernel_kwargs, stage
 from schlieren.pipeline.tomography.operator import SHARED_RESTRICTIONS
 from schlieren.storage import arrays_cache
 from schlieren.storage.errors import SessionError
@@ -231,17 +231,6 @@ def _geometry_key(ctx: RunContext) -> str:
 # --------------------------------------------------------------------------------------
 # stage glue: each returns a dict of extra receipt fields
 # --------------------------------------------------------------------------------------
-
-def _frames(ctx: RunContext, c: int, k: int) -> dict:
-    f = ctx.first_frame + k
-    if f in ctx.frames(c).dropped:  # no frame at this time: no statistics
-        n_stats = int(ctx.store.array("frame_stats").shape[-1])
-        ctx.store.write("frame_stats", (c, k), np.full(n_stats, np.nan, np.float32))
-        return {"dropped": True}
-    img = ctx.frames(c).read(f)
-    ctx.store.write("frame_stats", (c, k), frame_statistics(img))
-    return {}
-
 
 def _sync(ctx: RunContext, c: int) -> dict:
     cam = ctx.cameras[c]
@@ -608,7 +597,7 @@ def _info_dict(info) -> dict:
 
 
 _GLUE = {
-    "frames": _frames, "sync": _sync, "clock": _clock, "deflection": _deflection,
+    "sync": _sync, "clock": _clock, "deflection": _deflection,
     "regularisation": _regularisation,
     "resample": _resample, "potential": _potential, "threshold": _threshold, "mask": _mask,
     "geometry": _geometry_stage, "hull": _hull, "tomography": _tomography,
@@ -727,16 +716,15 @@ def _run_task(store_path: str, stage_name: str, index: tuple[int, ...], run_toke
 
 
 def _prefetch_frames(store_path: str, run_token: str, stage_name: str, indices) -> None:
-    """The input frames a batch of ``frames``/``deflection`` indices reads, fetched together
+    """The input frames a batch of ``deflection`` indices reads, fetched together
     (one concurrent batch from an object store; nothing happens for folders)."""
-    first = {"frames": "first_frame", "deflection": "raw_first"}.get(stage_name)
-    if first is None or not indices:
+    if stage_name != "deflection" or not indices:
         return
     try:
         ctx = context(str(store_path), str(run_token))
         by_camera: dict[int, list[int]] = {}
         for c, k in indices:
-            by_camera.setdefault(int(c), []).append(getattr(ctx, first) + int(k))
+            by_camera.setdefault(int(c), []).append(ctx.raw_first + int(k))
         for c, frames in by_camera.items():
             ctx.frames(c).prefetch(frames)
     except Exception:  # noqa: BLE001 - only a hint: each read reports its own problem, naming the frame

@@ -11,7 +11,7 @@ short, except the tomography solves, which are chained inside each warm-start bl
 B frames (frame k starts from frame k-1's solution). So the model splits the run in three
 phases:
 
-* **A, before the barrier**: frames' statistics, sync, clock, deflection, resample,
+* **A, before the barrier**: sync, clock, deflection, resample,
   potential, and the once-per-session ``geometry`` task (nothing in A waits for it;
   tomography does). Work ``W_A`` = sum over those stages of tasks x seconds per task;
   longest chain ``L_A`` = max(sync + clock, deflection) + resample + potential.
@@ -38,8 +38,8 @@ The prediction is the sum of the phases' upper bounds, plus:
   apart; it does not shrink with N).
 
 ``T(N) = P + max(A + T_B + C + G + O, S)``; the lower bound replaces each phase's upper
-bound by ``max(W/N, L)`` (without the frame statistics and geometry in phase A, which
-may also run after the barrier) and is at least the total work / N, the geometry task
+bound by ``max(W/N, L)`` (without the geometry in phase A, which may also run after the
+barrier) and is at least the total work / N, the geometry task
 followed by one warm-start block's solves and integration, and ``S``. The limiting term is the largest of the prediction's terms:
 each stage's work / N, the chains, the barrier, the geometry wait, the overhead, or the
 scheduler floor.
@@ -58,7 +58,7 @@ from schlieren.workers.plan import batch_sizes
 __all__ = ["StageCosts", "Prediction", "fit_costs", "predict", "ready_gaps", "task_counts",
            "PHASE_A", "BARRIER", "PHASE_C"]
 
-PHASE_A = ("frames", "sync", "clock", "deflection", "resample", "potential", "geometry")
+PHASE_A = ("sync", "clock", "deflection", "resample", "potential", "geometry")
 BARRIER = "threshold"
 PHASE_C = ("mask", "regularisation", "hull", "tomography", "integrate")
 _OVER = {s.name: s.over for s in STAGES}
@@ -121,6 +121,8 @@ def fit_costs(receipts, *, cameras: int, frames: int, warm_start_block: int = 4,
         if r.get("skipped"):
             continue
         s = r["stage"]
+        if s not in _OVER:  # a stage this version no longer has (receipts of an older run)
+            continue
         v = float(r[field_name])
         sums[s] = sums.get(s, 0.0) + v
         counts[s] = counts.get(s, 0) + 1
@@ -240,9 +242,9 @@ def predict(costs: StageCosts, *, cameras: int, frames: int, workers: int, warm_
     terms["planning (client, before any task)"] = float(planning)
     total = sum(terms.values())
     floor = costs.scheduler_per_task * n_tasks
-    # frame statistics and geometry need not finish before the barrier (nothing in A waits
-    # for them), so the rigorous lower bound counts them only in the total work
-    W_A_needed = W_A - work["frames"] - work["geometry"]
+    # the geometry need not finish before the barrier (nothing in A waits for it), so the
+    # rigorous lower bound counts it only in the total work
+    W_A_needed = W_A - work["geometry"]
     geometry_path = t["geometry"] + t["regularisation"] + costs.tomography_cold + (B - 1) * costs.tomography_warm \
         + t["integrate"]
     lower = planning + max(max(W_A_needed / n, L_A) + T_B + max(W_C / n, L_C), sum(work.values()) / n,

@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from schlieren.pipeline.frame_quality import DARK, FROZEN, SATURATED, flag_names, frame_quality
+from schlieren.pipeline.frame_quality import (
+    DARK, FROZEN, QUALITY_NAMES, SATURATED, dropped_quality, flag_names, frame_quality,
+)
 
 
 @pytest.fixture
@@ -76,8 +78,9 @@ def test_lossy_video_frames_of_a_slow_flow_are_not_frozen(frames):
 
 def test_statistics_equal_the_float64_definition_for_every_frame_type():
     """The OpenCV sums give the statistics of the float64 definition (mean grey level,
-    saturated share, mean absolute change) for 8/16-bit, float frames with NaN, other
-    integer types and mixed types (those take the numpy path)."""
+    saturated share, mean absolute change, population std, min, max) for 8/16-bit, float
+    frames with NaN, other integer types and mixed types (those take the numpy path); a
+    frame with a NaN pixel has NaN statistics."""
     rng = np.random.default_rng(2)
     a = rng.integers(0, 256, (60, 80)).astype(np.uint8)
     b = rng.integers(0, 256, (60, 80)).astype(np.uint8)
@@ -94,3 +97,8 @@ def test_statistics_equal_the_float64_definition_for_every_frame_type():
         want_change = np.nan if prev is None else np.mean(np.abs(x - np.asarray(prev, dtype=np.float64)))
         want_sat = 0.0 if full is None else np.mean(x >= full)
         np.testing.assert_allclose(q[:3], [x.mean(), want_sat, want_change], rtol=1e-6, equal_nan=True)
+        np.testing.assert_allclose(q[4:], [x.std(), x.min(), x.max()], rtol=1e-6, equal_nan=True)
+    assert np.isnan(frame_quality(g, f, reference_mean=100.0, full_scale=None)[[0, 4, 5, 6]]).all()
+    # below full scale everywhere: no saturated pixel (the count is skipped, not guessed)
+    assert frame_quality(np.minimum(b, 254), a, reference_mean=100.0, full_scale=255)[1] == 0.0
+    assert QUALITY_NAMES[4:] == ("std", "min", "max") and len(dropped_quality()) == len(QUALITY_NAMES)

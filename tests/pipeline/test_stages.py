@@ -55,28 +55,3 @@ def test_kernel_kwargs_passes_only_accepted_fields():
     assert set(kw) <= {"smooth_sigma", "dilation_radius", "temporal_radius", "deflection_threshold",
                        "flow_sigma", "percentile", "n_quantiles", "noise_factor", "grow_factor"}
     assert "dilation_radius" in kw
-
-
-def test_frame_statistics_equal_the_float64_definition_for_every_frame_type():
-    """The OpenCV path (8/16-bit, float without NaN) and the numpy path (other types, NaN)
-    give the float64 mean, population std, min and max; a NaN makes them NaN."""
-    import numpy as np
-
-    rng = np.random.default_rng(1)
-    a = rng.integers(0, 256, (90, 120)).astype(np.uint8)
-    f = rng.normal(128, 1.5, (90, 120)).astype(np.float32)
-    g = f.copy()
-    g[5, 5] = np.nan
-    for x in (a, a.astype(np.uint16) * 200, f, g, a.astype(np.int32), f.astype(np.float64)):
-        d = np.asarray(x, dtype=np.float64)
-        np.testing.assert_allclose(stages.frame_statistics(x), [d.mean(), d.std(), d.min(), d.max()],
-                                   rtol=1e-6, equal_nan=True)
-    assert np.isnan(stages.frame_statistics(g)).all()
-
-
-def test_frame_statistics():
-    import numpy as np
-
-    f = np.arange(12, dtype=np.float32).reshape(3, 4)
-    s = stages.frame_statistics(f)
-    assert np.allclose(s, [5.5, np.std(np.arange(12)), 0, 11])

@@ -61,7 +61,7 @@ def two_stores(tmp_path):
 def _per_chunk_arrays(store):
     """(name, zarr array) of the numeric arrays chunked one camera/frame per chunk."""
     out = []
-    for name in ("flow", "flow_raw", "potential", "mask", "frame_stats", "gradient", "hull",
+    for name in ("flow", "flow_raw", "potential", "mask", "frame_quality", "gradient", "hull",
                  "refractivity", "density", "temperature", "time_offset", "flash_frames"):
         if name in store:
             out.append((name, store.array(name)))

@@ -134,7 +134,6 @@ def make_store(root: Path, *, partial: str | None = None, seed: int = 0) -> Path
     for c in range(len(CAMERAS)):
         st.mark_done("sync", c)
         for f in range(N_FRAMES):
-            st.mark_done("frames", (c, f))
             st.mark_done("deflection", (c, f))
     if partial != "unfinished":
         st.write("mask_threshold", slice(None), [0.05])

@@ -65,7 +65,7 @@ def test_layout_matches_the_design_table():
     C, F, (h, w), (nz, ny, nx) = len(CAMS), NF, FLOW, GRID.shape
     expected = {
         "time": (("frame",), (F,), "float64"),
-        "frame_stats": (("camera", "frame", "stat"), (C, F, 4), "float32"),
+        "frame_quality": (("camera", "raw_frame", "quality"), (C, F, 7), "float32"),
         "time_offset": (("camera",), (C,), "float64"),
         "flash_frames": (("camera", "bound"), (C, 2), "int64"),
         "flow_raw": (("camera", "raw_frame", "v", "u", "component"), (C, F, h, w, 2), "float32"),
@@ -212,8 +212,9 @@ def test_round_trip_of_every_kind_of_array(store):
     store.write("flash_frames", (1,), np.array([[3, 5]]))
     np.testing.assert_array_equal(store.read("flash_frames", 1), [3, 5])
     np.testing.assert_array_equal(store.read("flash_frames", 0), [-1, -1])  # fill: no flash
-    store.write("frame_stats", (2, 0), np.array([1.0, 2.0, 0.0, 3.0]))
-    np.testing.assert_array_equal(store.read("frame_stats", (2, 0)), [1, 2, 0, 3])
+    q = np.array([1.0, 0.0, 0.5, 0.0, 2.0, 0.0, 3.0])
+    store.write("frame_quality", (2, 0), q)
+    np.testing.assert_array_equal(store.read("frame_quality", (2, 0)), q)
 
 
 def test_partial_chunk_writes_are_refused(store):

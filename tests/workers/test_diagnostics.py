@@ -78,7 +78,7 @@ def test_ctrl_c_on_a_local_cluster_prints_one_line_and_keeps_the_chunks(tiny_ses
                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.time() + 120
-        while time.time() < deadline and not list((out / "status" / "frames").glob("c/*/*")):
+        while time.time() < deadline and not list((out / "status" / "deflection").glob("c/*/*")):
             time.sleep(0.05)
         os.killpg(p.pid, signal.SIGINT)
         _, err = p.communicate(timeout=120)

@@ -112,8 +112,6 @@ def test_critical_path_priorities_are_upward_ranks():
     assert {hull_key[i] for i in range(3)} <= set(tomo_deps[0]) and hull_key[3] not in tomo_deps[0]
     assert {hull_key[i] for i in range(3, 6)} <= set(tomo_deps[4])
     assert hull[0] == hull[2] > tomo[0] and hull[3] == hull[5]
-    # nothing waits for the frame statistics: they only fill idle slots
-    assert max(rank[t.key] for t in plan.by_stage()["frames"]) == costs["frames"]
     assert rank[plan.by_stage()["geometry"][0].key] > max(hull.values())
 
 
@@ -196,16 +194,15 @@ def test_default_frames_per_task_follows_the_image_size():
     assert default_frames_per_task((32, 24)) == MAX_FRAMES_PER_TASK
     # with the flow grid: its stages batch by flow cells (480 x 360 at factor 3: 4 frames)
     sizes = default_frames_per_task((1440, 1080), 3)
-    # and the frame statistics (a decode and a sum per frame) by about 8x the pixels
-    assert sizes == {"frames": 8, "deflection": 2, "resample": 4, "potential": 4, "mask": 4}
+    assert sizes == {"deflection": 2, "resample": 4, "potential": 4, "mask": 4}
     assert default_frames_per_task((480, 360), 3) == dict.fromkeys(sizes, MAX_FRAMES_PER_TASK)
-    assert default_frames_per_task((4096, 3072), 3)["frames"] == 1
+    assert default_frames_per_task((4096, 3072), 3)["deflection"] == 1
 
 
 def test_batch_sizes_are_checked():
     from schlieren.workers.plan import batch_sizes
 
-    assert batch_sizes(3) == dict.fromkeys(["frames", "deflection", "resample", "potential", "mask"], 3)
+    assert batch_sizes(3) == dict.fromkeys(["deflection", "resample", "potential", "mask"], 3)
     assert batch_sizes({"mask": 2})["mask"] == 2 and batch_sizes({"mask": 2})["resample"] == 1
     with pytest.raises(ValueError, match="not batched"):
         batch_sizes({"tomography": 2})

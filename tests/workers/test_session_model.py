@@ -11,7 +11,7 @@ from schlieren.workers import throughput as tp
 from schlieren.workers.plan import Extents, critical_path_priorities, make_plan
 
 # known seconds per index of each stage
-COST = {"frames": 0.1, "sync": 0.05, "clock": 0.01, "deflection": 0.2, "resample": 0.1, "potential": 0.1,
+COST = {"sync": 0.05, "clock": 0.01, "deflection": 0.2, "resample": 0.1, "potential": 0.1,
         "mask": 0.1, "geometry": 10.0, "hull": 1.0, "integrate": 0.5, "regularisation": 0.5}
 COLD, WARM, PER_SUMMARY = 3.0, 2.0, 0.001
 
@@ -33,7 +33,7 @@ def synthetic_receipts(cameras: int, frames: int, *, block: int = 4, margin: int
     for c in range(cameras):
         add("sync", (c,), COST["sync"])
         for k in range(frames):
-            for s in ("frames", "resample", "potential", "mask"):
+            for s in ("resample", "potential", "mask"):
                 add(s, (c, k), COST[s])
         for j in range(frames + 2 * margin):
             add("deflection", (c, j), COST["deflection"])
@@ -76,27 +76,28 @@ def test_task_counts():
     n = tp.task_counts(16, 1000, raw_margin=2, frames_per_task=1)
     assert n["deflection"] == 16 * 1004 and n["mask"] == 16000 and n["tomography"] == 1000
     assert n["threshold"] == n["clock"] == n["geometry"] == n["regularisation"] == 1 and n["sync"] == 16
-    assert sum(n.values()) == 83084
+    assert sum(n.values()) == 67084
     b = tp.task_counts(8, 16, raw_margin=2, frames_per_task=8)
-    assert b["frames"] == 8 * 2 and b["deflection"] == 8 * 3 and b["hull"] == 16
+    assert b["resample"] == 8 * 2 and b["deflection"] == 8 * 3 and b["hull"] == 16
 
 
 def test_prediction_by_hand():
     """16 cameras x 1000 frames on 8 workers, worked out term by term."""
     costs = tp.fit_costs(synthetic_receipts(2, 8), cameras=2, frames=8).with_overheads(0.005, 0.0)
     p = tp.predict(costs, cameras=16, frames=1000, workers=8, warm_start_block=4, raw_margin=2)
-    W_A = 16000 * 0.1 + 16 * 0.05 + 0.01 + 16 * 1004 * 0.2 + 16000 * 0.1 + 16000 * 0.1 + 10.0  # 8023.61
+    W_A = 16 * 0.05 + 0.01 + 16 * 1004 * 0.2 + 16000 * 0.1 + 16000 * 0.1 + 10.0  # 6423.61
     W_C = 16000 * 0.1 + 0.5 + 1000 * 1.0 + (250 * 3.0 + 750 * 2.0) + 1000 * 0.5  # 5350.5
     L_A = max(0.05 + 0.01, 0.2) + 0.1 + 0.1
     L_C = 0.1 + max(1.0, 0.5) + 3.0 + 3 * 2.0 + 0.5   # mask, hull or regularisation, solves, integrate
     T_B = 16000 * 0.001
-    overhead = 0.005 * (83084 / 8 + 12)
+    overhead = 0.005 * (67084 / 8 + 12)
     assert p.seconds == pytest.approx(W_A / 8 + W_C / 8 + (1 - 1 / 8) * (L_A + L_C) + T_B + overhead)
-    assert p.seconds == pytest.approx(1697.38875 + 0.005 * (83084 / 8 + 12))
-    W_A_needed = W_A - 16000 * 0.1 - 10.0  # frame statistics and geometry may run after the barrier
-    assert W_A_needed / 8 + T_B + W_C / 8 < (W_A + T_B + W_C) / 8  # here the total work binds
-    assert p.lower == pytest.approx((W_A + T_B + W_C) / 8)
-    assert p.tasks == 83084
+    assert p.seconds == pytest.approx(1497.38875 + 0.005 * (67084 / 8 + 12))
+    W_A_needed = W_A - 10.0  # the geometry may run after the barrier
+    # here the phases bind: the barrier's wait (T_B) is more than the geometry's share of the work
+    assert W_A_needed / 8 + T_B + W_C / 8 > (W_A + T_B + W_C) / 8
+    assert p.lower == pytest.approx(W_A_needed / 8 + T_B + W_C / 8)
+    assert p.tasks == 67084
     assert p.limiting == "deflection: work / N"
     assert p.terms["geometry wait"] == 0.0
     assert sum(v for k, v in p.terms.items() if "not added" not in k) == pytest.approx(p.seconds)
@@ -107,11 +108,11 @@ def test_prediction_by_hand():
 
 def test_limiting_terms():
     base = tp.fit_costs(synthetic_receipts(2, 8), cameras=2, frames=8)
-    # one scheduler for ~83k tasks at 5 ms each outlasts 128 workers' share of the work
+    # one scheduler for ~67k tasks at 5 ms each outlasts 128 workers' share of the work
     p = tp.predict(base.with_overheads(0.0, 0.005), cameras=16, frames=1000, workers=128)
-    assert p.limiting.startswith("scheduler throughput") and p.seconds == pytest.approx(0.005 * 83084)
+    assert p.limiting.startswith("scheduler throughput") and p.seconds == pytest.approx(0.005 * 67084)
     q = tp.predict(base.with_overheads(0.0, 0.005), cameras=16, frames=1000, workers=128, planning=1000.0)
-    assert q.limiting.startswith("planning") and q.seconds == pytest.approx(1000.0 + 0.005 * 83084)
+    assert q.limiting.startswith("planning") and q.seconds == pytest.approx(1000.0 + 0.005 * 67084)
     # a slow barrier dominates once the work is spread thin
     slow = tp.StageCosts(per_index=base.per_index, tomography_cold=COLD, tomography_warm=WARM,
                          threshold_per_summary=0.01)
@@ -121,7 +122,7 @@ def test_limiting_terms():
     assert chain.limiting.startswith("warm-start chain")
     # a short run: the single geometry task outlasts everything before the solves
     geo = tp.predict(base, cameras=1, frames=1, workers=4)
-    W_A = 0.1 + 0.05 + 0.01 + 5 * 0.2 + 0.1 + 0.1 + 10.0  # phase A's work / 4 outlasts its chain
+    W_A = 0.05 + 0.01 + 5 * 0.2 + 0.1 + 0.1 + 10.0  # phase A's work / 4 outlasts its chain
     assert geo.terms["geometry wait"] == pytest.approx(10.0 - W_A / 4 - 0.001 - 0.1 - 1.0)
 
 
