@@ -240,6 +240,7 @@ def run_dask(session: Path, out: Path, log: Path, workers: int) -> dict:
     deps = {t.key: t.deps for t in plans[0].tasks}
     gaps = sorted(ready_gaps(spans, deps))
     busy = sum(s1 - s0 for _k, _w, s0, s1 in spans)
+    idle = idle_breakdown(spans, wall)
     peak = {addr: mem.peak.get(pid, {"rss": 0.0, "private": 0.0}) for addr, pid in pid_of.items()}
     return {"receipts": summary.receipts, "seconds": wall, "tasks": summary.tasks, "peak_gb": peak,
             "task_stream_busy_seconds": busy, "task_stream_records": len(spans),
@@ -247,10 +248,34 @@ def run_dask(session: Path, out: Path, log: Path, workers: int) -> dict:
                            "median": gaps[len(gaps) // 2] if gaps else 0.0,
                            "p90": gaps[int(0.9 * (len(gaps) - 1))] if gaps else 0.0,
                            "total": sum(gaps)},
-            "idle_seconds": workers * wall - busy,
+            "idle_seconds": workers * wall - busy, "idle": idle,
             "scheduler_cpu_seconds": cpu, "scheduler_idle_cpu_rate": idle_rate,
             "scheduler_cpu_per_task": max(0.0, cpu - idle_rate * wall) / max(1, summary.tasks),
             "client_main_thread_cpu_seconds": main_cpu}
+
+
+def idle_breakdown(spans, wall: float) -> dict:
+    """Where the workers' idle time lies: before their first task (start-up, the plan and
+    the first dispatch), between tasks (split by the stage that ran next: the waits that
+    dependencies impose show up as long gaps before the tasks that waited), and after
+    their last task (the run's tail, while other workers finish)."""
+    by_worker: dict[str, list] = {}
+    for key, w, s0, s1 in spans:
+        by_worker.setdefault(w, []).append((s0, s1, key.split("-")[0]))
+    first = min(s0 for _k, _w, s0, _s1 in spans)
+    last = max(s1 for _k, _w, _s0, s1 in spans)
+    before = after = 0.0
+    between: dict[str, float] = {}
+    for runs in by_worker.values():
+        runs.sort()
+        before += runs[0][0] - first
+        after += last - runs[-1][1]
+        for (_a0, a1, _sa), (b0, _b1, sb) in zip(runs, runs[1:]):
+            if b0 > a1:
+                between[sb] = between.get(sb, 0.0) + (b0 - a1)
+    return {"stream_seconds": last - first, "outside_stream_seconds": wall - (last - first),
+            "before_first_task": before, "after_last_task": after,
+            "between_tasks_by_next_stage": dict(sorted(between.items(), key=lambda kv: -kv[1]))}
 
 
 def _thread_cpu(proc) -> dict[int, float]:
@@ -414,6 +439,15 @@ def write_report(res: dict) -> None:
                f"idle, they use {d['scheduler_idle_cpu_rate']:.3f} s CPU per second (heartbeats, monitors), so "
                f"{1e3 * d['scheduler_cpu_per_task']:.1f} ms per task beyond that; the client's polling loop (main thread) "
                f"{d['client_main_thread_cpu_seconds']:.1f} s."]
+        idle = d.get("idle")
+        if idle:
+            top = ", ".join(f"{k} {v:.1f}" for k, v in list(idle["between_tasks_by_next_stage"].items())[:5])
+            md += ["", f"Where that idle time lies (worker-seconds): {idle['outside_stream_seconds']:.1f} s of the "
+                   f"wall before the first task started or after the last one ended (start-up, planning, "
+                   f"the store's template, the final gathering; x {res['session']['workers']} workers), "
+                   f"{idle['before_first_task']:.1f} before a worker's first task once another had started, "
+                   f"{idle['after_last_task']:.1f} after its last task while another still ran (the run's tail), "
+                   f"and between tasks, by the stage of the task that came next: {top}."]
     t = res["targets"]
     md += ["", "## Targets (issue 17)", "", "| target | measured | model (16 x 1000 frames) | met |",
            "| --- | ---: | ---: | --- |"]
