@@ -10,7 +10,7 @@ from __future__ import annotations
 import itertools
 from dataclasses import dataclass, field
 
-from schlieren.pipeline.stages import STAGES, Stage
+from schlieren.pipeline.stages import STAGES, Stage, middle_frame
 
 __all__ = ["Task", "Plan", "make_plan", "Extents", "critical_path_priorities"]
 
@@ -115,6 +115,10 @@ def _deps(st: Stage, index: tuple[int, ...], ext: Extents) -> list[tuple[str, tu
             k = labels["frame"]
             if k % max(ext.warm_start_block, 1) != 0:
                 out.append((dep_name, (k - 1,)))
+        elif how == "middle":  # the dependency at the middle output frame (every camera)
+            k = middle_frame(sizes["frame"])
+            axes = [(k,) if d == "frame" else range(sizes[d]) for d in dep.over]
+            out += [(dep_name, i) for i in itertools.product(*axes)]
         elif how == "block":  # every frame of this task's warm-start block
             B = max(ext.warm_start_block, 1)
             lo = labels["frame"] - labels["frame"] % B

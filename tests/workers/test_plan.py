@@ -61,6 +61,17 @@ def test_masks_wait_for_the_threshold_and_the_potentials_they_read(ext):
 
 @settings(max_examples=30, deadline=None)
 @given(extents)
+def test_regularisation_waits_for_the_middle_frames_masks_only(ext):
+    """It chooses the weight on the middle frame (tasks._regularisation reads those masks):
+    every camera's mask of that frame and the geometry, no other mask."""
+    plan = make_plan(ext, "tok")
+    (t,) = plan.by_stage()["regularisation"]
+    assert _indices_of(t, "mask") == [(c, ext.frame // 2) for c in range(ext.camera)]
+    assert task_key("geometry", "tok", ()) in t.deps
+
+
+@settings(max_examples=30, deadline=None)
+@given(extents)
 def test_tomography_chain_follows_warm_start_blocks(ext):
     plan = make_plan(ext, "tok")
     for t in plan.by_stage()["tomography"]:
@@ -229,6 +240,9 @@ def _deps_oracle(st, index, ext):
             elif how == "window" and dl.get("camera", labels.get("camera")) == labels.get("camera"):
                 f = dl["raw_frame"] - ext.raw_offset if "raw_frame" in dl else dl["frame"]
                 if abs(f - labels["frame"]) <= st.frame_halo:
+                    out.append((dep_name, i))
+            elif how == "middle":
+                if dl["frame"] == ext.frame // 2:
                     out.append((dep_name, i))
             elif how == "block":
                 B = max(ext.warm_start_block, 1)
