@@ -427,7 +427,9 @@ class ResultStore:
                 shape=spec.shape, chunks=spec.chunks, dtype=spec.dtype, fill_value=spec.fill_value,
                 dimension_names=spec.dims, attributes=to_json(spec.attrs), overwrite=False,
             )
-            kwargs["compressors"] = _COMPRESSORS
+            # _COMPRESSORS at the array's zstd level (layout.FAST_ZSTD for the float fields)
+            kwargs["compressors"] = tuple(ZstdCodec(level=spec.zstd_level) if isinstance(c, ZstdCodec) else c
+                                          for c in _COMPRESSORS)
             arr = parent.create_array(leaf, **kwargs)
             created += 1
             if spec.data is not None:

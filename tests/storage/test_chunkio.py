@@ -232,6 +232,25 @@ def test_store_arrays_end_with_zarrs_crc32c_codec(two_stores):
     assert blob[-4:] == google_crc32c.value(blob[:-4]).to_bytes(4, "little")
 
 
+def test_float_fields_are_stored_at_zstds_fastest_level_and_the_rest_at_level_3(two_stores):
+    """flow_raw, flow and potential (noisy float32 that level 3 shrinks by a few per cent) are
+    framed and checksummed by zstd at FAST_ZSTD, which stores noise at its own size; every
+    other array keeps level 3 (a hull, a mask, a volume with ambient outside the hull
+    compress many times)."""
+    from schlieren.storage.layout import FAST_ZSTD
+
+    fast, _, root = two_stores
+    fast_arrays = {"flow_raw", "flow", "potential"}
+    for name in fast.all_array_names():
+        zstd = [c for c in fast.array(name).metadata.codecs if type(c).__name__ == "ZstdCodec"]
+        assert [c.level for c in zstd] == [FAST_ZSTD if name in fast_arrays else 3], name
+    noise = np.random.default_rng(1).normal(0, 0.1, (*FLOW, 2)).astype(np.float32)
+    fast.write("flow", (1, 0), noise)
+    blob = (root / "fast.zarr" / "flow" / "c" / "1" / "0" / "0" / "0" / "0").read_bytes()
+    assert noise.nbytes <= len(blob) <= noise.nbytes + 64  # raw bytes, the frame and the CRC
+    np.testing.assert_array_equal(fast.read("flow", (1, 0)), noise)
+
+
 def _damage(path: Path, how: str) -> None:
     data = bytearray(path.read_bytes())
     if how == "flip":
