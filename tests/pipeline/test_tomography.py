@@ -346,6 +346,39 @@ def test_projection_rows_equal_the_per_sample_midpoint_rule(setup, unpruned):
         np.testing.assert_allclose(geom.S.data[lo:hi_], list(row.values()), rtol=1e-6)
 
 
+def test_projection_row_bound_and_the_two_pass_guard(monkeypatch):
+    """The one-pass build sizes its buffers by a bound on each row's entries: no row of
+    random, axis-parallel, diagonal or grazing rays exceeds it, and a bound forced too
+    small (the guard's two-pass build) gives the same matrix bit for bit."""
+    from schlieren.pipeline.tomography import operator as op
+
+    shape, h, origin = (9, 11, 13), 0.5, np.array([0.3, -0.2, 0.1])
+    nz, ny, nx = shape
+    lo, hi = origin, origin + h * (np.array([nx, ny, nz]) - 1)
+    rng = np.random.default_rng(11)
+    targets = lo + rng.random((400, 3)) * (hi - lo)
+    dirs = rng.standard_normal((400, 3))
+    axis = np.eye(3)[rng.integers(0, 3, 60)] * rng.choice([-1.0, 1.0], (60, 1))
+    diag = rng.choice([-1.0, 1.0], (60, 3))
+    dirs = np.concatenate([dirs, axis, diag])
+    targets = np.concatenate([targets, lo + rng.random((120, 3)) * (hi - lo)])
+    targets[-10:, 0] = hi[0] - 1e-9  # along a face of the box
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    origins = targets - 20.0 * dirs
+    S = op.build_projection(origins, dirs, shape, origin, h)
+    a, b = (origins - origin) / h, dirs / h
+    s0, s1 = op.clip_rays_to_box(a, b, np.zeros(3), np.array([nx - 1, ny - 1, nz - 1], float))
+    counts = np.diff(S.indptr)
+    caps = op._row_caps(a, b, s0, s1)
+    assert counts.sum() > 0 and np.all(counts <= caps), (counts - caps).max()
+    assert np.all(counts[s1 <= s0] == 0)
+    assert np.any(counts > caps // 4)  # so the build below takes the guard
+    monkeypatch.setattr(op, "_row_caps", lambda *args: caps // 4)
+    T = op.build_projection(origins, dirs, shape, origin, h)
+    for name in ("indptr", "indices", "data"):
+        np.testing.assert_array_equal(getattr(T, name), getattr(S, name))
+
+
 def test_prune_rows_drops_small_entries_and_keeps_each_rays_length(setup, unpruned):
     """Pruning keeps the entries >= fraction x the row's largest, scaled to the row's sum,
     so a constant field keeps its exact line integrals; the default geometry is the pruned
