@@ -15,8 +15,10 @@ from __future__ import annotations
 
 import hashlib
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 import time
 import venv
 from pathlib import Path
@@ -64,6 +66,9 @@ def ensure_env(extras=("test", "cluster", "bench")) -> None:
             if set(extras) <= have:
                 return
     want = sorted(have | set(extras))
+    short = _short_of_space()
+    if short:
+        print(f"dev.py: warning: {short}", file=sys.stderr)
     print("dev.py: installing schlieren" + (f" with {', '.join(want)}" if want else "") + " into .venv",
           file=sys.stderr)
     pip = [str(BIN / "python"), "-m", "pip", "--disable-pip-version-check", "-q", "--retries", "10"]
@@ -73,13 +78,35 @@ def ensure_env(extras=("test", "cluster", "bench")) -> None:
     STAMP.write_text(_digest() + "\n" + ",".join(want))
 
 
+#: Free space the install needs: the environment with every extra is about 2 GB, plus
+#: pip's downloads and build folder.
+INSTALL_BYTES = 3 * 2 ** 30
+
+
+def _short_of_space() -> str | None:
+    """Which of the install's folders (the checkout, the temporary folder) has less than
+    :data:`INSTALL_BYTES` free, as a sentence; None if both have enough."""
+    for where in (ROOT, Path(tempfile.gettempdir())):
+        try:
+            free = shutil.disk_usage(where).free
+        except OSError:
+            continue
+        if free < INSTALL_BYTES:
+            return (f"{where} has {free / 2 ** 30:.1f} GiB free; installing schlieren's environment "
+                    f"needs about {INSTALL_BYTES / 2 ** 30:.0f} GiB (free some space, or point TMPDIR elsewhere)")
+    return None
+
+
 def _pip(cmd: list[str], attempts: int = 4) -> None:
     """Run a pip command, again after a failure: a download cut short by the network
     (pip gives up after a few resumes) is the usual cause, and what pip already fetched
-    stays in its cache."""
+    stays in its cache. A full disk is not retried: the failure names the folder."""
     for k in range(1, attempts + 1):
         if subprocess.call(cmd) == 0:
             return
+        short = _short_of_space()
+        if short:
+            sys.exit(f"dev.py: `{' '.join(cmd[3:])}` failed: {short}")
         if k < attempts:
             print(f"dev.py: pip failed (attempt {k} of {attempts}); trying again in {10 * k} s", file=sys.stderr)
             time.sleep(10 * k)
