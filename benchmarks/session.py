@@ -608,9 +608,12 @@ def main(argv=None) -> int:
         r["stage_seconds"] = per_stage(r["receipts"])
         r["stage_cpu_seconds"] = per_stage(r["receipts"], "cpu_seconds")
 
-    from schlieren.pipeline.stages import RunConfig
+    from schlieren.pipeline.stages import RunConfig, bind_flow_factor
+    from schlieren.storage.session import load_session
 
-    fpt = default_frames_per_task((w, h), RunConfig().flow_factor)  # what the runs above used
+    sess = load_session(session)
+    bound = bind_flow_factor(RunConfig(), sess.cameras, sess.grid)
+    fpt = default_frames_per_task((w, h), bound.flow_factor)  # what the runs above used
     fit_name = f"dask-{args.workers}" if not args.skip_dask else "serial"
     kw = dict(warm_start_block=B, raw_margin=RAW_MARGIN, frames_per_task=fpt)
 

@@ -133,7 +133,19 @@ class FlowParams:
         texture-weighted window average where the deflection varies inside the window
         (see :func:`deflection_stage`).
     factor : int
-        Area-downsampling factor to the flow grid (rows = H // factor, cols = W // factor).
+        Area-downsampling factor to the flow grid (rows = H // factor, cols = W // factor);
+        with ``auto_factor`` (the default) the largest factor a run may take.
+    auto_factor : bool
+        In a run: the flow grid's factor is the largest up to ``factor`` that leaves at least
+        :data:`~schlieren.pipeline.tomography.binning.MIN_CELLS_PER_VOXEL` (1) flow cell per
+        voxel edge at the volume (:func:`~schlieren.pipeline.tomography.binning.
+        auto_flow_factor`: one sample per edge is the Nyquist rate of the linear basis).
+        Rigs whose voxels span few pixels then get a finer flow grid: the realistic family
+        (0.7-0.9 cells per voxel at factor 3, 2.0-2.6 pixels per voxel) takes 2, the paper's
+        scale (2.7 cells at 3) keeps 3. Measured on the family (whole box / in plume, factor 3
+        -> auto): tune plume1 16 cameras 43.43 / 28.72 -> 44.10 / 29.31, 8 cameras 41.77 /
+        27.00 -> 42.48 / 27.61; see docs/realistic.md for every case. False: ``factor`` as
+        given. The run logs and stores the factor it took (``run.flow_factor``).
     invalid_check : bool
         In :func:`deflection_stage`: find pixels that cannot carry a deflection
         (:func:`invalid_pixels`: non-finite, clipped black/white runs, textureless), give
@@ -192,6 +204,7 @@ class FlowParams:
     adaptive_threshold: float = param(3.0, unit="1", gt=0, le=100)
     texture_correction: bool = param(True)
     factor: int = param(3, unit="px per flow cell", ge=1, le=32)
+    auto_factor: bool = param(True)
     invalid_check: bool = param(True)
     texture_threshold: float = param(0.1, unit="1", ge=0, le=1)
     window_per_voxel: float = param(3.8, unit="1", ge=0, le=50)
@@ -220,7 +233,7 @@ class FlowParams:
         """Keyword arguments of :func:`deflection_field` taken from these parameters."""
         d = asdict(self)
         for k in ("outlier_threshold", "outlier_epsilon", "smoothing_sigma", "adaptive_sigma",
-                  "adaptive_threshold", "texture_correction", "factor", "invalid_check", "texture_threshold",
+                  "adaptive_threshold", "texture_correction", "factor", "auto_factor", "invalid_check", "texture_threshold",
                   "window_per_voxel", "cell_solve"):
             d.pop(k)
         return d

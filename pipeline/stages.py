@@ -30,7 +30,8 @@ from schlieren.pipeline.params import validate as _validate
 from schlieren.pipeline.params import param
 
 __all__ = ["Stage", "RunConfig", "STAGES", "stage", "middle_frame",
-           "config_from_dict", "config_to_dict", "check_config", "kernel_kwargs", "bind_medium"]
+           "config_from_dict", "config_to_dict", "check_config", "kernel_kwargs", "bind_medium",
+           "bind_flow_factor"]
 
 
 @dataclass(frozen=True)
@@ -69,6 +70,18 @@ class RunConfig:
     def flow_factor(self) -> int:
         """Downsampling factor from image pixels to the flow grid."""
         return self.flow.factor
+
+
+def bind_flow_factor(cfg: RunConfig, cameras, grid) -> RunConfig:
+    """The configuration with the flow grid's factor a run on ``cameras`` and ``grid`` takes:
+    with ``flow.auto_factor``, :func:`~schlieren.pipeline.tomography.binning.auto_flow_factor`
+    up to ``flow.factor``; otherwise ``cfg`` unchanged. Binding twice gives the same factor."""
+    if not cfg.flow.auto_factor:
+        return cfg
+    from schlieren.pipeline.tomography.binning import auto_flow_factor
+
+    f = auto_flow_factor(cameras, grid, cfg.flow.factor)
+    return cfg if f == cfg.flow.factor else dataclasses.replace(cfg, flow=dataclasses.replace(cfg.flow, factor=f))
 
 
 def bind_medium(cfg: RunConfig, n_ambient: float) -> RunConfig:

@@ -104,7 +104,8 @@ class Table1Config:
     recon_voxel : float
         Reconstruction voxel, metres (the truth grid is half of it).
     flow_factor : int
-        Flow-grid downsampling (truth deflections and the pipeline's flow).
+        Flow-grid downsampling of the rendering (truth deflections) and the pipeline's
+        ``flow.factor`` (with ``flow.auto_factor`` the largest it takes).
     supersample : int
         Rendering supersampling of the synthetic images.
     seed : int
@@ -124,7 +125,8 @@ class Table1Config:
         fraction of the frame's range.
     params : dict or None
         Run parameters (the ``--params`` mapping, :func:`~schlieren.pipeline.stages.config_from_dict`)
-        instead of the defaults; ``flow.factor`` is always ``flow_factor``.
+        instead of the defaults; ``flow.factor`` is always ``flow_factor`` (with the default
+        ``flow.auto_factor`` the largest factor the runs may take: 2 on the 480x360 rigs).
     """
 
     rigs: tuple[tuple[str, int], ...] = DEFAULT_RIGS
@@ -238,7 +240,13 @@ def truth_rows(session_path, store_path, truth_path, *, config: RunConfig | None
     store = ResultStore.open(store_path, mode="r")
     truth = sio.read_truth(truth_path)
     times = np.asarray(store.read("time"), dtype=np.float64)
-    fg = FlowGrid(session.cameras[0].image_size, cfg.flow_factor)
+    # the truth's deflections are on the flow grid the session was rendered with (which the
+    # run's flow.auto_factor may have refined): the reconstruction from them uses that grid
+    W, H = session.cameras[0].image_size
+    cols = int(truth.group["deflection"].shape[-2])
+    fg = FlowGrid((W, H), max(1, W // cols))
+    if fg.shape[1] != cols:
+        raise ValueError(f"{truth_path}: deflections {cols} cells wide fit no flow grid of {W} px")
     b = tomography.ray_binning(session.cameras, session.grid, fg, cfg.tomography.ray_binning)
     geom = _geometry(session, store_path, tomography.ray_grid(fg, b), cfg)
     grid = session.grid
@@ -400,7 +408,9 @@ def bench_rig(work_dir, rig: tuple[str, int], config: Table1Config, *, client=No
     t3 = time.perf_counter()
     res["seconds"]["truth_rows"] = t3 - t2
     res["grid_shape"] = list(session.grid.shape)
-    res["flow_shape"] = [int(v) for v in FlowGrid(session.cameras[0].image_size, config.flow_factor).shape]
+    run_factor = int(ResultStore.open(store_path, mode="r").attrs["run"]["flow_factor"])  # flow.auto_factor's
+    res["flow_factor"] = run_factor
+    res["flow_shape"] = [int(v) for v in FlowGrid(session.cameras[0].image_size, run_factor).shape]
     res["paths"] = {"session": str(syn.session), "truth": str(syn.truth), "store": str(store_path)}
     res["hull_voxels"] = [int(np.sum(ResultStore.open(store_path, mode="r").read("hull", (k,))))
                           for k in range(len(vols["time"]))]
@@ -571,7 +581,9 @@ def table1_markdown(result: dict, *, wall_seconds: float | None = None, executor
             f"{r['seconds'].get('pipeline', 0):.0f} s, truth rows {r['seconds'].get('truth_rows', 0):.0f} s"
             for r in result["rigs"]]
     lines += ["## Setup", "",
-              f"* Images {w}x{h} px, flow grid factor {c['flow_factor']}, supersampling "
+              f"* Images {w}x{h} px, rendered (truth deflections, the exact and approximate rows) on the "
+              f"flow grid of factor {c['flow_factor']}; the pipeline's flow grid (flow.auto_factor): factor "
+              f"{', '.join(sorted({str(r.get('flow_factor', c['flow_factor'])) for r in result['rigs']}))}; supersampling "
               f"{c['supersample']}, sensor noise {c['noise']} grey levels, seed {c['seed']}.",
               f"* {c['frames']} output frame(s) per rig; reconstruction voxel {1000 * c['recon_voxel']:.1f} mm, "
               f"grid (nz, ny, nx) = {_grid_text(result)}; truth on a grid of half that voxel.",

@@ -31,7 +31,8 @@ from pathlib import Path
 from typing import Callable
 
 from schlieren.pipeline.geometry import FlowGrid
-from schlieren.pipeline.stages import STAGES, RunConfig, bind_medium, check_config, config_to_dict
+from schlieren.pipeline.stages import STAGES, RunConfig, bind_flow_factor, bind_medium, check_config, config_to_dict
+from schlieren.pipeline.tomography.binning import cells_per_voxel
 from schlieren.storage import location
 from schlieren.storage.layout import result_layout
 from schlieren.storage.session import Session, load_session
@@ -283,7 +284,13 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
 
     config = check_config(config or RunConfig())  # a bad value stops here, before the store exists
     session = session_path if isinstance(session_path, Session) else load_session(session_path, frames=frames)
-    cfg = bind_medium(config, session.medium.n_ambient)
+    cfg = bind_flow_factor(bind_medium(config, session.medium.n_ambient), session.cameras, session.grid)
+    if cfg.flow.factor != config.flow.factor:
+        log.info("flow grid: factor %d (flow.auto_factor: %.2f flow cells per voxel edge; flow.factor %d "
+                 "would leave %.2f)", cfg.flow.factor,
+                 cells_per_voxel(session.cameras, session.grid, FlowGrid(session.cameras[0].image_size, cfg.flow.factor)),
+                 config.flow.factor,
+                 cells_per_voxel(session.cameras, session.grid, FlowGrid(session.cameras[0].image_size, config.flow.factor)))
     # memory and disk, with the measured model, before anything is written
     preflight(session, cfg, run_layout(session, cfg)[0], out_path,
               workers=[WorkerSlots()] if (serial or client is None) else workers_of_client(client))

@@ -29,7 +29,7 @@ import numpy as np
 
 from schlieren.pipeline.geometry import FlowGrid, Grid, pixel_footprint
 
-__all__ = ["MIN_RAYS_PER_VOXEL", "cells_per_voxel", "ray_binning", "ray_grid", "bin_cells", "bin_quiet",
+__all__ = ["MIN_RAYS_PER_VOXEL", "MIN_CELLS_PER_VOXEL", "auto_flow_factor", "cells_per_voxel", "ray_binning", "ray_grid", "bin_cells", "bin_quiet",
            "binned_sigma"]
 
 #: Rays per voxel edge the automatic binning keeps at least (per camera, at the box centre).
@@ -41,6 +41,31 @@ def cells_per_voxel(cameras, grid: Grid, flow_grid: FlowGrid) -> float:
     centre = np.asarray(grid.center, dtype=np.float64)
     px = [grid.voxel_size / pixel_footprint(cam, centre) for cam in cameras]
     return float(np.median(px)) / float(flow_grid.factor)
+
+
+#: Flow cells per voxel edge the automatic flow grid (``flow.auto_factor``) keeps at least:
+#: one sample per voxel edge, the linear basis's Nyquist rate.
+MIN_CELLS_PER_VOXEL = 1.0
+
+
+def auto_flow_factor(cameras, grid: Grid, largest: int) -> int:
+    """The flow grid's factor for a run with ``flow.auto_factor``: the largest integer up to
+    ``largest`` that leaves at least :data:`MIN_CELLS_PER_VOXEL` flow cells per voxel edge
+    (:func:`cells_per_voxel`), at least 1.
+
+    The flow is computed at full resolution and area-averaged onto the flow grid (paper
+    sec. 4); each cell gives one tomography ray. Where a voxel spans only two or three
+    pixels (the realistic family's 640x480 and 960x720 rigs: 2.0-2.6 px), factor 3 leaves
+    fewer rays than voxel edges and the basis functions between them are seen by no ray of
+    that camera; factor 2 restores a ray per edge. Where cells are plentiful (paper scale,
+    8.2 px per voxel) the factor stays at ``largest`` and the tomography bins its rays
+    (:func:`ray_binning`).
+    """
+    largest = int(largest)
+    if not cameras or largest <= 1:
+        return max(1, largest)
+    px = cells_per_voxel(cameras, grid, FlowGrid(tuple(cameras[0].image_size), 1))
+    return max(1, min(largest, int(np.floor(px / MIN_CELLS_PER_VOXEL + 1e-9))))
 
 
 def ray_binning(cameras, grid: Grid, flow_grid: FlowGrid, requested: int = 0) -> int:

@@ -97,6 +97,38 @@ def test_automatic_binning_keeps_at_least_the_minimum_rays_per_voxel_edge():
     assert ray_binning(cams, grid, fg, 1) == 1 and ray_binning(cams, grid, fg, 3) == 3
 
 
+def test_automatic_flow_grid_is_the_coarsest_with_a_cell_per_voxel_edge():
+    """flow.auto_factor: the largest factor up to the configured one whose grid leaves at
+    least MIN_CELLS_PER_VOXEL cells per voxel edge (checked against every factor), 1 at
+    least; binding a configuration takes it, twice gives the same, and off leaves it."""
+    import dataclasses
+
+    from schlieren.pipeline.stages import RunConfig, bind_flow_factor
+    from schlieren.pipeline.tomography.binning import MIN_CELLS_PER_VOXEL, auto_flow_factor
+
+    grid = Grid((-0.075, -0.075, 0.0), (0.075, 0.075, 0.3), 0.0025)
+    seen = set()
+    for size in [(1440, 1080), (480, 360), (240, 180), (120, 90), (60, 45)]:
+        cams = make_rig(8, ring="half", grid=grid, image_size=size)
+        for largest in (1, 2, 3, 5):
+            f = auto_flow_factor(cams, grid, largest)
+            ok = [g for g in range(1, largest + 1)
+                  if cells_per_voxel(cams, grid, FlowGrid(size, g)) >= MIN_CELLS_PER_VOXEL]
+            assert f == (max(ok) if ok else 1), (size, largest, f)
+            seen.add(f)
+        cfg = bind_flow_factor(RunConfig(), cams, grid)
+        assert cfg.flow_factor == auto_flow_factor(cams, grid, 3)
+        assert bind_flow_factor(cfg, cams, grid) == cfg
+        off = dataclasses.replace(RunConfig().flow, auto_factor=False)
+        assert bind_flow_factor(dataclasses.replace(RunConfig(), flow=off), cams, grid).flow_factor == 3
+    assert {1, 2, 3} <= seen  # coarse, paper-like and fine rigs all occur above
+    # the paper scale keeps factor 3; the 480x360 rigs of Table 1 and the demo take 2
+    cams = make_rig(16, ring="half", grid=grid, image_size=(1440, 1080))
+    assert auto_flow_factor(cams, grid, 3) == 3
+    cams = make_rig(16, ring="half", grid=grid, image_size=(480, 360))
+    assert auto_flow_factor(cams, grid, 3) == 2
+
+
 def test_binned_rays_recover_an_analytic_field_nearly_as_well_as_one_ray_per_cell():
     """Cells finer than the voxels (3.6 per voxel edge): the reconstruction of a Gaussian
     blob (sigma 3.2 voxels) from noisy, window-averaged cell data, once from every cell's

@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 import pytest
 import zarr
+from flow_grids import on_grid
 from scipy import ndimage
 
 from schlieren.pipeline import metrics
@@ -173,7 +174,17 @@ def test_synthesised_session_runs_through_every_stage(tiny_session, serial_store
     np.testing.assert_allclose(g["time_offset"][:], truth.time_offset, atol=3 * lt)
     # the measured flow follows the exact deflection
     d = truth.group["deflection"][:]
-    f = g["flow"][:]
+    # the run took the flow grid flow.auto_factor chose (finer than the rendered one here),
+    # stored it, and the flow has that grid's shape
+    from schlieren.pipeline.tomography.binning import auto_flow_factor
+    from schlieren.storage.store import ResultStore
+
+    s = load_session(tiny_session.session)
+    want = auto_flow_factor(s.cameras, s.grid, 3)
+    attrs = ResultStore.open(serial_store, mode="r").attrs
+    assert want == 2 and attrs["run"]["flow_factor"] == want and attrs["params"]["flow"]["factor"] == want
+    assert g["flow"].shape[2:4] == FlowGrid(s.cameras[0].image_size, want).shape
+    f = on_grid(g["flow"][:], d.shape[-3:-1])  # the run's grid -> the truth's (rendered at 3)
     sig = np.abs(d).max(-1) > 0.2 * np.abs(d).max()
     assert np.corrcoef(f[sig].ravel(), d[sig].ravel())[0, 1] > 0.8
     res = evaluate(serial_store, tiny_session.truth)
