@@ -28,6 +28,7 @@ from schlieren.pipeline import poisson, sync, tomography
 from schlieren.pipeline.geometry import Camera, FlowGrid, pixel_footprint
 from schlieren.pipeline.stages import RunConfig, config_from_dict, kernel_kwargs, middle_frame, stage
 from schlieren.pipeline.tomography.operator import SHARED_RESTRICTIONS
+from schlieren.pipeline.tomography.solve import RUN_SMALLEST_WEIGHT
 from schlieren.storage import arrays_cache
 from schlieren.storage.errors import SessionError
 from schlieren.storage.frames import open_frames, read_reference
@@ -476,7 +477,8 @@ def _regularisation(ctx: RunContext) -> dict:
         noise = tomography.rhs_noise(rhs, tomography.bin_quiet(~masks, ctx.ray_binning))
         hull = hullmod.visual_hull(masks, ctx.cameras, ctx.session.grid, ctx.flow_grid, params=ctx.config.hull)
         if np.all(np.isfinite(noise)) and noise.any() and hull.any():
-            choice = tomography.choose_reg_weight(geom, flows, hull, noise, params=params, **blur)
+            choice = tomography.choose_reg_weight(geom, flows, hull, noise, params=params,
+                                                  smallest=RUN_SMALLEST_WEIGHT, **blur)
             weight = choice.reg_weight
             out["path"] = [[float(a), float(b)] for a, b in choice.path]
             log.info("regularisation: weight %.4g from the discrepancy principle (noise %s, frame %d)",

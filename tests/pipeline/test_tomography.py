@@ -612,6 +612,12 @@ def test_discrepancy_search_stops_where_the_residual_levels_off(setup):
     assert choice.reg_weight > 1e-3
     full = choose_reg_weight(geom, rhs, hull, noise, params=params, plateau=0.0)
     assert full.path[-1][0] < 2e-4 and len(full.path) > len(choice.path), full.path
+    # the run's floor (RUN_SMALLEST_WEIGHT) ends the same search on its grid weight
+    from schlieren.pipeline.tomography.solve import RUN_SMALLEST_WEIGHT
+
+    capped = choose_reg_weight(geom, rhs, hull, noise, params=params, plateau=0.0, smallest=RUN_SMALLEST_WEIGHT)
+    assert capped.reg_weight == RUN_SMALLEST_WEIGHT == capped.path[-1][0], capped.path
+    assert capped.path == full.path[:len(capped.path)]
 
     def err(w):
         g, _ = solve_gradient(geom, rhs, hull, params=TomoParams(reg_weight=w, curl_weight=0.0, max_iter=300,
