@@ -143,7 +143,7 @@ class FlowParams:
         Rigs whose voxels span few pixels then get a finer flow grid: the realistic family
         (0.7-0.9 cells per voxel at factor 3, 2.0-2.6 pixels per voxel) takes 2, the paper's
         scale (2.7 cells at 3) keeps 3. Measured on the family (whole box / in plume, factor 3
-        -> auto): tune plume1 16 cameras 43.43 / 28.72 -> 44.10 / 29.31, 8 cameras 41.77 /
+        -> auto): tune plume1 16 cameras 43.43 / 28.72 -> 44.12 / 29.32, 8 cameras 41.77 /
         27.00 -> 42.48 / 27.61; see docs/realistic.md for every case. False: ``factor`` as
         given. The run logs and stores the factor it took (``run.flow_factor``).
     invalid_check : bool
