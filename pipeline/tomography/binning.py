@@ -29,8 +29,8 @@ import numpy as np
 
 from schlieren.pipeline.geometry import FlowGrid, Grid, pixel_footprint
 
-__all__ = ["MIN_RAYS_PER_VOXEL", "MIN_CELLS_PER_VOXEL", "auto_flow_factor", "cells_per_voxel", "ray_binning", "ray_grid", "bin_cells", "bin_quiet",
-           "binned_sigma"]
+__all__ = ["MIN_RAYS_PER_VOXEL", "MIN_CELLS_PER_VOXEL", "auto_flow_factor", "cells_per_voxel", "ray_binning",
+           "ray_grid", "bin_cells", "bin_quiet", "binned_sigma"]
 
 #: Rays per voxel edge the automatic binning keeps at least (per camera, at the box centre).
 MIN_RAYS_PER_VOXEL = 1.25
