@@ -458,11 +458,13 @@ def _chosen(store_path) -> dict:
 
 def run_case(case: RealisticCase, work: Path, *, config: RunConfig | None = None, client=None, label: str = "",
              truth_rows: bool = True, progress: Callable[[str], None] | None = None,
-             voxel: float | None = None) -> dict:
+             voxel: float | None = None, keep_store: bool = True) -> dict:
     """Render (or reuse) ``case``, run the full pipeline and score it; returns a JSON-able dict.
 
     ``voxel`` runs on a copy of the manifest that gives this ``volume.voxel_size`` (as a
-    user's manifest may), instead of letting the pipeline choose it.
+    user's manifest may), instead of letting the pipeline choose it. ``keep_store=False``
+    deletes the scored store, its cache folder and the truth rows' estimate afterwards (a
+    failed run's store is kept to look at).
     """
     from schlieren.storage.store import ResultStore
     from schlieren.workers import bench
@@ -502,16 +504,20 @@ def run_case(case: RealisticCase, work: Path, *, config: RunConfig | None = None
     of = res["rows"]["optical_flow"]
     say(f"{case.name}: {of['psnr']:.2f} dB whole box, {of['psnr_plume']:.2f} dB in plume, peak ratio "
         f"{of['peak_ratio']:.2f} ({seconds:.0f} s)")
+    if not keep_store:
+        for p in (store, Path(f"{store}.cache"), d / f"est-approximate{('-' + label) if label else ''}.zarr"):
+            bench_io.remove_tree(p)
+    res["store"] = str(store) if keep_store else None
     return res
 
 
 def run_family(work, cases=CASES, *, config: RunConfig | None = None, client=None, label: str = "",
                truth_rows: bool = True, progress: Callable[[str], None] | None = None,
-               voxel: float | None = None) -> dict:
+               voxel: float | None = None, keep_stores: bool = True) -> dict:
     """Every case of ``cases``; returns ``{"cases": [...], "config": ..., "seconds"}``."""
     t0 = time.perf_counter()
     out = [run_case(c, Path(work), config=config, client=client, label=label, truth_rows=truth_rows,
-                    progress=progress, voxel=voxel) for c in cases]
+                    progress=progress, voxel=voxel, keep_store=keep_stores) for c in cases]
     return {"label": label, "cases": out, "config": config_to_dict(config or RunConfig()), "voxel": voxel,
             "seconds": time.perf_counter() - t0}
 

@@ -43,6 +43,8 @@ def test_table1_params_and_realistic_only_options(capsys, tmp_path):
     # options of `bench realistic` are refused by table1, not silently ignored
     assert main(["bench", "table1", "--quick", "--cases", "plume1", "--out", str(tmp_path / "w")]) == 2
     assert "--cases" in capsys.readouterr().err
+    assert main(["bench", "table1", "--quick", "--keep-stores", "--out", str(tmp_path / "w")]) == 2
+    assert "--keep-stores" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("shift", [0.0, 0.3])

@@ -55,6 +55,41 @@ def test_quick_case_end_to_end(tmp_path):
     assert "| quick-4cam-160 |" in (results / "realistic.md").read_text()
 
 
+def test_a_probe_without_keep_store_deletes_what_it_scored(tmp_path, monkeypatch):
+    """run_case(keep_store=False): the scored store, its cache folder and the truth rows'
+    estimate are gone afterwards, the scores returned; kept by default; a failed run's store
+    stays whatever was asked (the pipeline and scoring are stand-ins writing real folders)."""
+    import types
+
+    from schlieren.workers import evaluate as ev_mod
+    from schlieren.workers import run as run_mod
+
+    case = rb.CASES[0]
+    ok = [True]
+
+    def fake_run(session, store, **kw):
+        for p in (store, type(store)(f"{store}.cache")):
+            (p / "x").mkdir(parents=True)
+            (p / "x" / "chunk").write_bytes(b"\0" * 64)
+        return types.SimpleNamespace(ok=ok[0], root_failures=lambda: {"deflection": "boom"})
+
+    ev = {"overall": {"psnr": 40.0, "rms": 0.01}, "plume": {"psnr": 30.0, "rms": 0.03},
+          "frames": [{"frame": 0, "psnr": 40.0, "psnr_plume": 30.0, "peak_ratio": 1.0}]}
+    monkeypatch.setattr(rb, "ensure_session", lambda c, w, progress=None: {"session": "s", "truth": "t", "peak_px": 0.25})
+    monkeypatch.setattr(run_mod, "run_session", fake_run)
+    monkeypatch.setattr(ev_mod, "evaluate", lambda store, truth: ev)
+    monkeypatch.setattr(rb, "_chosen", lambda store: {})
+    d = tmp_path / case.name
+    kept = rb.run_case(case, tmp_path, label="a", truth_rows=False)
+    assert (d / "store-a.zarr").is_dir() and (d / "store-a.zarr.cache").is_dir() and kept["store"]
+    gone = rb.run_case(case, tmp_path, label="b", truth_rows=False, keep_store=False)
+    assert gone["rows"]["optical_flow"]["psnr"] == 40.0 and gone["store"] is None
+    assert not (d / "store-b.zarr").exists() and not (d / "store-b.zarr.cache").exists()
+    ok[0] = False
+    failed = rb.run_case(case, tmp_path, label="c", truth_rows=False, keep_store=False)
+    assert failed["failures"] and (d / "store-c.zarr").is_dir()
+
+
 def test_scale_solve_follows_a_saturating_response():
     """The excess-temperature scale converges where the deflection saturates (r ~ 1/T), and
     a linear response takes the proportional steps (as the CFD flows' scales did)."""

@@ -51,6 +51,9 @@ def add_parser(subparsers) -> None:
                    help="run on manifests that give this voxel_size (default: the pipeline chooses it)")
     r.add_argument("--no-truth-rows", action="store_true",
                    help="skip the reconstruction from the truth's deflections (faster)")
+    r.add_argument("--keep-stores", action="store_true",
+                   help="keep the stores of a --label run (deleted after scoring by default: 0.1-1.7 GB per "
+                        "case with its geometry cache; probes fill a disk); unlabelled runs keep store.zarr")
     p.set_defaults(func=handler)
 
 
@@ -82,7 +85,8 @@ def _config(args):
             raise CLIError("--workers must be >= 0")
         kw["workers"] = args.workers
     only_realistic = {"--cases": args.cases, "--role": args.role, "--label": args.label or None,
-                      "--manifest-voxel": args.manifest_voxel, "--no-truth-rows": args.no_truth_rows or None}
+                      "--manifest-voxel": args.manifest_voxel, "--no-truth-rows": args.no_truth_rows or None,
+                      "--keep-stores": args.keep_stores or None}
     given = [k for k, v in only_realistic.items() if v is not None]
     if given:
         raise CLIError(f"{', '.join(given)}: options of `schlieren bench realistic`, not of table1")
@@ -154,7 +158,7 @@ def _realistic(args) -> int:
             client, _info = stack.enter_context(open_client(ClusterOptions(workers=workers, dashboard_address=":0")))
         result = rb.run_family(work, cases, config=config, client=client, label=args.label,
                                truth_rows=not args.no_truth_rows, progress=lambda m: console.print(m),
-                               voxel=args.manifest_voxel)
+                               voxel=args.manifest_voxel, keep_stores=args.keep_stores or not args.label)
     result["wall_seconds"] = time.perf_counter() - t0
     machine = _machine()
     result["machine"] = machine
