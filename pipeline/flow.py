@@ -233,8 +233,8 @@ class FlowParams:
         """Keyword arguments of :func:`deflection_field` taken from these parameters."""
         d = asdict(self)
         for k in ("outlier_threshold", "outlier_epsilon", "smoothing_sigma", "adaptive_sigma",
-                  "adaptive_threshold", "texture_correction", "factor", "auto_factor", "invalid_check", "texture_threshold",
-                  "window_per_voxel", "cell_solve"):
+                  "adaptive_threshold", "texture_correction", "factor", "auto_factor", "invalid_check",
+                  "texture_threshold", "window_per_voxel", "cell_solve"):
             d.pop(k)
         return d
 

@@ -60,8 +60,8 @@ log = logging.getLogger(__name__)
 
 #: Smallest weight the run's regularisation stage searches (``choose_reg_weight``'s
 #: ``smallest``; the function's own default, 1e-4, serves converged solves). The search
-#: solves each weight to convergence, but a run's frames are solved with ``max_iter`` 25
-#: CG iterations, which stop before fitting what a smaller weight would let in: on the
+#: solves each weight to convergence, but a run's frames get at most ``tomography.max_iter``
+#: (25) CG iterations, which stop before fitting what a smaller weight would let in: on the
 #: realistic family's 16-camera rigs at the flow grid's factor 2 the data residual stays
 #: above the discrepancy target down to 1e-4 (11 solves, 40 s of a 3-frame run instead of
 #: 7 s), while the run's volumes are equal from 0.004 down (plume1 16 cameras 44.16 / 29.35

@@ -45,7 +45,8 @@ def add_parser(subparsers) -> None:
     r.add_argument("--cases", default=None, help="comma-separated case names or prefixes (default: all)")
     r.add_argument("--role", choices=["tune", "report"], default=None, help="only the tune or the report cases")
     p.add_argument("--params", metavar="FILE", default=None,
-                   help="run parameters (YAML) instead of the defaults (table1: flow.factor is the benchmark's rendering factor, the largest flow.auto_factor may take)")
+                   help="run parameters (YAML) instead of the defaults (table1: flow.factor is the "
+                        "benchmark's rendering factor, the largest flow.auto_factor may take)")
     r.add_argument("--label", default="", help="results go to realistic_LABEL.md/.json (default: realistic.md)")
     r.add_argument("--manifest-voxel", type=float, default=None, metavar="METRES",
                    help="run on manifests that give this voxel_size (default: the pipeline chooses it)")
