@@ -41,7 +41,7 @@ import numpy as np
 
 from schlieren.pipeline.geometry import Grid, Medium
 from schlieren.pipeline.stages import RunConfig, config_to_dict
-from schlieren.storage import bench_io
+from schlieren.storage import arrays_cache, bench_io
 from schlieren.storage import synthetic_io as sio
 
 __all__ = ["RealisticCase", "FLOWS", "CASES", "QUICK_CASES", "select_cases", "cfd_flow", "ensure_session",
@@ -505,7 +505,8 @@ def run_case(case: RealisticCase, work: Path, *, config: RunConfig | None = None
     say(f"{case.name}: {of['psnr']:.2f} dB whole box, {of['psnr_plume']:.2f} dB in plume, peak ratio "
         f"{of['peak_ratio']:.2f} ({seconds:.0f} s)")
     if not keep_store:
-        for p in (store, Path(f"{store}.cache"), d / f"est-approximate{('-' + label) if label else ''}.zarr"):
+        arrays_cache.remove_cache(store)  # <store>.cache: the geometry
+        for p in (store, d / f"est-approximate{('-' + label) if label else ''}.zarr"):
             bench_io.remove_tree(p)
     res["store"] = str(store) if keep_store else None
     return res
