@@ -404,6 +404,27 @@ def test_prune_rows_drops_small_entries_and_keeps_each_rays_length(setup, unprun
         prune_rows(S.copy(), 1.0)
 
 
+def test_pruned_matrix_keeps_the_built_buffers():
+    """Pruning compacts in place and keeps the arrays (scipy's constructor would copy
+    data and indices once they view less than half their buffer); csr_view refuses
+    arrays that do not make a CSR matrix of the shape."""
+    from schlieren.pipeline.tomography.operator import csr_view, prune_rows
+
+    rng = np.random.default_rng(7)
+    buf_d = rng.random(1000).astype(np.float32)
+    buf_i = rng.integers(0, 50, 1000).astype(np.int32)
+    indptr = np.arange(0, 401, 40, dtype=np.int32)  # 10 rows of 40 in a 1000-entry buffer
+    S = csr_view(buf_d[:400], buf_i[:400], indptr, (10, 50))
+    dense = S.toarray()
+    P = prune_rows(S, 0.9)  # keeps about a tenth: far under half of the buffer
+    assert P.nnz < 100 and np.shares_memory(P.data, buf_d) and np.shares_memory(P.indices, buf_i)
+    np.testing.assert_allclose(P.toarray().sum(axis=1), dense.sum(axis=1), rtol=1e-5)
+    with pytest.raises(ValueError, match="not a CSR matrix"):
+        csr_view(buf_d[:400], buf_i[:399], indptr, (10, 50))
+    with pytest.raises(ValueError, match="not a CSR matrix"):
+        csr_view(buf_d[:400], buf_i[:400], indptr, (11, 50))
+
+
 def test_approximate_d_out_recovers_single_refraction():
     """A ray refracted once at X_c toward a known direction gives exactly that d_out_hat."""
     grid = Grid((-0.04, -0.04, 0.0), (0.04, 0.04, 0.08), 0.005)
