@@ -12,6 +12,10 @@ stay time indices and the frames after the gap keep their true capture times.
 :func:`frame_quality` measures a frame against its camera's reference and the previous
 frame; the run excludes flagged frames from rolling-shutter resampling exactly like the
 strobe flash frames (``excluded_frames`` of :func:`schlieren.pipeline.sync.resample_flow`).
+
+A raw frame of the rolling-shutter margins that no output instant needs is not processed
+at all: its slot is flagged :data:`UNUSED` (statistics NaN, no flow), which is not a
+problem of the capture (:data:`PROBLEMS` leaves it out).
 """
 
 from __future__ import annotations
@@ -21,15 +25,18 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["DARK", "SATURATED", "FROZEN", "DROPPED", "QUALITY_NAMES", "FrameQualityParams", "frame_quality",
-           "dropped_quality", "flag_names"]
+__all__ = ["DARK", "SATURATED", "FROZEN", "DROPPED", "UNUSED", "PROBLEMS", "QUALITY_NAMES", "FrameQualityParams",
+           "frame_quality", "dropped_quality", "unused_quality", "flag_names"]
 
-DARK, SATURATED, FROZEN, DROPPED = 1, 2, 4, 8
+DARK, SATURATED, FROZEN, DROPPED, UNUSED = 1, 2, 4, 8, 16
+#: The flags that say something is wrong with a frame (what the run reports as excluded).
+PROBLEMS = DARK | SATURATED | FROZEN | DROPPED
 _CV_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16), np.dtype(np.int16), np.dtype(np.float32), np.dtype(np.float64))
 #: Entries of the vector :func:`frame_quality` returns.
 QUALITY_NAMES = ("mean", "saturated_fraction", "mean_abs_change", "flags", "std", "min", "max")
 _NAMES = {DARK: "dark", SATURATED: "saturated", FROZEN: "frozen (repeats the previous frame)",
-          DROPPED: "dropped by the camera (no frame at this time)"}
+          DROPPED: "dropped by the camera (no frame at this time)",
+          UNUSED: "not needed by any output instant (not processed)"}
 
 
 @dataclass(frozen=True)
@@ -113,6 +120,11 @@ def frame_quality(frame: np.ndarray, previous: np.ndarray | None, *, reference_m
 def dropped_quality() -> np.ndarray:
     """The :func:`frame_quality` vector of a time slot with no frame (statistics NaN)."""
     return np.array([np.nan, np.nan, np.nan, DROPPED, np.nan, np.nan, np.nan], dtype=np.float32)
+
+
+def unused_quality() -> np.ndarray:
+    """The :func:`frame_quality` vector of a margin frame no output instant needs (not read)."""
+    return np.array([np.nan, np.nan, np.nan, UNUSED, np.nan, np.nan, np.nan], dtype=np.float32)
 
 
 def flag_names(flags: float) -> list[str]:

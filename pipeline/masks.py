@@ -37,6 +37,7 @@ __all__ = [
     "MaskParams",
     "flow_potential",
     "potential_summary",
+    "sorted_quantiles",
     "threshold_from_summaries",
     "threshold_from_samples",
     "make_mask",
@@ -217,15 +218,25 @@ def potential_summary(potential: np.ndarray, *, smooth_sigma: float = 1.0,
         ``[pixel count, q_0, ..., q_{n-1}]`` with ``q_i`` the ``(i + 1/2) / n`` quantile of
         the smoothed ``|P|``: each represents ``count / n`` pixels.
     """
-    # sorted first: the same quantiles, but numpy's partition around 2 x n_quantiles
-    # pivots is then cheap (1.7 -> 0.8 ms for a 160 x 120 flow grid)
     m = _magnitude(potential, smooth_sigma)
     m = np.sort(m[~np.isnan(np.asarray(potential))])   # invalid cells are not counted
     if m.size == 0:
         return np.zeros(n_quantiles + 1)
     probs = (np.arange(n_quantiles) + 0.5) / n_quantiles
-    q = np.quantile(m, probs)
-    return np.concatenate([[float(m.size)], q])
+    return np.concatenate([[float(m.size)], sorted_quantiles(m, probs)])
+
+
+def sorted_quantiles(values: np.ndarray, probs: np.ndarray) -> np.ndarray:
+    """``np.quantile(values, probs)`` (its default linear method) of an already sorted 1-D
+    array, read off directly: numpy partitions around every requested index even when the
+    data are sorted, 4.5 ms for 2000 quantiles of a 64 x 48 flow grid (1.7 ms at 480 x 360)
+    instead of 0.05 ms."""
+    m = np.asarray(values, dtype=np.float64)
+    pos = np.asarray(probs, dtype=np.float64) * (m.size - 1)
+    lo = np.clip(np.floor(pos).astype(np.int64), 0, m.size - 1)
+    hi = np.minimum(lo + 1, m.size - 1)
+    t = pos - lo
+    return m[lo] + (m[hi] - m[lo]) * t
 
 
 def threshold_from_summaries(summaries, *, percentile: float = 95.0) -> float:

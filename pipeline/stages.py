@@ -121,8 +121,10 @@ class Stage:
         Dims mapped over: ``("camera", "frame")``, ``("frame",)``, ``("camera",)`` or ``()``.
     after : tuple of (str, str)
         ``(stage, how)`` dependencies, ``how`` in ``{"same", "all", "window", "chain",
-        "block", "middle"}`` (``block``: every frame of the task's warm-start block;
-        ``middle``: the dependency's indices at the middle frame, :func:`middle_frame`).
+        "block", "middle", "margin"}`` (``block``: every frame of the task's warm-start block;
+        ``middle``: the dependency's indices at the middle frame, :func:`middle_frame`;
+        ``margin``: all of the dependency's indices, for tasks at raw frames outside the
+        output range only).
     frame_halo : int
         Frames either side read by ``window`` dependencies.
     resources : dict
@@ -165,8 +167,11 @@ STAGES: tuple[Stage, ...] = (
           cost=0.011),
     Stage("clock", _sync.output_times, None, ("time_offset",), ("time",), (),
           after=(("sync", "all"),), cost=0.001),
+    # a raw frame of the rolling-shutter margins is processed only if an output instant
+    # needs it, which the clock decides (4 of the 12 raw frames per camera of an 8-frame
+    # run; 2 of them were never used on the paper-scale session benchmark)
     Stage("deflection", _flow.deflection_stage, "flow", ("images",), ("flow_raw", "frame_quality"),
-          ("camera", "raw_frame"), batch=True, cost=0.014),
+          ("camera", "raw_frame"), after=(("clock", "margin"),), batch=True, cost=0.014),
     Stage("resample", _sync.resample_flow, "resample", ("flow_raw", "time_offset", "time"),
           ("flow",), ("camera", "frame"), after=(("clock", "all"), ("deflection", "window")),
           frame_halo=2, batch=True, cost=0.02, grid="flow"),

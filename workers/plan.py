@@ -115,6 +115,10 @@ def _deps(st: Stage, index: tuple[int, ...], ext: Extents) -> list[tuple[str, tu
             k = labels["frame"]
             if k % max(ext.warm_start_block, 1) != 0:
                 out.append((dep_name, (k - 1,)))
+        elif how == "margin":  # raw frames outside the output range only
+            r = labels["raw_frame"]
+            if r < ext.raw_offset or r >= ext.raw_offset + ext.frame:
+                out += [(dep_name, i) for i in _indices(dep, ext)]
         elif how == "middle":  # the dependency at the middle output frame (every camera)
             k = middle_frame(sizes["frame"])
             axes = [(k,) if d == "frame" else range(sizes[d]) for d in dep.over]

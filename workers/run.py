@@ -191,7 +191,7 @@ def producers(cfg: RunConfig, names) -> dict[str, str]:
 
 def excluded_frames(store: ResultStore, receipts: list[dict] | None = None) -> list[tuple[str, int, list[str]]]:
     """``(camera, capture frame, reasons)`` of every frame flagged dark, saturated, frozen or
-    dropped by the camera.
+    dropped by the camera (not the margin frames no output instant needed).
 
     ``receipts``: the run's task receipts. When this run's deflection tasks covered every raw
     frame of every camera, their receipts (``excluded``: the same flag names the stored
@@ -201,7 +201,7 @@ def excluded_frames(store: ResultStore, receipts: list[dict] | None = None) -> l
     """
     import numpy as np
 
-    from schlieren.pipeline.frame_quality import flag_names
+    from schlieren.pipeline.frame_quality import PROBLEMS, flag_names
     from schlieren.storage.errors import ChunkError
 
     if "frame_quality" not in store:
@@ -221,8 +221,9 @@ def excluded_frames(store: ResultStore, receipts: list[dict] | None = None) -> l
         return []  # a damaged chunk is reported by the task that reads it
     names = [str(n) for n in np.asarray(store.array("camera")[...])]
     raw_first = int(store.attrs["run"]["raw_first"])
-    return [(names[int(c)], raw_first + int(j), flag_names(flags[c, j]))
-            for c, j in zip(*np.nonzero(np.nan_to_num(flags) > 0))]
+    problems = np.nan_to_num(flags).astype(np.int64) & PROBLEMS  # not UNUSED margin frames
+    return [(names[int(c)], raw_first + int(j), flag_names(problems[c, j]))
+            for c, j in zip(*np.nonzero(problems))]
 
 
 def store_lease(out_path, purpose: str = "run"):

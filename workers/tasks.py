@@ -283,21 +283,18 @@ def _deflection(ctx: RunContext, c: int, j: int) -> dict:
         log.warning("camera %s, frame %d: dropped by the camera; excluded from the reconstruction",
                     ctx.cameras[c].name, f)
         return {"max_px": 0.0, "excluded": fq.flag_names(fq.DROPPED)}
+    if not ctx.first_frame <= f < ctx.first_frame + ctx.n_frames and not raw_frame_needed(ctx, c, f):
+        # a margin frame no output instant reads (the plan made this task wait for the clock)
+        ctx.store.write("flow_raw", (c, j), np.full(tuple(ctx.flow_grid.shape) + (2,), np.nan, np.float32))
+        ctx.store.write("frame_quality", (c, j), fq.unused_quality())
+        return {"unused": True}
     img = ctx.frame(c, f)
     parity = src.parity(f) if hasattr(src, "parity") else None  # interlaced fields
     params = flow_params(ctx, c)
     d = flowmod.deflection_stage(ctx.prepared_reference(c, parity), img, params)
     ctx.store.write("flow_raw", (c, j), d.astype(np.float32))
     # dark, saturated or frozen frames: flagged here, excluded by resampling
-    dtype = src.raw_dtype
-    full = float(np.iinfo(dtype).max) if np.issubdtype(dtype, np.integer) else None
-    ref_mean = ctx._once(("reference_mean", c, parity),
-                         lambda: float(np.mean(ctx.reference(c, parity), dtype=np.float64)))
-    try:
-        previous = ctx.frame(c, f - 1) if f > 0 else None
-    except SessionError:  # the previous frame is unreadable (its own task reports it): not frozen
-        previous = None
-    q = fq.frame_quality(img, previous, reference_mean=ref_mean, full_scale=full)
+    q = _frame_quality(ctx, c, f, img)
     ctx.store.write("frame_quality", (c, j), q)
     out = {"max_px": float(np.nanmax(np.abs(d))) if np.isfinite(d).any() else 0.0, "window": params.window}
     bad = fq.flag_names(q[3])
@@ -306,6 +303,72 @@ def _deflection(ctx: RunContext, c: int, j: int) -> dict:
         log.warning("camera %s, frame %d: %s; excluded from the reconstruction", ctx.cameras[c].name, f,
                     ", ".join(bad))
     return out
+
+
+def raw_frame_needed(ctx: RunContext, c: int, f: int) -> bool:
+    """Whether any output instant's resampling (:func:`_resample`) will read raw frame ``f``
+    of camera ``c``.
+
+    The same ranges as :func:`_resample`'s: ``sync.frames_needed`` over each output frame's
+    window, its excluded frames the flash and the flagged frames. Only the ends of a range
+    move past excluded frames, so the flags needed are those of the range's end on ``f``'s
+    side, added one at a time (each from the frame itself, as its own deflection task
+    flags it: read here, not waited for). Unreadable: needed (its own task reports it).
+    """
+    s = ctx.session
+    cam = ctx.cameras[c]
+    halo = stage("resample").frame_halo
+    last = ctx.raw_first + ctx.n_raw - 1
+    times = ctx.times()
+    for k in range(ctx.n_frames):
+        centre = ctx.first_frame + k
+        window = (max(ctx.raw_first, centre - halo), min(ctx.raw_first + ctx.n_raw, centre + halo + 1))
+        if not window[0] <= f < window[1]:
+            continue
+        excluded = set(ctx.flash_frames(c))
+        while True:
+            f0, f1 = sync.frames_needed(float(times[k]), offset=ctx.time_offset(c), frame_rate=s.frame_rate,
+                                        line_time=cam.line_time, height=cam.height,
+                                        excluded_frames=tuple(sorted(excluded)), frame_range=window)
+            lo = max(ctx.raw_first, min(f0, last))
+            hi = max(lo, min(f1 - 1, last))
+            if lo <= f <= hi:
+                return True
+            end = lo if f < lo else hi
+            if end in excluded:
+                break
+            try:
+                bad = frame_flags(ctx, c, end) & fq.PROBLEMS
+            except SessionError:
+                return True
+            if not bad:
+                break
+            excluded.add(end)
+    return False
+
+
+def frame_flags(ctx: RunContext, c: int, f: int) -> int:
+    """The flags :func:`_deflection` stores for capture frame ``f`` of camera ``c``, from the
+    frame (and the one before it) alone."""
+    if f in ctx.frames(c).dropped:
+        return fq.DROPPED
+    return int(_frame_quality(ctx, c, f, ctx.frame(c, f))[3])
+
+
+def _frame_quality(ctx: RunContext, c: int, f: int, img: np.ndarray) -> np.ndarray:
+    """:func:`~schlieren.pipeline.frame_quality.frame_quality` of frame ``f`` (image ``img``)
+    of camera ``c`` against its reference and the frame before it."""
+    src = ctx.frames(c)
+    dtype = src.raw_dtype
+    full = float(np.iinfo(dtype).max) if np.issubdtype(dtype, np.integer) else None
+    parity = src.parity(f) if hasattr(src, "parity") else None
+    ref_mean = ctx._once(("reference_mean", c, parity),
+                         lambda: float(np.mean(ctx.reference(c, parity), dtype=np.float64)))
+    try:
+        previous = ctx.frame(c, f - 1) if f > 0 else None
+    except SessionError:  # the previous frame is unreadable (its own task reports it): not frozen
+        previous = None
+    return fq.frame_quality(img, previous, reference_mean=ref_mean, full_scale=full)
 
 
 def bad_frames(ctx: RunContext, c: int, lo: int, hi: int) -> tuple[int, ...]:

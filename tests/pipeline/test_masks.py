@@ -61,6 +61,18 @@ def test_threshold_from_summaries_matches_pooled_percentile():
         assert thr == pytest.approx(M.threshold_from_samples(pooled, percentile=pct), rel=0.02)
 
 
+@pytest.mark.parametrize("n", [1, 2, 7, 3072, 20000])
+def test_sorted_quantiles_equal_numpys(n):
+    """The direct read-off equals np.quantile's linear method on sorted data, float32 and
+    float64, ends included."""
+    rng = np.random.default_rng(n)
+    probs = np.concatenate([[0.0, 1.0], (np.arange(2000) + 0.5) / 2000])
+    for dtype in (np.float32, np.float64):
+        v = np.sort(rng.gamma(2.0, 1.0, n).astype(dtype))
+        np.testing.assert_allclose(M.sorted_quantiles(v, probs), np.quantile(v.astype(np.float64), probs),
+                                   rtol=1e-12, atol=0)
+
+
 def test_mask_contains_plume_support_over_a_sequence():
     # a plume drifting 1 cell per frame; support = where the true deflection > 0.02 px
     h, w, n = 72, 96, 7

@@ -37,7 +37,7 @@ def test_table_is_consistent():
     for s in STAGES:
         for dep, how in s.after:
             assert dep in names[: names.index(s.name) + (how == "chain")], (s.name, dep)
-            assert how in {"same", "all", "window", "chain", "block", "middle"}
+            assert how in {"same", "all", "window", "chain", "block", "middle", "margin"}
         if s.params is not None:
             assert hasattr(RunConfig(), s.params), s.name
         produced |= set(s.outputs)

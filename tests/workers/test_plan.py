@@ -50,6 +50,19 @@ def test_resample_waits_for_raw_frames_within_the_halo(ext):
 
 @settings(max_examples=40, deadline=None)
 @given(extents)
+def test_only_margin_deflections_wait_for_the_clock(ext):
+    """A raw frame outside the output range is processed only if an output instant needs
+    it, which the clock decides; the others start at once."""
+    plan = make_plan(ext, "tok")
+    clock = task_key("clock", "tok", ())
+    for t in plan.by_stage()["deflection"]:
+        c, j = t.index
+        margin = not ext.raw_offset <= j < ext.raw_offset + ext.frame
+        assert (clock in t.deps) == margin, (t.index, ext)
+
+
+@settings(max_examples=40, deadline=None)
+@given(extents)
 def test_masks_wait_for_the_threshold_and_the_potentials_they_read(ext):
     # the potential edges keep Dask from queueing masks as root tasks (stages.py)
     plan = make_plan(ext, "tok")
@@ -240,6 +253,9 @@ def _deps_oracle(st, index, ext):
             elif how == "window" and dl.get("camera", labels.get("camera")) == labels.get("camera"):
                 f = dl["raw_frame"] - ext.raw_offset if "raw_frame" in dl else dl["frame"]
                 if abs(f - labels["frame"]) <= st.frame_halo:
+                    out.append((dep_name, i))
+            elif how == "margin":
+                if not 0 <= labels["raw_frame"] - ext.raw_offset < ext.frame:
                     out.append((dep_name, i))
             elif how == "middle":
                 if dl["frame"] == ext.frame // 2:
