@@ -1,0 +1,158 @@
+"""How far each realistic-family case is from what its tomography could reach (issue 14).
+
+    python benchmarks/realistic_bounds.py [--work /work/realistic/work] [--cases a,b] [--frame 1]
+
+Reads the stores ``schlieren bench realistic --out WORK`` keeps (``WORK/<case>/store.zarr``,
+the default parameters' run, with its geometry cache, and the case's ``truth.zarr``) and, for
+one output frame, reconstructs from data whose errors are known:
+
+* ``exact gradient``: the truth's own gradient (on the run's grid) integrated through the
+  run's hull: the integration's bound;
+* ``consistent``: rays ``b = S x`` from the truth's gradient ``x`` with the run's own
+  projection ``S`` (no optical flow, no exit-direction or window model error, no noise),
+  solved converged (tol 1e-4, up to 200 iterations) at the run's weight, through the run's
+  hull and through the truth's plume dilated by 2 voxels: what the prior and the views allow;
+* ``consistent + noise``: the same rays plus white noise of the run's measured ``rhs_noise``,
+  solved as the run solves (its iterations): the bound for the run's noise level were the
+  flow's error white;
+* ``run``: the run's own flows with its flow-window model, as the run solves them.
+
+It also compares the run's rays with the window model's prediction ``S G x`` (``G`` the
+run's volume blur): their gain and the RMS of the residual on the rays that see the plume
+(more than 10 % of the largest model ray) against the noise measured outside the masks.
+
+Writes ``benchmarks/results/realistic_bounds.json`` and ``.md``. Scores are the family's:
+relative RMS over the whole box and over the plume (|truth - ambient| > 1 % of its range),
+as PSNR, on the run's grid.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+RESULTS = Path(__file__).resolve().parent / "results"
+DEFAULT_CASES = ("plume1-16cam-640", "plume1-8cam-960-dist", "jet3-16cam-640", "jet3-8cam-960-dist")
+
+
+def bounds(case_dir: Path, frame: int) -> dict:
+    from scipy import ndimage
+
+    from schlieren.pipeline import metrics, poisson, tomography
+    from schlieren.pipeline.tomography.solve import VolumeBlur
+    from schlieren.storage import synthetic_io as sio
+    from schlieren.workers import tasks
+    from schlieren.workers.evaluate import _r_ambient, _truth_at
+
+    ctx = tasks.context(str(case_dir / "store.zarr"))
+    geom = tasks._geometry(ctx.store_path, tasks._geometry_key(ctx))
+    grid = ctx.session.grid
+    truth = sio.read_truth(case_dir / "truth.zarr")
+    tgrid = metrics.grid_from_attrs(truth.grid_origin, truth.voxel_size, tuple(truth.refractivity.shape[1:]))
+    r_amb = _r_ambient(truth)
+    k = int(frame)
+    tv, _ = _truth_at(truth, float(ctx.times()[k]))
+    t_on = metrics.resample_space(tv, tgrid, grid)
+    gz, gy, gx = np.gradient(t_on, grid.voxel_size)
+    x = np.stack([gx, gy, gz], axis=-1)
+    xf = x.reshape(-1, 3)
+    b = np.stack([geom.S @ xf[:, i] for i in range(3)], axis=-1).reshape(tuple(geom.flow_shape) + (3,))
+    params = tasks.tomo_params(ctx)
+    converged = dataclasses.replace(params, max_iter=200, tol=1e-4)
+    hull = ctx.store.read("hull", (k,))
+    truth_hull = ndimage.binary_dilation(metrics.plume_mask(t_on, r_amb), iterations=2)
+    noise = np.asarray(ctx.store.read("rhs_noise", ()), dtype=np.float64)
+    n_amb = ctx.session.medium.refractivity_ambient
+
+    def score(grad, h) -> dict:
+        r, _ = poisson.integrate(grad, h, grid, r_ambient=n_amb, params=ctx.config.poisson)
+        e = np.asarray(r, dtype=np.float64)
+        return {"whole_db": round(metrics.psnr(metrics.relative_rms(e, t_on)), 2),
+                "plume_db": round(metrics.psnr(metrics.plume_rms(e, t_on, r_amb)), 2)}
+
+    rows = {"exact gradient, run hull": score(x, hull)}
+    for name, h in (("consistent, run hull", hull), ("consistent, truth hull", truth_hull)):
+        g, info = tomography.solve_gradient(geom, b, h, params=converged)
+        rows[name] = {**score(g, h), "iterations": info.iterations}
+    rng = np.random.default_rng(0)
+    g, info = tomography.solve_gradient(geom, b + rng.normal(size=b.shape) * noise, hull, params=params)
+    rows["consistent + white noise, run solve"] = {**score(g, hull), "iterations": info.iterations}
+    flows = ctx.tomography_flows(k)
+    blur = tasks.flow_blur(ctx)
+    g, info = tomography.solve_gradient(geom, flows, hull, params=params, **blur)
+    rows["run: flows and window model"] = {**score(g, hull), "iterations": info.iterations}
+
+    # the run's rays against the window model's prediction of them
+    bf = tomography.rhs_from_flows(geom, flows, n_ambient=params.n_ambient).reshape(-1, 3)
+    if "volume_blur" in blur:
+        xg = VolumeBlur(np.ones(grid.shape, bool), blur["volume_blur"]).apply(xf)
+        model = np.stack([geom.S @ xg[:, i] for i in range(3)], axis=-1)
+    else:  # pragma: no cover - the family's runs use the volume model
+        model = b.reshape(-1, 3)
+    ok = np.all(np.isfinite(bf), axis=1)
+    strength = np.abs(model).max(axis=1)
+    seen = ok & (strength > 0.1 * strength.max())
+    rays = []
+    for i in range(3):
+        gain = float(bf[ok, i] @ model[ok, i] / (model[ok, i] @ model[ok, i]))
+        rays.append({"gain": round(gain, 3),
+                     "plume_ray_signal_rms": float(np.sqrt(np.mean(model[seen, i] ** 2))),
+                     "plume_ray_residual_rms": float(np.sqrt(np.mean((bf[seen, i] - model[seen, i]) ** 2))),
+                     "quiet_ray_residual_rms": float(np.sqrt(np.mean((bf[ok & (strength == 0), i]) ** 2))),
+                     "rhs_noise": float(noise[i])})
+    return {"frame": k, "reg_weight": params.reg_weight, "rows": rows, "rays": rays}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--work", default="/work/realistic/work", help="the family's --out folder")
+    ap.add_argument("--cases", default=",".join(DEFAULT_CASES))
+    ap.add_argument("--frame", type=int, default=1, help="output frame scored (the family's middle one)")
+    ap.add_argument("--results", default=str(RESULTS))
+    args = ap.parse_args(argv)
+    out: dict = {"command": "python benchmarks/realistic_bounds.py " + " ".join(argv or sys.argv[1:]),
+                 "cases": {}}
+    for case in [c for c in args.cases.split(",") if c]:
+        d = Path(args.work) / case
+        if not (d / "store.zarr").exists():
+            raise SystemExit(f"{d / 'store.zarr'}: missing; run `schlieren bench realistic --out {args.work} "
+                             f"--cases {case}` first")
+        t0 = time.perf_counter()
+        out["cases"][case] = bounds(d, args.frame)
+        out["cases"][case]["seconds"] = round(time.perf_counter() - t0, 1)
+        print(case, json.dumps(out["cases"][case]["rows"]), flush=True)
+    res = Path(args.results)
+    res.mkdir(parents=True, exist_ok=True)
+    (res / "realistic_bounds.json").write_text(json.dumps(out, indent=1))
+    (res / "realistic_bounds.md").write_text(render(out))
+    return 0
+
+
+def render(out: dict) -> str:
+    names = list(next(iter(out["cases"].values()))["rows"])
+    lines = ["# Realistic family: what each case's tomography could reach", "",
+             f"Command: `{out['command'].strip()}` (see its docstring). One output frame per case, "
+             "whole box / in plume dB on the run's grid.", "",
+             "| case | " + " | ".join(names) + " |", "|---|" + "---:|" * len(names)]
+    for case, r in out["cases"].items():
+        cells = [f"{r['rows'][n]['whole_db']:.2f} / {r['rows'][n]['plume_db']:.2f}" for n in names]
+        lines.append(f"| {case} | " + " | ".join(cells) + " |")
+    lines += ["", "The run's rays against the window model's prediction `S G x` (x component; "
+              "rays that see the plume: above 10 % of the largest model ray):", "",
+              "| case | weight | gain | plume-ray signal RMS | plume-ray residual RMS | quiet-ray RMS | "
+              "rhs_noise |", "|---|---:|---:|---:|---:|---:|---:|"]
+    for case, r in out["cases"].items():
+        x = r["rays"][0]
+        lines.append(f"| {case} | {r['reg_weight']:.4g} | {x['gain']:.3f} | {x['plume_ray_signal_rms']:.3g} | "
+                     f"{x['plume_ray_residual_rms']:.3g} | {x['quiet_ray_residual_rms']:.3g} | {x['rhs_noise']:.3g} |")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    sys.exit(main())
