@@ -15,6 +15,10 @@ one output frame, reconstructs from data whose errors are known:
 * ``consistent + noise``: the same rays plus white noise of the run's measured ``rhs_noise``,
   solved as the run solves (its iterations): the bound for the run's noise level were the
   flow's error white;
+* ``window model + quiet-ray noise``: the window model's rays ``S G x`` (``G`` the run's
+  volume blur) plus noise of the RMS the run's flows have on the rays that miss the plume,
+  correlated over one flow cell, solved as the run solves (with its window model): the
+  bound were the flow's error the same inside the plume as outside;
 * ``run``: the run's own flows with its flow-window model, as the run solves them.
 
 It also compares the run's rays with the window model's prediction ``S G x`` (``G`` the
@@ -35,6 +39,7 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -86,7 +91,7 @@ def bounds(case_dir: Path, frame: int) -> dict:
     flows = ctx.tomography_flows(k)
     blur = tasks.flow_blur(ctx)
     g, info = tomography.solve_gradient(geom, flows, hull, params=params, **blur)
-    rows["run: flows and window model"] = {**score(g, hull), "iterations": info.iterations}
+    run = {**score(g, hull), "iterations": info.iterations}
 
     # the run's rays against the window model's prediction of them
     bf = tomography.rhs_from_flows(geom, flows, n_ambient=params.n_ambient).reshape(-1, 3)
@@ -98,6 +103,17 @@ def bounds(case_dir: Path, frame: int) -> dict:
     ok = np.all(np.isfinite(bf), axis=1)
     strength = np.abs(model).max(axis=1)
     seen = ok & (strength > 0.1 * strength.max())
+    quiet = np.sqrt(np.mean(bf[ok & (strength == 0)] ** 2, axis=0))
+    # the window model's own rays with noise like the run's quiet rays: its RMS, correlated
+    # over one flow cell (the LK window's reach on the flow grid), solved as the run solves
+    n = rng.normal(size=b.shape)
+    for c in range(n.shape[0]):
+        for i in range(3):
+            n[c, ..., i] = cv2.GaussianBlur(n[c, ..., i], (0, 0), 1.0)
+    n *= quiet / n.reshape(-1, 3).std(axis=0)
+    g, info = tomography.solve_gradient(geom, model.reshape(b.shape) + n, hull, params=params, **blur)
+    rows["window model + quiet-ray noise (1 cell), run solve"] = {**score(g, hull), "iterations": info.iterations}
+    rows["run: flows and window model"] = run
     rays = []
     for i in range(3):
         gain = float(bf[ok, i] @ model[ok, i] / (model[ok, i] @ model[ok, i]))
