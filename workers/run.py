@@ -282,9 +282,11 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
         chunks are recomputed with everything downstream of them.
     """
     from schlieren.workers.preflight import WorkerSlots, preflight, workers_of_client
+    from schlieren.workers.tasks import adopt_session
 
     config = check_config(config or RunConfig())  # a bad value stops here, before the store exists
     session = session_path if isinstance(session_path, Session) else load_session(session_path, frames=frames)
+    adopt_session(session_location(session), session)  # this process's task contexts reuse it
     cfg = bind_flow_factor(bind_medium(config, session.medium.n_ambient), session.cameras, session.grid)
     if cfg.flow.factor != config.flow.factor:
         log.info("flow grid: factor %d (flow.auto_factor: %.2f flow cells per voxel edge; flow.factor %d "

@@ -200,13 +200,31 @@ class RunContext:
         return a
 
 
+#: Sessions this process has loaded for a run (:func:`adopt_session`), by (location, frames).
+_ADOPTED: OrderedDict = OrderedDict()
+
+
+def adopt_session(location: str, session: Session) -> None:
+    """Let this process's contexts of runs of ``session`` (stored under ``location``, the
+    store's ``session_path``) use it instead of loading the manifest again: the serial loop
+    runs in the process that validated the session, and from a bucket each load is several
+    requests (three loads per run before). Sessions are frozen; the latest four are kept."""
+    key = (str(location), tuple(int(v) for v in session.frames))
+    _ADOPTED[key] = session
+    _ADOPTED.move_to_end(key)
+    while len(_ADOPTED) > 4:
+        _ADOPTED.popitem(last=False)
+
+
 @functools.lru_cache(maxsize=4)
 def context(store_path: str, run_token: str = "") -> RunContext:
     """The run's context in this process (``run_token`` tells apart runs at one path)."""
     store = ResultStore.open(store_path, write_behind=True)  # run_task(s) flush before returning
     a = store.attrs
     run = a["run"]
-    session = load_session(a["session_path"], frames=tuple(run["frames"]), check_files=False)
+    session = _ADOPTED.get((str(a["session_path"]), tuple(int(v) for v in run["frames"])))
+    if session is None:
+        session = load_session(a["session_path"], frames=tuple(run["frames"]), check_files=False)
     cfg = config_from_dict(a["params"])
     return RunContext(store_path=store_path, store=store, session=session, config=cfg,
                       flow_grid=FlowGrid(session.cameras[0].image_size, cfg.flow_factor),

@@ -76,3 +76,4 @@ def test_a_dark_frame_at_a_ranges_end_makes_the_margin_frame_needed(tiny_session
     assert (store.attrs["session"]["cameras"][c]["name"], end, ["dark"]) in dark.bad_frames
     assert below not in _unused(ResultStore.open(tmp_path / "dark.zarr"))[c]
     assert below in _used(dark)[c]  # the resampling reached past the dark frame to it
+

@@ -249,3 +249,18 @@ def test_deflection_tasks_in_frame_order_decode_each_frame_once(serial_store, tm
     again = zarr.open_group(str(store), mode="r")
     np.testing.assert_array_equal(np.asarray(again["flow_raw"][0]), np.asarray(g["flow_raw"][0]))
     np.testing.assert_array_equal(np.asarray(again["frame_quality"][0]), np.asarray(g["frame_quality"][0]))
+
+
+def test_the_serial_loop_reuses_the_session_the_run_loaded(tiny_session, tmp_path, monkeypatch):
+    """The task contexts of a serial run take the session run_session validated (from a
+    bucket each load is several requests) instead of loading the manifest again."""
+    def refuse(*a, **k):
+        raise AssertionError("the manifest was loaded again")
+
+    from schlieren.workers import tasks
+    from schlieren.workers.run import run_session
+
+    tasks.context.cache_clear()
+    monkeypatch.setattr(tasks, "load_session", refuse)
+    summary = run_session(tiny_session.session, tmp_path / "once.zarr", serial=True)
+    assert summary.ok, summary.root_failures()
