@@ -289,11 +289,12 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
     adopt_session(session_location(session), session)  # this process's task contexts reuse it
     cfg = bind_flow_factor(bind_medium(config, session.medium.n_ambient), session.cameras, session.grid)
     if cfg.flow.factor != config.flow.factor:
+        def cells(factor: int) -> float:
+            return cells_per_voxel(session.cameras, session.grid, FlowGrid(session.cameras[0].image_size, factor))
+
         log.info("flow grid: factor %d (flow.auto_factor: %.2f flow cells per voxel edge; flow.factor %d "
-                 "would leave %.2f)", cfg.flow.factor,
-                 cells_per_voxel(session.cameras, session.grid, FlowGrid(session.cameras[0].image_size, cfg.flow.factor)),
-                 config.flow.factor,
-                 cells_per_voxel(session.cameras, session.grid, FlowGrid(session.cameras[0].image_size, config.flow.factor)))
+                 "would leave %.2f)", cfg.flow.factor, cells(cfg.flow.factor), config.flow.factor,
+                 cells(config.flow.factor))
     # memory and disk, with the measured model, before anything is written
     preflight(session, cfg, run_layout(session, cfg)[0], out_path,
               workers=[WorkerSlots()] if (serial or client is None) else workers_of_client(client))
