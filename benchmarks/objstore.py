@@ -85,6 +85,8 @@ def main(argv=None) -> int:
     ap.add_argument("--sessions", default="tiny,demo")
     ap.add_argument("--workdir", default=None)
     args = ap.parse_args(argv)
+    # a temporary folder is removed at the end (its sessions, stores and the staged geometry
+    # caches of the bucket runs: 2.7 GB for the default sessions and repeats); --workdir is kept
     work = Path(args.workdir or tempfile.mkdtemp(prefix="schlieren-objstore-"))
     work.mkdir(parents=True, exist_ok=True)
     log_path = work / "s3-server.log"
@@ -97,6 +99,8 @@ def main(argv=None) -> int:
     finally:
         proc.terminate()
         proc.wait(10)
+        if args.workdir is None:
+            shutil.rmtree(work, ignore_errors=True)
 
 
 def _run(args, work: Path, log_path: Path, proc_pid: int) -> int:
