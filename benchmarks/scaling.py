@@ -16,6 +16,7 @@ Cluster start-up is excluded (a lab starts it once per session of work). The bes
 from __future__ import annotations
 
 import argparse
+import atexit
 import json
 import os
 import platform
@@ -44,6 +45,8 @@ def main(argv=None) -> int:
     from schlieren.workers.synth import synthesize
 
     work = Path(args.workdir or tempfile.mkdtemp(prefix="schlieren-scaling-"))
+    if args.workdir is None:  # the session and the last run's stores, removed at exit
+        atexit.register(shutil.rmtree, work, True)
     session = work / "session"
     if not (session / "session.yaml").exists():
         synthesize(session, cameras=args.cameras, frames=args.frames, size=(w, h), phantom="plume", seed=1)
