@@ -296,15 +296,13 @@ def _deflection(ctx: RunContext, c: int, j: int) -> dict:
     f = ctx.raw_first + j
     src = ctx.frames(c)
     if f in src.dropped:  # no frame at this time: excluded by resampling, like a dark frame
-        ctx.store.write("flow_raw", (c, j), np.full(tuple(ctx.flow_grid.shape) + (2,), np.nan, np.float32))
-        ctx.store.write("frame_quality", (c, j), fq.dropped_quality())
+        _write_no_flow(ctx, c, j, fq.dropped_quality())
         log.warning("camera %s, frame %d: dropped by the camera; excluded from the reconstruction",
                     ctx.cameras[c].name, f)
         return {"max_px": 0.0, "excluded": fq.flag_names(fq.DROPPED)}
     if not ctx.first_frame <= f < ctx.first_frame + ctx.n_frames and not raw_frame_needed(ctx, c, f):
         # a margin frame no output instant reads (the plan made this task wait for the clock)
-        ctx.store.write("flow_raw", (c, j), np.full(tuple(ctx.flow_grid.shape) + (2,), np.nan, np.float32))
-        ctx.store.write("frame_quality", (c, j), fq.unused_quality())
+        _write_no_flow(ctx, c, j, fq.unused_quality())
         return {"unused": True}
     img = ctx.frame(c, f)
     parity = src.parity(f) if hasattr(src, "parity") else None  # interlaced fields
@@ -323,6 +321,13 @@ def _deflection(ctx: RunContext, c: int, j: int) -> dict:
     return out
 
 
+def _write_no_flow(ctx: RunContext, c: int, j: int, quality: np.ndarray) -> None:
+    """Raw frame ``j`` of camera ``c`` has no flow (dropped, or not needed): a NaN field and
+    its quality vector, so every chunk of the task exists."""
+    ctx.store.write("flow_raw", (c, j), np.full(tuple(ctx.flow_grid.shape) + (2,), np.nan, np.float32))
+    ctx.store.write("frame_quality", (c, j), quality)
+
+
 def raw_frame_needed(ctx: RunContext, c: int, f: int) -> bool:
     """Whether any output instant's resampling (:func:`_resample`) will read raw frame ``f``
     of camera ``c``.
@@ -333,23 +338,15 @@ def raw_frame_needed(ctx: RunContext, c: int, f: int) -> bool:
     side, added one at a time (each from the frame itself, as its own deflection task
     flags it: read here, not waited for). Unreadable: needed (its own task reports it).
     """
-    s = ctx.session
-    cam = ctx.cameras[c]
     halo = stage("resample").frame_halo
-    last = ctx.raw_first + ctx.n_raw - 1
-    times = ctx.times()
-    for k in range(ctx.n_frames):
-        centre = ctx.first_frame + k
-        window = (max(ctx.raw_first, centre - halo), min(ctx.raw_first + ctx.n_raw, centre + halo + 1))
+    near = f - ctx.first_frame  # the output frames whose window holds f are within the halo
+    for k in range(max(0, near - halo), min(ctx.n_frames, near + halo + 1)):
+        window = _resample_window(ctx, k)
         if not window[0] <= f < window[1]:
             continue
         excluded = set(ctx.flash_frames(c))
         while True:
-            f0, f1 = sync.frames_needed(float(times[k]), offset=ctx.time_offset(c), frame_rate=s.frame_rate,
-                                        line_time=cam.line_time, height=cam.height,
-                                        excluded_frames=tuple(sorted(excluded)), frame_range=window)
-            lo = max(ctx.raw_first, min(f0, last))
-            hi = max(lo, min(f1 - 1, last))
+            lo, hi = _raw_range(ctx, c, k, window, excluded)
             if lo <= f <= hi:
                 return True
             end = lo if f < lo else hi
@@ -414,21 +411,36 @@ def flow_params(ctx: RunContext, c: int):
     return ctx._once(("flow_params", c), make)
 
 
+def _resample_window(ctx: RunContext, k: int) -> tuple[int, int]:
+    """Half-open range of the raw frames output frame ``k``'s resample task waits for (the
+    plan's ``frame_halo`` window): it never reads beyond them."""
+    centre = ctx.first_frame + k
+    halo = stage("resample").frame_halo
+    return max(ctx.raw_first, centre - halo), min(ctx.raw_first + ctx.n_raw, centre + halo + 1)
+
+
+def _raw_range(ctx: RunContext, c: int, k: int, window: tuple[int, int], excluded) -> tuple[int, int]:
+    """Inclusive range ``(lo, hi)`` of camera ``c``'s raw frames that output frame ``k``'s
+    resampling reads: ``sync.frames_needed`` past the ``excluded`` frames, within ``window``
+    and the stored raw frames."""
+    cam = ctx.cameras[c]
+    f0, f1 = sync.frames_needed(float(ctx.times()[k]), offset=ctx.time_offset(c),
+                                frame_rate=ctx.session.frame_rate, line_time=cam.line_time,
+                                height=cam.height, excluded_frames=tuple(sorted(excluded)), frame_range=window)
+    last = ctx.raw_first + ctx.n_raw - 1
+    lo = max(ctx.raw_first, min(f0, last))
+    return lo, max(lo, min(f1 - 1, last))
+
+
 def _resample(ctx: RunContext, c: int, k: int) -> dict:
     s = ctx.session
     cam = ctx.cameras[c]
     off = ctx.time_offset(c)
     t = float(ctx.times()[k])
-    # the raw frames this task waits for (the plan's window): never read beyond them
-    centre = ctx.first_frame + k
-    halo = stage("resample").frame_halo
-    window = (max(ctx.raw_first, centre - halo), min(ctx.raw_first + ctx.n_raw, centre + halo + 1))
+    window = _resample_window(ctx, k)
     bad = bad_frames(ctx, c, window[0], window[1] - 1)
     excluded = tuple(sorted(set(ctx.flash_frames(c)) | set(bad)))
-    f0, f1 = sync.frames_needed(t, offset=off, frame_rate=s.frame_rate, line_time=cam.line_time,
-                                height=cam.height, excluded_frames=excluded, frame_range=window)
-    lo = max(ctx.raw_first, min(f0, ctx.raw_first + ctx.n_raw - 1))
-    hi = max(lo, min(f1 - 1, ctx.raw_first + ctx.n_raw - 1))
+    lo, hi = _raw_range(ctx, c, k, window, excluded)
     # the raw flows are final once their deflection tasks (this task's dependencies) are
     # done: neighbouring instants of a batched task share them, read and keyed once
     fields = [ctx.read_upstream("flow_raw", (c, f - ctx.raw_first)) for f in range(lo, hi + 1)]
