@@ -567,7 +567,13 @@ def _regularisation(ctx: RunContext) -> dict:
         masks = np.stack([ctx.store.read("mask", (c, k)) for c in range(C)])
         flows = ctx.tomography_flows(k)
         rhs = tomography.rhs_from_flows(geom, flows, n_ambient=params.n_ambient)
-        noise = tomography.rhs_noise(rhs, tomography.bin_quiet(~masks, ctx.ray_binning))
+        quiet = tomography.bin_quiet(~masks, ctx.ray_binning)
+        noise = tomography.rhs_noise(rhs, quiet)
+        if np.all(np.isfinite(noise)):
+            snr = tomography.rhs_snr(rhs, ~quiet, noise)
+            out["ray_snr"] = [float(v) for v in snr]
+            log.info("regularisation: rays in the masks carry %s x their noise (RMS; x, y, z)",
+                     np.array2string(snr, precision=3))
         hull = hullmod.visual_hull(masks, ctx.cameras, ctx.session.grid, ctx.flow_grid, params=ctx.config.hull)
         if np.all(np.isfinite(noise)) and noise.any() and hull.any():
             choice = tomography.choose_reg_weight(geom, flows, hull, noise, params=params,
@@ -586,11 +592,14 @@ def _regularisation(ctx: RunContext) -> dict:
 
 def choose_flow_window(ctx: RunContext) -> np.ndarray:
     """Per-camera width (flow cells) of the flow averaging the tomography models
-    (``TomoParams.model_flow_window``; :func:`schlieren.pipeline.flow.measurement_sigma`), 0 = none."""
+    (``TomoParams.model_flow_window``; :func:`schlieren.pipeline.flow.measurement_sigma` times
+    ``TomoParams.flow_window_scale``), 0 = none."""
     C = len(ctx.cameras)
     if not ctx.config.tomography.model_flow_window:
         return np.zeros(C)
-    return np.array([flowmod.measurement_sigma(flow_params(ctx, c)) / ctx.flow_grid.factor for c in range(C)])
+    scale = float(ctx.config.tomography.flow_window_scale)
+    return np.array([scale * flowmod.measurement_sigma(flow_params(ctx, c)) / ctx.flow_grid.factor
+                     for c in range(C)])
 
 
 def _window_model(ctx: RunContext, window: np.ndarray, space: str | None = None) -> dict:

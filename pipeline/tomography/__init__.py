@@ -25,6 +25,7 @@ from schlieren.pipeline.tomography.solve import (
     block_support,
     choose_reg_weight,
     rhs_noise,
+    rhs_snr,
     solve_gradient,
     solve_gradient_d_out,
     volume_sigma,
@@ -34,7 +35,7 @@ __all__ = [
     "TomoParams", "RefractivityParams", "TomoGeometry", "build_geometry", "content_hash",
     "save_geometry", "load_geometry", "approximate_d_out", "rhs_from_d_out", "rhs_from_flows",
     "SolveInfo", "solve_gradient", "solve_gradient_d_out", "RefractivityInfo",
-    "solve_refractivity", "RegularisationChoice", "choose_reg_weight", "rhs_noise", "MeasurementBlur",
+    "solve_refractivity", "RegularisationChoice", "choose_reg_weight", "rhs_noise", "rhs_snr", "MeasurementBlur",
     "VolumeBlur", "volume_sigma", "block_support", "ray_binning", "ray_grid", "bin_cells", "bin_quiet",
     "binned_sigma",
 ]
