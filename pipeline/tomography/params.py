@@ -113,10 +113,11 @@ class TomoParams:
         at 1.4 (three frames, whole box / in plume): the three 8-camera PNG cases +0.22 to
         +0.27 / +0.26 to +0.33 dB (peaks 0.91-1.00 -> 0.97-1.02 of the truth's), the three
         16-camera PNG cases -1.45 to -1.83 / -1.44 to -1.92 dB (their optimum is 1: peaks
-        overshoot), the five H.264 cases -0.19 to -0.36 / -0.16 to -0.31 dB. No rule from the
-        data separated them, so the default stays 1; the run logs the rays' signal-to-noise
-        ratio (receipt ``ray_snr``): with few cameras and clean frames (above about 15) try
-        1.4 (docs/realistic.md, "The flow-window scale").
+        overshoot), the five H.264 cases -0.19 to -0.36 / -0.16 to -0.31 dB. A rule from the
+        rays' signal-to-noise ratio fitted the family but lost 3-6 dB on Table 1's smooth
+        phantom, so the default stays 1 (the run logs that ratio, receipt ``ray_snr``). Raise
+        it only where a synthetic capture of the rig and of a flow with similar fine
+        structure shows a gain (docs/realistic.md, "The flow-window scale").
     max_iter : int
         Iteration cap of the fused conjugate-gradient (CGLS-equivalent) solver.
     tol : float
