@@ -46,24 +46,32 @@ RESULTS = Path(__file__).resolve().parent / "results"
 DEFAULT_CASES = ("plume1-16cam-640", "plume1-8cam-960-dist", "jet3-16cam-640", "jet3-8cam-960-dist")
 
 
-def bounds(case_dir: Path, frame: int) -> dict:
-    from scipy import ndimage
-
-    from schlieren.pipeline import metrics, poisson, tomography
-    from schlieren.pipeline.tomography.solve import VolumeBlur
+def load_case(case_dir: Path, frame: int):
+    """A kept family store's run context, its geometry, and the truth's refractivity at
+    output frame ``frame`` on the run's grid with its ambient value: ``(ctx, geom, t_on, r_amb)``."""
+    from schlieren.pipeline import metrics
     from schlieren.storage import synthetic_io as sio
     from schlieren.workers import tasks
     from schlieren.workers.evaluate import _r_ambient, _truth_at
 
     ctx = tasks.context(str(case_dir / "store.zarr"))
     geom = tasks._geometry(ctx.store_path, tasks._geometry_key(ctx))
-    grid = ctx.session.grid
     truth = sio.read_truth(case_dir / "truth.zarr")
     tgrid = metrics.grid_from_attrs(truth.grid_origin, truth.voxel_size, tuple(truth.refractivity.shape[1:]))
-    r_amb = _r_ambient(truth)
+    tv, _ = _truth_at(truth, float(ctx.times()[int(frame)]))
+    return ctx, geom, metrics.resample_space(tv, tgrid, ctx.session.grid), _r_ambient(truth)
+
+
+def bounds(case_dir: Path, frame: int) -> dict:
+    from scipy import ndimage
+
+    from schlieren.pipeline import metrics, poisson, tomography
+    from schlieren.pipeline.tomography.solve import VolumeBlur
+    from schlieren.workers import tasks
+
     k = int(frame)
-    tv, _ = _truth_at(truth, float(ctx.times()[k]))
-    t_on = metrics.resample_space(tv, tgrid, grid)
+    ctx, geom, t_on, r_amb = load_case(case_dir, k)
+    grid = ctx.session.grid
     gz, gy, gx = np.gradient(t_on, grid.voxel_size)
     x = np.stack([gx, gy, gz], axis=-1)
     xf = x.reshape(-1, 3)

@@ -41,19 +41,13 @@ DEFAULT_CASES = ("plume1-16cam-640", "plume2-16cam-640", "jet3-16cam-640", "plum
 
 
 def scale_scan(case_dir: Path, frame: int, scales) -> dict:
-    from schlieren.pipeline import metrics, poisson, tomography
-    from schlieren.storage import synthetic_io as sio
-    from schlieren.workers import tasks
-    from schlieren.workers.evaluate import _r_ambient, _truth_at
+    from realistic_bounds import load_case  # this folder's sibling (run as a script)
 
-    ctx = tasks.context(str(case_dir / "store.zarr"))
-    geom = tasks._geometry(ctx.store_path, tasks._geometry_key(ctx))
+    from schlieren.pipeline import metrics, poisson, tomography
+    from schlieren.workers import tasks
+
+    ctx, geom, t_on, r_amb = load_case(case_dir, frame)
     grid = ctx.session.grid
-    truth = sio.read_truth(case_dir / "truth.zarr")
-    tgrid = metrics.grid_from_attrs(truth.grid_origin, truth.voxel_size, tuple(truth.refractivity.shape[1:]))
-    r_amb = _r_ambient(truth)
-    tv, _ = _truth_at(truth, float(ctx.times()[frame]))
-    t_on = metrics.resample_space(tv, tgrid, grid)
     params = tasks.tomo_params(ctx)
     window = np.asarray(ctx.store.read("flow_window", ()), dtype=np.float64)
     hull = ctx.store.read("hull", (frame,))
