@@ -15,6 +15,12 @@ one output frame, reconstructs from data whose errors are known:
 * ``consistent + noise``: the same rays plus white noise of the run's measured ``rhs_noise``,
   solved as the run solves (its iterations): the bound for the run's noise level were the
   flow's error white;
+* ``consistent, via the truth's ray grid`` and ``truth's exit directions``: the consistent
+  rays sampled at the truth's ray grid and interpolated back, and the curved-ray tracer's own
+  exit directions (``truth.zarr``'s ``d_out - d_in``) interpolated the same way to the run's
+  rays, both solved as the run solves without the window model: their difference is the
+  tomography's forward-model error (straight rays through the basis against the traced
+  physics), free of the interpolation's;
 * ``window model + quiet-ray noise``: the window model's rays ``S G x`` (``G`` the run's
   volume blur) plus noise of the RMS the run's flows have on the rays that miss the plume,
   correlated over one flow cell, solved as the run solves (with its window model): the
@@ -96,6 +102,30 @@ def bounds(case_dir: Path, frame: int) -> dict:
     rng = np.random.default_rng(0)
     g, info = tomography.solve_gradient(geom, b + rng.normal(size=b.shape) * noise, hull, params=params)
     rows["consistent + white noise, run solve"] = {**score(g, hull), "iterations": info.iterations}
+    # the truth's own exit directions (the curved-ray tracer's, at its ray grid's cell centres),
+    # interpolated to the run's rays: no flow, no noise, no window model; and the consistent rays
+    # through the same sampling and back, which prices that interpolation alone
+    import zarr
+
+    tz = zarr.open_group(str(case_dir / "truth.zarr"), mode="r")
+    dd = (np.asarray(tz["d_out"][:, k], np.float32) - np.asarray(tz["d_in"][:, k], np.float32)) * params.n_ambient
+    back = np.zeros_like(b)
+    exact = np.zeros_like(b)
+    height = ctx.cameras[0].height
+    fr, ft = height / b.shape[1], height / dd.shape[1]  # pixels per run ray / per truth ray
+    run_c = [(np.arange(n) * fr + (fr - 1) / 2.0) for n in b.shape[1:3]]  # run ray centres, pixels
+    tru_c = [(np.arange(n) * ft + (ft - 1) / 2.0) for n in dd.shape[1:3]]
+    ty, tx = np.meshgrid(*[((t - (fr - 1) / 2.0) / fr).astype(np.float32) for t in tru_c], indexing="ij")
+    ry, rx = np.meshgrid(*[((r - (ft - 1) / 2.0) / ft).astype(np.float32) for r in run_c], indexing="ij")
+    for c in range(b.shape[0]):
+        for i in range(3):
+            at_truth = cv2.remap(b[c, ..., i].astype(np.float32), tx, ty, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            back[c, ..., i] = cv2.remap(at_truth, rx, ry, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+            exact[c, ..., i] = cv2.remap(dd[c, ..., i], rx, ry, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+    g, info = tomography.solve_gradient(geom, back, hull, params=params)
+    rows["consistent, via the truth's ray grid, run solve"] = {**score(g, hull), "iterations": info.iterations}
+    g, info = tomography.solve_gradient(geom, exact, hull, params=params)
+    rows["truth's exit directions, run solve"] = {**score(g, hull), "iterations": info.iterations}
     flows = ctx.tomography_flows(k)
     blur = tasks.flow_blur(ctx)
     g, info = tomography.solve_gradient(geom, flows, hull, params=params, **blur)
