@@ -18,9 +18,10 @@ one output frame, reconstructs from data whose errors are known:
 * ``consistent, via the truth's ray grid`` and ``truth's exit directions``: the consistent
   rays sampled at the truth's ray grid and interpolated back, and the curved-ray tracer's own
   exit directions (``truth.zarr``'s ``d_out - d_in``) interpolated the same way to the run's
-  rays, both solved as the run solves without the window model: their difference is the
-  tomography's forward-model error (straight rays through the basis against the traced
-  physics), free of the interpolation's;
+  rays, both solved as the run solves without the window model: their difference is what the
+  traced data lack against the model's rays from the scored truth, free of the
+  interpolation's (mostly the tracer's central-difference gradient on the truth's grid:
+  ``benchmarks/realistic_forward_model.py``);
 * ``window model + quiet-ray noise``: the window model's rays ``S G x`` (``G`` the run's
   volume blur) plus noise of the RMS the run's flows have on the rays that miss the plume,
   correlated over one flow cell, solved as the run solves (with its window model): the
