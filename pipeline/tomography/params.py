@@ -115,10 +115,10 @@ class TomoParams:
         16-camera PNG cases -1.45 to -1.83 / -1.44 to -1.92 dB (their optimum is 1: peaks
         overshoot), the five H.264 cases -0.19 to -0.36 / -0.16 to -0.31 dB. A rule from the
         rays' signal-to-noise ratio fitted the family but lost 3-6 dB on Table 1's smooth
-        phantom, so the default stays 1 (the run logs that ratio, receipt ``ray_snr``); part of
-        the 8-camera gain may undo the family renderer's own smoothing. Raise
-        it only where a synthetic capture of the rig and of a flow with similar fine
-        structure shows a gain (docs/realistic.md, "The flow-window scale").
+        phantom, so the default stays 1 (the run logs that ratio, receipt ``ray_snr``). The
+        8-camera gain was the scale undoing the family renderer's own smoothing: on renders
+        without it the 8-camera optimum is 1 and the 16-camera one about 0.85
+        (docs/realistic.md, "The flow-window scale").
     max_iter : int
         Iteration cap of the fused conjugate-gradient (CGLS-equivalent) solver.
     tol : float
