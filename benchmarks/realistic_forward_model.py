@@ -33,9 +33,9 @@ RESULTS = Path(__file__).resolve().parent / "results"
 
 def compare(case_dir: Path, frame: int, prune: float | None) -> dict:
     import zarr
-    from realistic_bounds import load_case  # this folder's sibling (run as a script)
+    from realistic_bounds import integrate_and_score, load_case  # this folder's sibling (run as a script)
 
-    from schlieren.pipeline import metrics, poisson, tomography
+    from schlieren.pipeline import metrics, tomography
     from schlieren.pipeline.geometry import FlowGrid
     from schlieren.storage import synthetic_io as sio
     from schlieren.workers import tasks
@@ -70,10 +70,7 @@ def compare(case_dir: Path, frame: int, prune: float | None) -> dict:
 
     def score(b):
         g, _ = tomography.solve_gradient(geom, b, hull, params=params)
-        r, _ = poisson.integrate(g, hull, grid, r_ambient=ctx.session.medium.refractivity_ambient,
-                                 params=ctx.config.poisson)
-        e = np.asarray(r, dtype=np.float64)
-        return [round(metrics.psnr(metrics.relative_rms(e, t_on)), 2), round(metrics.psnr(metrics.plume_rms(e, t_on, r_amb)), 2)]
+        return list(integrate_and_score(ctx, g, hull, t_on, r_amb))
 
     for name, x in xs.items():
         b = np.stack([geom.S @ x[:, i] for i in range(3)], -1).reshape(shape + (3,))

@@ -45,13 +45,12 @@ DEFAULT_CASES = ("plume1-16cam-640", "plume2-16cam-640", "jet3-16cam-640", "plum
 
 
 def scale_scan(case_dir: Path, frame: int, scales) -> dict:
-    from realistic_bounds import load_case  # this folder's sibling (run as a script)
+    from realistic_bounds import integrate_and_score, load_case  # this folder's sibling (run as a script)
 
-    from schlieren.pipeline import metrics, poisson, tomography
+    from schlieren.pipeline import tomography
     from schlieren.workers import tasks
 
     ctx, geom, t_on, r_amb = load_case(case_dir, frame)
-    grid = ctx.session.grid
     params = tasks.tomo_params(ctx)
     window = np.asarray(ctx.store.read("flow_window", ()), dtype=np.float64)
     hull = ctx.store.read("hull", (frame,))
@@ -66,12 +65,8 @@ def scale_scan(case_dir: Path, frame: int, scales) -> dict:
     for s in scales:
         blur = tasks._window_model(ctx, window * s)
         g, info = tomography.solve_gradient(geom, flows, hull, params=params, **blur)
-        r, _ = poisson.integrate(g, hull, grid, r_ambient=ctx.session.medium.refractivity_ambient,
-                                 params=ctx.config.poisson)
-        e = np.asarray(r, dtype=np.float64)
-        rows.append({"scale": s, "whole_db": round(metrics.psnr(metrics.relative_rms(e, t_on)), 2),
-                     "plume_db": round(metrics.psnr(metrics.plume_rms(e, t_on, r_amb)), 2),
-                     "iterations": info.iterations})
+        whole, plume = integrate_and_score(ctx, g, hull, t_on, r_amb)
+        rows.append({"scale": s, "whole_db": whole, "plume_db": plume, "iterations": info.iterations})
     best = max(rows, key=lambda r: r["plume_db"])
     return {"cameras": C, "frame": frame, "ray_snr": [round(float(v), 2) for v in snr],
             "reg_weight": params.reg_weight, "rows": rows, "best_scale": best["scale"]}
@@ -157,10 +152,10 @@ def _camera_truth(case_dir: Path, truth, ctx, cam: int, frame: int, name: str = 
 
 def oracle(case_dir: Path, frame: int, scales=(1.0, 1.15, 1.3)) -> list[dict]:
     import zarr
-    from realistic_bounds import load_case
+    from realistic_bounds import integrate_and_score, load_case
 
     from schlieren.pipeline import flow as fm
-    from schlieren.pipeline import metrics, poisson, tomography
+    from schlieren.pipeline import tomography
     from schlieren.workers import tasks
 
     ctx, geom, t_on, r_amb = load_case(case_dir, frame)
@@ -183,10 +178,7 @@ def oracle(case_dir: Path, frame: int, scales=(1.0, 1.15, 1.3)) -> list[dict]:
 
     def score(fl, s):
         g, _ = tomography.solve_gradient(geom, fl, hull, params=params, **tasks._window_model(ctx, window * s))
-        r, _ = poisson.integrate(g, hull, ctx.session.grid, r_ambient=ctx.session.medium.refractivity_ambient,
-                                 params=ctx.config.poisson)
-        e = np.asarray(r, dtype=np.float64)
-        return [round(metrics.psnr(metrics.relative_rms(e, t_on)), 2), round(metrics.psnr(metrics.plume_rms(e, t_on, r_amb)), 2)]
+        return list(integrate_and_score(ctx, g, hull, t_on, r_amb))
 
     return [{"scale": s, "run": score(flows, s), "minus_deterministic_error": score(flows - corr, s)} for s in scales]
 
