@@ -197,6 +197,24 @@ def test_cell_solve_auto_needs_a_window_of_five_cells():
         assert not F.uses_cell_solve(F.FlowParams(**{"window": 25, "factor": 3, **other}))
 
 
+def test_prolong_kernel_is_opencvs_warp_bit_for_bit():
+    """prolong_flow's float32 kernel returns exactly what cv2.warpAffine (x / 2, bilinear,
+    edges replicated) times 2 returns, on even and odd sizes and down to a column."""
+    rng = np.random.default_rng(5)
+    M = np.array([[0.5, 0.0, 0.0], [0.0, 0.5, 0.0]])
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    for h, w, H, W in [(8, 9, 15, 17), (8, 9, 16, 18), (68, 91, 135, 181), (3, 4, 5, 7), (1, 5, 1, 9),
+                       (2, 2, 9, 9), (5, 1, 9, 1)]:
+        u = (rng.standard_normal((h, w)) * 10.0 ** rng.uniform(-3, 2, (h, w))).astype(np.float32)
+        v = (rng.standard_normal((h, w)) * 0.1).astype(np.float32)
+        u.flat[0] = -0.0
+        uu, vv = F.prolong_flow(u, v, (H, W))
+        for got, a in ((uu, u), (vv, v)):
+            want = cv2.warpAffine(a, M, (W, H), flags=flags, borderMode=cv2.BORDER_REPLICATE) * np.float32(2.0)
+            assert got.dtype == np.float32 and got.shape == (H, W)
+            np.testing.assert_array_equal(got.view(np.uint32), want.view(np.uint32))
+
+
 def test_cell_helpers_block_moments_window_lines_and_upsampling():
     rng = np.random.default_rng(3)
     a = rng.normal(size=(31, 44)).astype(np.float32)
