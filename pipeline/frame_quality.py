@@ -65,7 +65,8 @@ class FrameQualityParams:
 
 
 def frame_quality(frame: np.ndarray, previous: np.ndarray | None, *, reference_mean: float,
-                  full_scale: float | None, params: FrameQualityParams = FrameQualityParams()) -> np.ndarray:
+                  full_scale: float | None, params: FrameQualityParams = FrameQualityParams(),
+                  finite: bool = False) -> np.ndarray:
     """Statistics and flags of one frame.
 
     Parameters
@@ -79,6 +80,9 @@ def frame_quality(frame: np.ndarray, previous: np.ndarray | None, *, reference_m
     full_scale : float or None
         The sensor's largest value (255, 65535); None (floating-point frames) skips the
         saturation test.
+    finite : bool
+        The caller knows that ``frame`` holds no NaN or inf (grey levels decoded from
+        integer samples): floating-point frames skip the check (0.6 ms at 1440x1080).
 
     Returns
     -------
@@ -92,7 +96,7 @@ def frame_quality(frame: np.ndarray, previous: np.ndarray | None, *, reference_m
     f = np.asarray(frame)
     p = None if previous is None else np.asarray(previous)
     if f.ndim == 2 and f.dtype in _CV_DTYPES and (p is None or p.dtype == f.dtype) and \
-            (f.dtype.kind != "f" or cv2.checkRange(f)[0]):
+            (f.dtype.kind != "f" or finite or cv2.checkRange(f)[0]):
         # OpenCV's sums accumulate in double without float64 copies of the frame (7.2 ->
         # 0.7 ms at 1440x1080; one deflection task per camera-frame calls this)
         m, sd = cv2.meanStdDev(f)

@@ -383,7 +383,8 @@ def _frame_quality(ctx: RunContext, c: int, f: int, img: np.ndarray) -> np.ndarr
         previous = ctx.frame(c, f - 1) if f > 0 else None
     except SessionError:  # the previous frame is unreadable (its own task reports it): not frozen
         previous = None
-    return fq.frame_quality(img, previous, reference_mean=ref_mean, full_scale=full)
+    # grey levels of integer samples are finite (no NaN check over the frame)
+    return fq.frame_quality(img, previous, reference_mean=ref_mean, full_scale=full, finite=full is not None)
 
 
 def bad_frames(ctx: RunContext, c: int, lo: int, hi: int) -> tuple[int, ...]:

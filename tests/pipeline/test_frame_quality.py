@@ -99,6 +99,13 @@ def test_statistics_equal_the_float64_definition_for_every_frame_type():
         np.testing.assert_allclose(q[:3], [x.mean(), want_sat, want_change], rtol=1e-6, equal_nan=True)
         np.testing.assert_allclose(q[4:], [x.std(), x.min(), x.max()], rtol=1e-6, equal_nan=True)
     assert np.isnan(frame_quality(g, f, reference_mean=100.0, full_scale=None)[[0, 4, 5, 6]]).all()
+    # grey levels decoded from integer samples skip the NaN check (finite=True, as the run
+    # passes for integer sources): the same vector, bit for bit
+    for frame, prev, full in ((b.astype(np.float32), a.astype(np.float32), 255), (f, None, None),
+                              (w.astype(np.float32), None, 65535)):
+        np.testing.assert_array_equal(
+            frame_quality(frame, prev, reference_mean=100.0, full_scale=full, finite=True).view(np.uint32),
+            frame_quality(frame, prev, reference_mean=100.0, full_scale=full).view(np.uint32))
     # below full scale everywhere: no saturated pixel (the count is skipped, not guessed)
     assert frame_quality(np.minimum(b, 254), a, reference_mean=100.0, full_scale=255)[1] == 0.0
     assert QUALITY_NAMES[4:] == ("std", "min", "max") and len(dropped_quality()) == len(QUALITY_NAMES)
