@@ -25,6 +25,7 @@ displacement field unchanged).
 
 from __future__ import annotations
 
+import functools
 import logging
 from dataclasses import asdict, dataclass, field
 
@@ -814,6 +815,7 @@ def _block_window_taps(window: int, window_type: str, f: int) -> np.ndarray:
     return _block_window_linear_taps(window, window_type, f)[0]
 
 
+@functools.lru_cache(maxsize=64)
 def _block_window_linear_taps(window: int, window_type: str, f: int):
     """The LK window per f x f block as a line in the pixel's offset inside the block.
 
@@ -821,7 +823,8 @@ def _block_window_linear_taps(window: int, window_type: str, f: int):
     block's centre (pixel offset ``f k + rho`` from the cell centre), the least-squares
     line over the block's ``f`` offsets: ``w(f k + rho) ~ A_k + B_k rho`` per axis.
     ``A`` alone is :func:`_block_window_taps` (the window constant over each block).
-    Returns ``(A, B)``, both divided by ``sum(A)``."""
+    Returns ``(A, B)``, both divided by ``sum(A)``; read-only, made once per window (five
+    calls per deflection task took 0.4 ms)."""
     half = (window - 1) // 2
     K = (half + f // 2 + f - 1) // f
     rho = np.arange(f) - (f - 1) / 2.0
@@ -834,7 +837,9 @@ def _block_window_linear_taps(window: int, window_type: str, f: int):
     r2 = float(np.sum(rho ** 2))
     B = (w * rho[None, :]).sum(axis=1) / r2 if r2 > 0 else np.zeros_like(A)
     norm = A.sum()
-    return (A / norm).astype(np.float32), (B / norm).astype(np.float32)
+    A, B = (A / norm).astype(np.float32), (B / norm).astype(np.float32)
+    A.flags.writeable = B.flags.writeable = False
+    return A, B
 
 
 def _cell_window_sums(m: np.ndarray, A: np.ndarray, B: np.ndarray) -> np.ndarray:
