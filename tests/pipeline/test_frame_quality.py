@@ -99,6 +99,16 @@ def test_statistics_equal_the_float64_definition_for_every_frame_type():
         np.testing.assert_allclose(q[:3], [x.mean(), want_sat, want_change], rtol=1e-6, equal_nan=True)
         np.testing.assert_allclose(q[4:], [x.std(), x.min(), x.max()], rtol=1e-6, equal_nan=True)
     assert np.isnan(frame_quality(g, f, reference_mean=100.0, full_scale=None)[[0, 4, 5, 6]]).all()
+    # 8-bit frames as their samples (uint8, what the run passes for one-channel 8-bit files)
+    # or as float32 grey levels: the same vector bit for bit, also at paper scale, where the
+    # sums of squares pass 2^24 (exact integers in OpenCV's double sums either way)
+    big = rng.integers(0, 256, (1080, 1440)).astype(np.uint8)
+    big[:40] = 255
+    for frame, prev in ((b, a), (b, None), (big, np.roll(big, 1, axis=1)), (np.full_like(big, 7), big)):
+        as_float = None if prev is None else prev.astype(np.float32)
+        np.testing.assert_array_equal(
+            frame_quality(frame, prev, reference_mean=100.0, full_scale=255).view(np.uint32),
+            frame_quality(frame.astype(np.float32), as_float, reference_mean=100.0, full_scale=255).view(np.uint32))
     # grey levels decoded from integer samples skip the NaN check (finite=True, as the run
     # passes for integer sources): the same vector, bit for bit
     for frame, prev, full in ((b.astype(np.float32), a.astype(np.float32), 255), (f, None, None),

@@ -70,6 +70,7 @@ def test_8bit_sequence_reads_exactly_in_any_order(tmp_path, grey8, ext):
         img = src.read(i)
         assert img.dtype == np.float32 and img.shape == (H, W)
         np.testing.assert_array_equal(img, grey8[i].astype(np.float32))
+    assert src.one_channel  # the grey levels are the samples (frame quality takes them as uint8)
 
 
 @pytest.mark.parametrize("ext", ["png", "tif"])
@@ -92,6 +93,18 @@ def test_colour_frames_become_unrounded_grey(tmp_path, rng):
     assert img.shape == (H, W)
     np.testing.assert_allclose(img, expected, atol=1e-3)
     assert np.any(np.abs(img - np.round(img)) > 0.01)  # not rounded to integers
+    assert not src.one_channel
+    # grey frames, then one in colour: from that read on the source no longer says one channel
+    mixed = write_sequence(tmp_path / "m", [stack[0, ..., 0], stack[1, ..., 0], stack[1]])
+    src = open_frames(mixed, camera_name="c")
+    assert not src.one_channel  # nothing read yet: unknown
+    src.read(0)
+    src.read(1)
+    assert src.one_channel
+    src.read(2)
+    assert not src.one_channel
+    src.read(0)
+    assert not src.one_channel
 
 
 def test_sixteen_bit_colour_tiff(tmp_path, rng):
