@@ -37,7 +37,7 @@ import numpy as np
 from schlieren.pipeline.geometry import Grid, Medium
 from schlieren.pipeline.synthetic.phantoms import Phantom, refractivity_from_temperature
 
-__all__ = ["CFDParams", "CFDResult", "simulate_cfd", "cfd_phantom", "cfd_available", "KINDS"]
+__all__ = ["CFDParams", "CFDResult", "simulate_cfd", "upsample_cfd", "cfd_phantom", "cfd_available", "KINDS"]
 
 log = logging.getLogger(__name__)
 
@@ -273,6 +273,47 @@ def simulate_cfd(grid: Grid, params: CFDParams = CFDParams(), *, n_knots: int, t
     meta = asdict(params)
     meta["seed"] = int(seed)
     return CFDResult(grid=grid, knot_times=kt, excess=knots, params=meta)
+
+
+def upsample_cfd(result: CFDResult, factor: int) -> CFDResult:
+    """The simulation's knots cubic-B-spline upsampled ``factor`` times in space.
+
+    A curved-ray renderer differentiates the field it traces with central differences on
+    its own grid, which attenuates structure near that grid's scale (by sin(kh)/(kh): to
+    0.64 at a wavelength of four cells), while a truth scored by interpolating the same
+    knots keeps it: the rendered data would not carry what the score asks for. Tracing
+    and scoring the field upsampled here makes the two the same continuous field (the
+    spline through the CFD knots) sampled finely enough for the differences to keep the
+    CFD grid's structure (0.90 at four CFD cells for ``factor`` 2).
+
+    Cell-centred grids on the same box: knot ``i`` of the coarse grid sits at
+    ``(i + 1/2) h``, and the fine grid's voxels at ``(j + 1/2) h / factor``
+    (``scipy.ndimage.zoom`` with ``grid_mode=True``); the faces extend the field as
+    constant (``mode="nearest"``). The excess is not clipped at 0 again: the spline under-
+    and overshoots a little near sharp edges, and clipping would add a kink, structure finer
+    than the simulation's grid holds, which the rendered data would then have to carry (on
+    the family's plume seen by 16 cameras the pipeline scores 0.8 dB lower, 44.42 / 29.44
+    against 45.23 / 30.25 dB whole box / in plume, against a clipped truth).
+    """
+    from scipy import ndimage
+
+    factor = int(factor)
+    if factor < 1:
+        raise ValueError(f"upsampling factor must be a positive integer, got {factor}")
+    if factor == 1:
+        return result
+    g = result.grid
+    fine = Grid(g.vmin, g.vmax, g.voxel_size / factor)
+    want = tuple(factor * n for n in g.shape)
+    if tuple(fine.shape) != want:
+        raise ValueError(f"the box does not hold a whole number of {fine.voxel_size} m voxels: grid "
+                         f"{fine.shape}, upsampled knots {want}")
+    ex = np.empty((len(result.excess),) + want, dtype=np.float32)
+    for k, e in enumerate(result.excess):
+        ex[k] = ndimage.zoom(np.asarray(e, dtype=np.float64), factor, order=3, mode="nearest", grid_mode=True)
+    meta = dict(result.params)
+    meta["upsample"] = factor
+    return CFDResult(grid=fine, knot_times=result.knot_times, excess=ex, params=meta)
 
 
 def cfd_phantom(result: CFDResult, *, medium: Medium = Medium(), name: str | None = None) -> Phantom:
