@@ -112,3 +112,32 @@ def test_scale_solve_follows_a_saturating_response():
     # an unreachable request: the closest probe, flagged
     scale, peak, ok = rb._solve_scale(lambda s: 0.1 * s / (1.0 + s), 0.25, [])
     assert not ok and peak <= 0.1
+
+
+def test_cfd_cases_trace_and_score_the_upsampled_spline(tmp_path, monkeypatch):
+    """A CFD case renders the knots' spline upsampled ``upsample`` times: the truth the
+    family scores is that field on the finer grid (the tracer differentiates the same one)."""
+    import dataclasses
+
+    from schlieren.pipeline.geometry import Medium
+    from schlieren.pipeline.synthetic.cfd import upsample_cfd
+    from schlieren.pipeline.synthetic.phantoms import refractivity_from_temperature
+
+    coarse = rb._quick_flow(rb._grid(0.005))              # stands in for the PhiFlow knots
+    monkeypatch.setattr(rb, "cfd_flow", lambda flow, cache_dir, *, voxel, progress=None: coarse)
+    case = dataclasses.replace(rb.QUICK_CASES[0], name="cfd-4cam-160", upsample=2)
+    info = rb.ensure_session(case, tmp_path)
+    t = sio.read_truth(info["truth"])
+    np.testing.assert_allclose(t.voxel_size, 0.0025)
+    fine = upsample_cfd(coarse, 2)
+    assert t.refractivity.shape[1:] == fine.grid.shape == tuple(2 * n for n in coarse.grid.shape)
+    # every stored knot is the spline's refractivity at that knot time (the excess as scaled to the peak)
+    scale = info["scale"]
+    for j, kt in enumerate(t.knot_time):
+        k = int(np.argmin(np.abs(coarse.knot_times - kt)))
+        assert abs(coarse.knot_times[k] - kt) < 1e-9
+        excess = (fine.excess[k] * np.float32(scale)).astype(np.float64)   # as rb._scaled, then the phantom
+        want = refractivity_from_temperature(Medium().T_ambient + excess, Medium())
+        np.testing.assert_allclose(np.asarray(t.knot_refractivity[j]), want, rtol=0, atol=1e-9)
+    # and the case key tells the two renders apart
+    assert case.key() != dataclasses.replace(case, upsample=1).key()
