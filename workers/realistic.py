@@ -396,13 +396,13 @@ def ensure_session(case: RealisticCase, work: Path, *, progress: Callable[[str],
             return info
     bench_io.remove_tree(d)
     t0 = time.perf_counter()
-    if case.name.startswith("quick"):
-        base = _quick_flow(_grid(voxel))
-    else:
-        from schlieren.pipeline.synthetic.cfd import upsample_cfd
+    from schlieren.pipeline.synthetic.cfd import upsample_cfd
 
-        base = upsample_cfd(cfd_flow(FLOWS[case.flow], Path(work) / "_cfd", voxel=voxel, progress=say),
-                            case.upsample)
+    if case.name.startswith("quick"):
+        knots = _quick_flow(_grid(voxel))
+    else:
+        knots = cfd_flow(FLOWS[case.flow], Path(work) / "_cfd", voxel=voxel, progress=say)
+    base = upsample_cfd(knots, case.upsample)
 
     def probe(scale: float) -> float:
         return _probe_peak(case, _scaled(base, scale))
@@ -547,7 +547,8 @@ def family_markdown(result: dict, *, machine: str = "") -> str:
     lines = [f"# Realistic benchmark family ({lab})", "",
              "Command: `schlieren bench realistic` (see `workers/realistic.py`). CFD flows (PhiFlow) simulated on "
              "the 2.5 mm grid, upsampled 2x by cubic splines, rendered and scored on that one field; weak "
-             "deflections; 8-bit frames, noise 1.5 grey levels, rolling shutter, strobe sync, noisy reference frames; distortion on the 960x720 rigs; "
+             "deflections; 8-bit frames, noise 1.5 grey levels, rolling shutter, strobe sync, noisy reference "
+             "frames; distortion on the 960x720 rigs; "
              f"{video}. Whole box = SPEC section 4; in plume = the same RMS over voxels where "
              "|truth - ambient| > 1 % of the range. `approximate` = the truth's own deflections through "
              "tomography and integration (no optical flow).", "",
