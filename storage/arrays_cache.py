@@ -9,10 +9,14 @@ never leaves a half-written cache that looks valid; its manifest records each fi
 and CRC-32C, which :func:`verify_arrays` checks (``schlieren verify``, and every worker
 when it first maps the geometry).
 
-A store on object storage (an fsspec URL) has no files to map: the folder's files are
-uploaded there with ``manifest.json`` last (its presence means complete), and each
-machine that loads them stages one local copy (:func:`schlieren.storage.location.stage_folder`,
-keyed by the URL and the manifest's version) and maps that.
+A store on object storage (an fsspec URL) has no files to map: there the set is two
+objects, ``arrays.pack`` (every ``.npy`` file, each starting at a multiple of 64 bytes)
+and ``manifest.json`` (uploaded last: its presence means complete; it records each
+member's offset, size and CRC-32C). One object per array would cost a request each on
+upload and on every machine that stages them (17 for the geometry). Each machine that
+loads the set stages one local copy (:func:`schlieren.storage.location.stage_folder`,
+keyed by the URL and the manifest's version) and maps the arrays inside the pack
+(``numpy.memmap`` at each member's data offset).
 """
 
 from __future__ import annotations
@@ -26,6 +30,10 @@ from pathlib import Path
 import numpy as np
 
 from schlieren.storage import location
+
+#: The single data object of a set on object storage (see the module doc).
+PACK = "arrays.pack"
+_ALIGN = 64  # members start at multiples of this (the .npy header keeps the data aligned too)
 
 __all__ = ["cache_root", "cache_dir", "save_arrays", "load_arrays", "has_arrays", "remove_cache", "verify_arrays",
            "remove_arrays"]
@@ -99,13 +107,30 @@ def _upload_arrays(url: str, arrays: dict) -> str:
     local = location.local_cache_dir("upload") / f"{location.basename(url)}.{uuid.uuid4().hex}"
     try:
         save_arrays(local, arrays)
-        files = {location.join(url, f.name): f.read_bytes() for f in local.iterdir() if f.name != "manifest.json"}
-        location.write_many(files)
+        _pack(local)
+        location.write_bytes(location.join(url, PACK), (local / PACK).read_bytes())
         location.write_bytes(location.join(url, "manifest.json"), (local / "manifest.json").read_bytes())
         location.adopt_staged_folder(url, local, complete_marker="manifest.json")
     finally:
         shutil.rmtree(local, ignore_errors=True)
     return url
+
+
+def _pack(folder: Path) -> None:
+    """Rewrite a set saved by :func:`save_arrays` in ``folder`` as :data:`PACK` plus its
+    manifest (``pack``: member -> byte offset); the ``.npy`` files are removed."""
+    meta = json.loads((folder / "manifest.json").read_text())
+    offsets = {}
+    with open(folder / PACK, "wb") as out:
+        for name in meta["files"]:
+            pad = -out.tell() % _ALIGN
+            out.write(b"\0" * pad)
+            offsets[name] = out.tell()
+            with open(folder / name, "rb") as f:
+                shutil.copyfileobj(f, out)
+            os.remove(folder / name)
+    meta["pack"] = {"file": PACK, "offsets": offsets}
+    (folder / "manifest.json").write_text(json.dumps(meta))
 
 
 def load_arrays(path: str | os.PathLike, *, mmap: bool = True) -> dict:
@@ -116,9 +141,37 @@ def load_arrays(path: str | os.PathLike, *, mmap: bool = True) -> dict:
     path = Path(location.stage_folder(path, complete_marker="manifest.json"))
     meta = json.loads((path / "manifest.json").read_text())
     out = dict(meta["scalars"])
+    pack = meta.get("pack")
     for k in meta["arrays"]:
-        out[k] = np.load(path / f"{k}.npy", mmap_mode="r" if mmap else None, allow_pickle=False)
+        if pack:
+            out[k] = _from_pack(path / pack["file"], int(pack["offsets"][f"{k}.npy"]), mmap)
+        else:
+            out[k] = np.load(path / f"{k}.npy", mmap_mode="r" if mmap else None, allow_pickle=False)
     return out
+
+
+def _from_pack(pack: Path, offset: int, mmap: bool) -> np.ndarray:
+    """The ``.npy`` member of ``pack`` starting at byte ``offset`` (mapped read-only, or read)."""
+    from numpy.lib import format as npy
+
+    with open(pack, "rb") as f:
+        f.seek(offset)
+        version = npy.read_magic(f)
+        if version == (1, 0):
+            shape, fortran, dtype = npy.read_array_header_1_0(f)
+        elif version == (2, 0):
+            shape, fortran, dtype = npy.read_array_header_2_0(f)
+        else:  # np.save writes 1.0 (2.0 for huge headers)
+            raise ValueError(f"{pack}: .npy format {version} at byte {offset} is not read here")
+        data = f.tell()
+        if dtype.hasobject:
+            raise ValueError(f"{pack}: object arrays are never stored")
+        order = "F" if fortran else "C"
+        if 0 in shape:  # nothing to map (memmap refuses empty maps)
+            return np.zeros(shape, dtype=dtype, order=order)
+        if mmap and shape:
+            return np.memmap(pack, dtype=dtype, mode="r", offset=data, shape=shape, order=order)
+        return np.fromfile(f, dtype=dtype, count=int(np.prod(shape))).reshape(shape, order=order)
 
 
 def _file_crc(path: Path) -> dict:
@@ -151,6 +204,8 @@ def verify_arrays(path: str | os.PathLike, *, read: bool = True) -> list[str]:
         return [f"{path / 'manifest.json'}: unreadable ({exc})"]
     problems = []
     files = meta.get("files") or {f"{k}.npy": None for k in meta.get("arrays", [])}
+    if meta.get("pack"):
+        return _verify_pack(path / meta["pack"]["file"], meta["pack"]["offsets"], files, read)
     for name, want in files.items():
         f = path / name
         if not f.is_file():
@@ -162,6 +217,35 @@ def verify_arrays(path: str | os.PathLike, *, read: bool = True) -> list[str]:
             problems.append(f"{f}: {f.stat().st_size} bytes, not {want['size']} (truncated?)")
         elif read and _file_crc(f)["crc32c"] != want["crc32c"]:
             problems.append(f"{f}: fails its CRC-32C checksum")
+    return problems
+
+
+def _verify_pack(pack: Path, offsets: dict, files: dict, read: bool) -> list[str]:
+    """:func:`verify_arrays` of a packed set: each member's byte range, size and CRC-32C."""
+    import google_crc32c
+
+    if not pack.is_file():
+        return [f"{pack}: missing"]
+    size = pack.stat().st_size
+    problems = []
+    with open(pack, "rb") as f:
+        for name, want in files.items():
+            start = int(offsets[name])
+            if want is None:
+                continue
+            if start + want["size"] > size:
+                problems.append(f"{pack}: member {name} ends at byte {start + want['size']}, the pack at {size} "
+                                "(truncated?)")
+            elif read:
+                f.seek(start)
+                crc = google_crc32c.Checksum()
+                left = want["size"]
+                while left:
+                    block = f.read(min(left, 1 << 22))
+                    crc.update(block)
+                    left -= len(block)
+                if int.from_bytes(crc.digest(), "big") != want["crc32c"]:
+                    problems.append(f"{pack}: member {name} fails its CRC-32C checksum")
     return problems
 
 

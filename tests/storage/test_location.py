@@ -5,6 +5,7 @@ The URL cases run against moto's S3 server on 127.0.0.1 (fixture ``s3_server``).
 
 from __future__ import annotations
 
+import json
 import os
 
 import numpy as np
@@ -117,17 +118,45 @@ def test_arrays_cache_on_object_storage_is_uploaded_then_mapped_from_a_staged_co
     d = arrays_cache.cache_dir(store, "geometry", "abc123")
     assert d == store + ".cache/geometry-abc123"  # beside the store, as for folders
     arrays = {"S_data": np.arange(12, dtype=np.float32).reshape(3, 4), "idx": np.arange(5, dtype=np.int64),
-              "n": 7}
+              "fortran": np.asfortranarray(np.arange(6, dtype=">f8").reshape(2, 3)),
+              "empty": np.zeros((0, 3), dtype=np.int32), "scalar": np.array(2.5), "n": 7}
     assert not arrays_cache.has_arrays(d)
     arrays_cache.save_arrays(d, arrays)
     assert arrays_cache.has_arrays(d)
-    assert sorted(location.find(d)) == ["S_data.npy", "idx.npy", "manifest.json"]
-    got = arrays_cache.load_arrays(d)
-    assert got["n"] == 7
-    assert isinstance(got["S_data"], np.memmap) and str(tmp_path / "cache") in str(got["S_data"].filename)
-    np.testing.assert_array_equal(got["S_data"], arrays["S_data"])
-    np.testing.assert_array_equal(got["idx"], arrays["idx"])
+    # two objects, not one per array: the pack, then the manifest naming each member's offset
+    assert sorted(location.find(d)) == ["arrays.pack", "manifest.json"]
     assert not list((tmp_path / "cache").glob("upload/*"))  # the local upload copy is gone
+
+    def check(got):
+        assert got["n"] == 7
+        assert isinstance(got["S_data"], np.memmap) and str(tmp_path / "cache") in str(got["S_data"].filename)
+        for k, a in arrays.items():
+            if k != "n":
+                np.testing.assert_array_equal(got[k], a)
+                assert got[k].dtype == a.dtype and got[k].shape == a.shape
+        assert got["fortran"].flags.f_contiguous and got["S_data"].ctypes.data % 64 == 0
+        assert not got["S_data"].flags.writeable
+
+    check(arrays_cache.load_arrays(d))  # the writer's own copy, adopted as staged
+    assert arrays_cache.verify_arrays(d) == []
+    monkeypatch.setenv(location.CACHE_ENV, str(tmp_path / "cache2"))  # another machine: staged afresh
+    tmp_path.joinpath("cache2").mkdir()
+    got = arrays_cache.load_arrays(d)
+    assert str(tmp_path / "cache2") in str(got["S_data"].filename)
+    np.testing.assert_array_equal(arrays_cache.load_arrays(d, mmap=False)["fortran"], arrays["fortran"])
+    # a flipped byte inside one member, then a truncated pack, staged by a third machine each:
+    # found and named
+    pack = location.read_bytes(d + "/arrays.pack")
+    meta = json.loads(location.read_bytes(d + "/manifest.json"))
+    at = meta["pack"]["offsets"]["idx.npy"] + meta["files"]["idx.npy"]["size"] - 1
+    for k, (damaged, read, what) in enumerate([(pack[:at] + bytes([pack[at] ^ 1]) + pack[at + 1:], True, "CRC-32C"),
+                                               (pack[:at], False, "truncated")]):
+        location.write_bytes(d + "/arrays.pack", damaged)
+        monkeypatch.setenv(location.CACHE_ENV, str(tmp_path / f"cache-damaged{k}"))
+        bad = arrays_cache.verify_arrays(d, read=read)
+        assert bad and "idx.npy" in bad[0] and all(what in b for b in bad), bad
+        assert len(bad) == (1 if read else sum(o >= meta["pack"]["offsets"]["idx.npy"]
+                                               for o in meta["pack"]["offsets"].values()))
 
 
 def test_zarr_store_of_a_url_reads_what_zarr_open_group_wrote(s3_server):
