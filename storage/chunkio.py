@@ -26,6 +26,10 @@ what zarr does for the arrays the store creates, in the calling thread:
 :func:`chunk_layout` returns ``None`` for any array outside that pattern (other codecs,
 string dtypes, sharding, a non-folder store); the store then goes through zarr. The
 tests check byte-identity with zarr's files both ways.
+
+A store on object storage uses the same encoding (:func:`chunk_encoding`,
+:meth:`ChunkLayout.encode` and :meth:`ChunkLayout.key`) to send a task's whole chunk as
+one PUT of these bytes (storage/store.py).
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["ChunkLayout", "CorruptChunk", "chunk_layout", "chunk_of", "add_checksum", "strip_checksum"]
+__all__ = ["ChunkLayout", "CorruptChunk", "chunk_layout", "chunk_encoding", "chunk_of", "add_checksum", "strip_checksum"]
 
 
 class CorruptChunk(ValueError):
@@ -73,7 +77,7 @@ def strip_checksum(blob: bytes) -> bytes:
 class ChunkLayout:
     """How one array's chunks are laid out as files."""
 
-    root: str  # the array's folder
+    root: str  # the array's folder ("" where only bytes and keys are used: object stores)
     shape: tuple[int, ...]
     chunks: tuple[int, ...]
     dtype: np.dtype  # little-endian storage dtype
@@ -81,6 +85,7 @@ class ChunkLayout:
     level: int  # zstd level
     checksum: bool = False  # a crc32c codec follows zstd
     write_empty: bool = False  # fill-value chunks are stored (write_empty_chunks=True)
+    name: str = ""  # the array's path in the store
 
     def chunk_of(self, region: tuple[slice, ...]) -> tuple[int, ...] | None:
         """Grid coordinates of the single whole chunk ``region`` covers, or None."""
@@ -129,25 +134,36 @@ class ChunkLayout:
             a = a[tuple(slice(0, n) for n in region_shape)]
         return a.astype(self.dtype.newbyteorder("="), copy=True)
 
-    def write(self, coords: tuple[int, ...], data: np.ndarray) -> None:
-        """Store ``data`` (the chunk's region, already of the array's dtype) as the chunk file."""
+    def encode(self, data: np.ndarray) -> bytes | None:
+        """The stored bytes of a chunk holding ``data`` (the chunk's region, already of the
+        array's dtype), or None if zarr stores no object for it (fill value everywhere,
+        without ``write_empty``)."""
         from numcodecs import Zstd
 
-        path = self.path(coords)
         chunk = np.asarray(data, dtype=self.dtype)
         if chunk.shape != self.chunks:  # an edge chunk: pad with the fill value, as zarr does
             full = np.full(self.chunks, self.fill_value, dtype=self.dtype)
             full[tuple(slice(0, n) for n in chunk.shape)] = chunk
             chunk = full
         if not self.write_empty and _all_fill(chunk, self.fill_value):
+            return None
+        blob = Zstd(level=self.level).encode(np.ascontiguousarray(chunk).tobytes())
+        return add_checksum(blob) if self.checksum else blob
+
+    def key(self, coords: tuple[int, ...]) -> str:
+        """The chunk's key below the store's root, ``/``-separated (``flow/c/0/3/0/0/0``)."""
+        return "/".join([self.name, "c", *(str(i) for i in coords)])
+
+    def write(self, coords: tuple[int, ...], data: np.ndarray) -> None:
+        """Store ``data`` (the chunk's region, already of the array's dtype) as the chunk file."""
+        path = self.path(coords)
+        blob = self.encode(data)
+        if blob is None:
             try:
                 os.remove(path)
             except FileNotFoundError:
                 pass
             return
-        blob = Zstd(level=self.level).encode(np.ascontiguousarray(chunk).tobytes())
-        if self.checksum:
-            blob = add_checksum(blob)
         folder = os.path.dirname(path)
         tmp = f"{path}.{uuid.uuid4().hex}.partial"
         try:
@@ -199,6 +215,17 @@ def chunk_layout(arr, store_root: str | os.PathLike | None, name: str) -> ChunkL
     """
     if store_root is None:
         return None
+    return _layout(arr, store_root, name)
+
+
+def chunk_encoding(arr, name: str) -> ChunkLayout | None:
+    """Like :func:`chunk_layout` for an array of any store (an object store's): only its
+    :meth:`ChunkLayout.encode`, :meth:`~ChunkLayout.decode` and :meth:`~ChunkLayout.key`
+    are meaningful (no folder)."""
+    return _layout(arr, None, name)
+
+
+def _layout(arr, store_root, name: str) -> ChunkLayout | None:
     try:
         from zarr.codecs import BytesCodec, Crc32cCodec, ZstdCodec
         from zarr.core.chunk_grids import RegularChunkGrid
@@ -232,7 +259,8 @@ def chunk_layout(arr, store_root: str | os.PathLike | None, name: str) -> ChunkL
     config = getattr(arr, "config", None)
     if config is None or getattr(config, "order", "C") != "C":
         return None
-    return ChunkLayout(root=os.path.join(os.fspath(store_root), *name.split("/")),
+    root = "" if store_root is None else os.path.join(os.fspath(store_root), *name.split("/"))
+    return ChunkLayout(root=root, name=name,
                        shape=tuple(int(s) for s in arr.shape),
                        chunks=tuple(int(c) for c in meta.chunk_grid.chunk_shape),
                        dtype=dtype.newbyteorder("<"), fill_value=meta.fill_value,

@@ -10,9 +10,12 @@
 
 from __future__ import annotations
 
+import functools
+
 import os
 import pickle
 
+import fsspec.asyn
 import numpy as np
 import pytest
 import zarr
@@ -210,14 +213,18 @@ def test_a_failed_background_write_fails_the_flush_and_leaves_its_marker_unset(s
     url = s3_server.bucket() + "/run.zarr"
     ResultStore.create(url, _layout(), attrs=ATTRS, markers=stage_markers())
     store = ResultStore.open(url, write_behind=True)
-    real = zarr.Array.__setitem__
+    import s3fs
 
-    def flaky(self, selection, value):
-        if self.path == "gradient":
+    real = s3fs.S3FileSystem._pipe_file
+
+    async def flaky(self, path, data, *args, **kwargs):  # every PUT of a chunk, zarr's or the store's own
+        if "/gradient/" in path:
             raise ConnectionError("the endpoint went away")
-        return real(self, selection, value)
+        return await real(self, path, data, *args, **kwargs)
 
-    monkeypatch.setattr(zarr.Array, "__setitem__", flaky)
+    monkeypatch.setattr(s3fs.S3FileSystem, "_pipe_file", flaky)
+    fs = location.filesystem(url)[0]  # its sync methods were bound when it was made
+    monkeypatch.setattr(fs, "pipe_file", fsspec.asyn.sync_wrapper(functools.partial(flaky, fs), obj=fs))
     store.write("hull", (1,), np.ones(GRID.shape, bool))
     store.mark_done("hull", (1,))
     store.write("gradient", (1,), np.ones((*GRID.shape, 3), np.float32))
