@@ -500,6 +500,10 @@ class Session:
     video_slots : dict of str to (int, tuple of int)
         The timestamp scan (:meth:`~schlieren.storage.frames.VideoFrames.scan`) of each
         camera whose frames are a video, handed to the run's workers.
+    opened : dict of int to ImageSequence
+        The image-sequence readers the file checks opened, by camera index (with their
+        listing and the frames they fetched from a URL): a run in this process reads
+        through them instead of listing and fetching again. Not compared, not pickled.
     """
 
     name: str
@@ -518,6 +522,10 @@ class Session:
     allow_external_paths: bool = False
     dropped_frames: dict = field(default_factory=dict)
     video_slots: dict = field(default_factory=dict)
+    opened: dict = field(default_factory=dict, compare=False, repr=False)
+
+    def __getstate__(self):
+        return {**self.__dict__, "opened": {}}
 
     @property
     def camera_names(self) -> list[str]:
@@ -1066,6 +1074,7 @@ def load_session(path: str | os.PathLike, *, frames: tuple[int, int] | None = No
     n_avail: int | None = None
     dropped: dict[str, tuple[int, ...]] = {}
     video_slots: dict[str, tuple[int, tuple[int, ...]]] = {}
+    opened: list[FrameSource] = []
     if check_files:
         def open_camera(i: int) -> FrameSource:
             cam, src = cameras[i], sources[i]
@@ -1075,7 +1084,6 @@ def load_session(path: str | os.PathLike, *, frames: tuple[int, int] | None = No
                 return _check_camera_files(i, cam, src, contained=check)
 
         remote = location.is_url(root)  # each check waits for requests: the cameras' together
-        opened: list[FrameSource] = []
         for i, (cam, src, fs) in enumerate(zip(cameras, sources, _per_camera(open_camera, len(cameras), remote))):
             if n_avail is None:
                 n_avail = len(fs)
@@ -1141,4 +1149,5 @@ def load_session(path: str | os.PathLike, *, frames: tuple[int, int] | None = No
         allow_external_paths=m.allow_external_paths,
         dropped_frames=dropped,
         video_slots=video_slots,
+        opened={i: fs for i, fs in enumerate(opened) if isinstance(fs, ImageSequence)},
     )

@@ -91,6 +91,8 @@ class RunContext:
 
     def frames(self, c: int):
         src = self._sources.get(c)
+        if src is None and c in self.session.opened:  # the run's own process checked the files
+            src = self._sources[c] = self.session.opened[c]
         if src is None:
             s = self.session.sources[c]
             slots = self.video_slots.get(s.name)

@@ -88,6 +88,47 @@ def test_dask_workers_read_the_session_and_write_the_store_in_the_bucket(s3_serv
     assert_same_store(serial_store, out)
 
 
+class _Counting:
+    """``storage.location`` as seen by storage/frames.py, recording the listings and reads."""
+
+    def __init__(self, real):
+        self._real = real
+        self.listed: list[str] = []
+        self.read: list[str] = []
+
+    def __getattr__(self, name):
+        return getattr(self._real, name)
+
+    def listdir_sizes(self, loc):
+        self.listed.append(loc)
+        return self._real.listdir_sizes(loc)
+
+    def read_bytes(self, loc, start=None, end=None):
+        self.read.append(loc)
+        return self._real.read_bytes(loc, start, end)
+
+    def read_many(self, locs, start=None, end=None):
+        self.read.extend(locs)
+        return self._real.read_many(locs, start, end)
+
+
+def test_a_serial_run_lists_and_fetches_each_frame_once(s3_server, s3_session, serial_store, monkeypatch, tmp_path):
+    """The run's tasks read through the readers that checked the session (Session.opened):
+    no second listing of a camera's frames, no second fetch of a frame (each a request)."""
+    from schlieren.storage import frames
+
+    counting = _Counting(location)
+    monkeypatch.setattr(frames, "location", counting)
+    monkeypatch.setenv(location.CACHE_ENV, str(tmp_path / "cache"))
+    out = s3_server.bucket("store") + "/once.zarr"
+    summary = run_session(s3_session, out, serial=True)
+    assert summary.ok, summary.failures
+    assert_same_store(serial_store, out)
+    framed = [u for u in counting.read if "/frames/" in u]
+    assert framed and max(framed.count(u) for u in framed) == 1, sorted(framed)
+    assert len(counting.listed) == len(set(counting.listed)) == 4, counting.listed  # one per camera
+
+
 def test_sigkill_then_rerun_resumes_from_the_bucket_and_matches(s3_server, s3_session, serial_store):
     out = s3_server.bucket("store") + "/killed.zarr"
     cmd = [sys.executable, "-m", "schlieren.workers.cli", "run", s3_session, "--out", out, "--serial",
