@@ -41,7 +41,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["ChunkLayout", "CorruptChunk", "chunk_layout", "chunk_encoding", "chunk_of", "add_checksum", "strip_checksum"]
+__all__ = ["ChunkLayout", "CorruptChunk", "chunk_layout", "chunk_encoding", "chunk_of", "add_checksum",
+           "strip_checksum"]
 
 
 class CorruptChunk(ValueError):
