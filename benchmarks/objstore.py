@@ -212,7 +212,7 @@ def replay(fs, store: str, read: list[str], session: Path, work: Path, repeats: 
 
     objects = {**fs.find(store, detail=True), **fs.find(store + ".cache", detail=True)}
     blobs = [os.urandom(int(v.get("size") or 0)) for v in objects.values()]
-    frames = [p for p in read if fs.exists(p)]  # not the store's own objects, gone meanwhile
+    frames = [p for p in read if fs.exists(p)]  # not what the run asked for before it existed
     server = psutil.Process(server_pid)
     counter = [0]
 

@@ -175,15 +175,23 @@ def _from_pack(pack: Path, offset: int, mmap: bool) -> np.ndarray:
 
 
 def _file_crc(path: Path) -> dict:
+    with open(path, "rb") as f:
+        return _crc(f)
+
+
+def _crc(f, size: int | None = None) -> dict:
+    """Size and CRC-32C of the next ``size`` bytes of open file ``f`` (to its end if None)."""
     import google_crc32c
 
     crc = google_crc32c.Checksum()
-    size = 0
-    with open(path, "rb") as f:
-        while block := f.read(1 << 22):
-            crc.update(block)
-            size += len(block)
-    return {"size": size, "crc32c": int.from_bytes(crc.digest(), "big")}
+    n = 0
+    while size is None or n < size:
+        block = f.read(1 << 22 if size is None else min(1 << 22, size - n))
+        if not block:
+            break
+        crc.update(block)
+        n += len(block)
+    return {"size": n, "crc32c": int.from_bytes(crc.digest(), "big")}
 
 
 def verify_arrays(path: str | os.PathLike, *, read: bool = True) -> list[str]:
@@ -222,8 +230,6 @@ def verify_arrays(path: str | os.PathLike, *, read: bool = True) -> list[str]:
 
 def _verify_pack(pack: Path, offsets: dict, files: dict, read: bool) -> list[str]:
     """:func:`verify_arrays` of a packed set: each member's byte range, size and CRC-32C."""
-    import google_crc32c
-
     if not pack.is_file():
         return [f"{pack}: missing"]
     size = pack.stat().st_size
@@ -238,13 +244,7 @@ def _verify_pack(pack: Path, offsets: dict, files: dict, read: bool) -> list[str
                                 "(truncated?)")
             elif read:
                 f.seek(start)
-                crc = google_crc32c.Checksum()
-                left = want["size"]
-                while left:
-                    block = f.read(min(left, 1 << 22))
-                    crc.update(block)
-                    left -= len(block)
-                if int.from_bytes(crc.digest(), "big") != want["crc32c"]:
+                if _crc(f, want["size"])["crc32c"] != want["crc32c"]:
                     problems.append(f"{pack}: member {name} fails its CRC-32C checksum")
     return problems
 
