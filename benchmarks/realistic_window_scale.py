@@ -76,6 +76,7 @@ def flow_error(case_dir: Path, cameras=(0, 5, 11), frame: int = 1) -> list[dict]
     import zarr
 
     from schlieren.pipeline import flow as fm
+    from schlieren.pipeline.flow.windows import _window_taps
     from schlieren.workers import tasks
 
     ctx = tasks.context(str(case_dir / "store.zarr"))
@@ -101,7 +102,7 @@ def flow_error(case_dir: Path, cameras=(0, 5, 11), frame: int = 1) -> list[dict]
         sm = cv2.GaussianBlur(ref, (0, 0), p.presmooth) if p.presmooth > 0 else ref
         gx = cv2.Scharr(sm, cv2.CV_32F, 1, 0) / 32.0
         gy = cv2.Scharr(sm, cv2.CV_32F, 0, 1) / 32.0
-        taps = fm._window_taps(int(p.window), p.window_type).astype(np.float32)
+        taps = _window_taps(int(p.window), p.window_type).astype(np.float32)
 
         def win(a):
             return cv2.sepFilter2D(a.astype(np.float32), -1, taps, taps, borderType=cv2.BORDER_REFLECT)

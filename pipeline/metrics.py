@@ -8,6 +8,9 @@ Ambient voxels dominate the whole box (a constant-ambient guess already scores 2
 so the *in-plume* figure is reported beside it: the same RMS, still normalised by the
 truth's range over the whole box, over the voxels where ``|truth - r_ambient|`` exceeds
 1 % of that range (:func:`plume_mask`).
+
+For the flow: the mean end-point error against a known deflection field
+(:func:`endpoint_error`, pixels).
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ from scipy import ndimage
 from schlieren.pipeline.geometry import Grid
 
 __all__ = ["relative_rms", "plume_mask", "plume_rms", "peak_ratio", "psnr", "grid_from_attrs", "resample_space", "time_bracket", "resample_truth",
-           "summarise"]
+           "summarise", "endpoint_error"]
 
 
 def relative_rms(estimate: np.ndarray, truth: np.ndarray) -> float:
@@ -174,3 +177,11 @@ def summarise(per_frame_rms: list[float]) -> dict:
     overall = float(np.sqrt(np.mean(r**2)))
     return {"rms": overall, "psnr": psnr(overall), "frames": int(r.size),
             "mean_psnr": float(np.mean([psnr(x) for x in r]))}
+
+
+def endpoint_error(flow: np.ndarray, truth: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """Mean end-point error ``mean |flow - truth|`` (pixels), optionally inside ``mask``."""
+    d = np.linalg.norm(np.asarray(flow, np.float64) - np.asarray(truth, np.float64), axis=-1)
+    if mask is not None:
+        d = d[np.asarray(mask, bool)]
+    return float(d.mean()) if d.size else float("nan")

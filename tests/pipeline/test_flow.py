@@ -6,6 +6,7 @@ import pytest
 from flow_helpers import NoiseBackground, pixel_truth, plume_deflection, render
 
 from schlieren.pipeline import flow as F
+from schlieren.pipeline.flow import _kernels, lk, post, stage, windows
 from schlieren.pipeline.geometry import FlowGrid
 
 SHAPE = (96, 128)
@@ -67,7 +68,7 @@ def test_texture_bias_equals_its_definition_for_a_linear_field():
     ii, jj = np.mgrid[0:rows, 0:cols]
     u = (J[0, 0] * f * jj + J[0, 1] * f * ii).astype(np.float32)
     v = (J[1, 0] * f * jj + J[1, 1] * f * ii).astype(np.float32)
-    bu, bv = F._texture_bias(gx, gy, u, v, window=win, window_type="box", factor=f)
+    bu, bv = lk._texture_bias(gx, gy, u, v, window=win, window_type="box", factor=f)
     h = win // 2
     for i in range(4, rows - 4):  # away from the reflected borders of the J smoothing
         for j in range(4, cols - 4):
@@ -80,7 +81,7 @@ def test_texture_bias_equals_its_definition_for_a_linear_field():
             expect = np.linalg.solve(T, Sx @ J[:, 0] + Sy @ J[:, 1])
             np.testing.assert_allclose([bu[i, j], bv[i, j]], expect, rtol=1e-3, atol=1e-6)
     # a uniform flow has no window bias
-    zu, zv = F._texture_bias(gx, gy, np.full_like(u, 0.4), np.full_like(v, -0.2), window=win,
+    zu, zv = lk._texture_bias(gx, gy, np.full_like(u, 0.4), np.full_like(v, -0.2), window=win,
                              window_type="box", factor=f)
     assert np.abs(zu).max() == 0 and np.abs(zv).max() == 0
 
@@ -221,7 +222,7 @@ def test_cell_helpers_block_moments_window_lines_and_upsampling():
     a = rng.normal(size=(31, 44)).astype(np.float32)
     b = rng.normal(size=(31, 44)).astype(np.float32)
     out = np.empty((3, 10, 14, 2), np.float32)
-    F._block_moments_kernel(a, b, 3, out)  # k = 2: the inputs themselves
+    _kernels._block_moments_kernel(a, b, 3, out)  # k = 2: the inputs themselves
     off = np.arange(3) - 1.0  # offsets from the block centre
     for k, x in enumerate((a, b)):
         blocks = x[:30, :42].reshape(10, 3, 14, 3)
@@ -229,18 +230,18 @@ def test_cell_helpers_block_moments_window_lines_and_upsampling():
         np.testing.assert_allclose(out[1, ..., k], (blocks * off[None, None, None, :]).sum(axis=(1, 3)), atol=1e-5)
         np.testing.assert_allclose(out[2, ..., k], (blocks * off[None, :, None, None]).sum(axis=(1, 3)), atol=1e-5)
     # the window per block as a line: exact for a linear window, the block mean for A
-    A, B = F._block_window_linear_taps(25, "gaussian", 3)
+    A, B = windows._block_window_linear_taps(25, "gaussian", 3)
     d = 3 * np.arange(-5, 6)[:, None] + np.arange(3)[None, :] - 1  # offsets of the 3 pixels of each block
     w = np.where(np.abs(d) <= 12, np.exp(-0.5 * (d / 6.25) ** 2), 0.0)  # 25 px window: sigma 6.25, half 12
     assert len(A) == 11 and np.allclose(A, w.mean(axis=1) / w.mean(axis=1).sum(), rtol=1e-6)  # the block means
-    np.testing.assert_array_equal(F._block_window_taps(25, "gaussian", 3), A)
+    np.testing.assert_array_equal(windows._block_window_taps(25, "gaussian", 3), A)
     np.testing.assert_allclose(B, -B[::-1], atol=1e-9)  # odd: the window is symmetric
     assert B[len(B) // 2 + 2] < 0 < B[len(B) // 2 - 2]  # falling right of the centre
     # a linear field on the cell centres comes back linear on the pixels (interior)
     f = 3
     i, j = np.mgrid[0:10, 0:14].astype(np.float32)
     uc, vc = 0.1 * (f * j + 1) + 0.2, -0.05 * (f * i + 1) + 0.3  # cell centre = f * index + (f - 1) / 2
-    u, v = F._upsample_cells(uc.astype(np.float32), vc.astype(np.float32), f, (30, 42))
+    u, v = lk._upsample_cells(uc.astype(np.float32), vc.astype(np.float32), f, (30, 42))
     y, x = np.mgrid[0:30, 0:42].astype(np.float32)
     np.testing.assert_allclose(u[2:-2, 2:-2], (0.1 * x + 0.2)[2:-2, 2:-2], atol=1e-4)
     np.testing.assert_allclose(v[2:-2, 2:-2], (-0.05 * y + 0.3)[2:-2, 2:-2], atol=1e-4)
@@ -295,7 +296,7 @@ def test_adaptive_smoothing_removes_noise_where_flow_is_smooth_and_keeps_structu
     truth = np.stack([bump, -0.5 * bump], -1).astype(np.float32)
     noisy = truth + rng.normal(0, 0.01, truth.shape).astype(np.float32)
     small = cv2.GaussianBlur(noisy, (0, 0), 0.5)
-    out = F._adaptive_smoothing(small, noisy, 3.0, 3.0)
+    out = post._adaptive_smoothing(small, noisy, 3.0, 3.0)
     err_s = np.linalg.norm(small - truth, axis=-1)
     err_a = np.linalg.norm(out - truth, axis=-1)
     flat = bump < 1e-4
@@ -446,7 +447,7 @@ def test_ici_beats_every_fixed_window_across_structure_and_background():
     fixed = {w: F.deflection_field(ref, frm, window=w, levels=2) for w in (5, 9, 25)}
     info = {}
     prep = F.prepare_reference(ref, levels=2)
-    u, v = F._flow_components(prep, frm, method="lk", window=25, window_type="gaussian", levels=2,
+    u, v = stage._flow_components(prep, frm, method="lk", window=25, window_type="gaussian", levels=2,
                               iterations=2, fine_iterations=1, presmooth=0.6, regularisation=1e-3,
                               gradient="frame", alpha=0.3, inner_iterations=30, dis_preset="medium",
                               corr_window=32, corr_step=16, corr_taper=False, ici_gamma=2.0,

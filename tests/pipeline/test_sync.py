@@ -6,6 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from schlieren.pipeline import sync as S
+from schlieren.pipeline.sync import motion
 from schlieren.pipeline.geometry import FlowGrid
 
 FR = 60.0
@@ -293,29 +294,48 @@ def test_row_warps_and_the_motion_cache_change_nothing(moving_case):
                                   F.warp_coefficients(coef, disp)[rows])
     with pytest.raises(ValueError, match="rows"):
         F.warp_coefficient_rows(coef, np.array([raw.shape[1]]), disp[:1])
-    S._MOTION_CACHE.clear()
+    motion._MOTION_CACHE.clear()
     m1 = S.cached_field_motion(raw[0], raw[1], window=15)
-    assert len(S._MOTION_CACHE) == 1
+    assert len(motion._MOTION_CACHE) == 1
     m2 = S.cached_field_motion(raw[0], raw[1], window=15)
     np.testing.assert_array_equal(m1, S.field_motion(raw[0], raw[1], window=15))
     np.testing.assert_array_equal(m2, m1)
-    assert len(S._MOTION_CACHE) == 1  # the second call was a hit
+    assert len(motion._MOTION_CACHE) == 1  # the second call was a hit
     m2[:] = 0  # callers own what they get
     np.testing.assert_array_equal(S.cached_field_motion(raw[0], raw[1], window=15), m1)
     other = S.cached_field_motion(raw[0], raw[1], window=9)  # other parameters: another entry
-    assert len(S._MOTION_CACHE) == 2 and not np.array_equal(other, m1)
+    assert len(motion._MOTION_CACHE) == 2 and not np.array_equal(other, m1)
     # a whole resampling gives the same field cold and with every motion from the cache
     kw = dict(offset=offset, frame_rate=FR, line_time=LT_SMALL, flow_grid=GRID)
-    S._MOTION_CACHE.clear()
+    motion._MOTION_CACHE.clear()
     cold = S.resample_flow(raw, f0, 0.1, **kw)
     warm = S.resample_flow(raw, f0, 0.1, **kw)
     np.testing.assert_array_equal(cold, warm)
     # the digests a caller kept are the cache's keys: the same result, with or without them
     # (None entries are computed), and no new entry
-    n = len(S._MOTION_CACHE)
+    n = len(motion._MOTION_CACHE)
     kept = [S.field_digest(r) for r in raw]
     np.testing.assert_array_equal(S.resample_flow(raw, f0, 0.1, digests=kept, **kw), cold)
     np.testing.assert_array_equal(S.resample_flow(raw, f0, 0.1, digests=[None] * len(raw), **kw), cold)
-    assert len(S._MOTION_CACHE) == n
-    S._MOTION_CACHE.clear()
+    assert len(motion._MOTION_CACHE) == n
+    motion._MOTION_CACHE.clear()
     np.testing.assert_array_equal(S.resample_flow(raw, f0, 0.1, digests=kept, **kw), cold)
+
+
+def test_motion_cache_keeps_the_eight_most_recently_used_pairs():
+    """The motion cache is an LRU of 8 frame pairs: a hit refreshes its pair, and the ninth
+    pair evicts the one used longest ago (the other seven stay hits)."""
+    rng = np.random.default_rng(7)
+    fields = rng.normal(size=(10, 24, 32, 2)).astype(np.float32)
+    motion._MOTION_CACHE.clear()
+    for j in range(8):
+        S.cached_field_motion(fields[j], fields[j + 1], window=5, levels=1, iterations=1)
+    assert len(motion._MOTION_CACHE) == 8
+    S.cached_field_motion(fields[0], fields[1], window=5, levels=1, iterations=1)  # a hit: now the newest
+    S.cached_field_motion(fields[8], fields[9], window=5, levels=1, iterations=1)
+    assert len(motion._MOTION_CACHE) == 8
+    kw = dict(window=5, levels=1, iterations=1)
+    keys = [motion._motion_key(fields[j], fields[j + 1], **kw) for j in range(9)]
+    assert keys[1] not in motion._MOTION_CACHE
+    assert all(k in motion._MOTION_CACHE for i, k in enumerate(keys) if i != 1)
+    motion._MOTION_CACHE.clear()

@@ -6,7 +6,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from schlieren.pipeline import flow as flowmod
+from schlieren.pipeline.flow import windows as flowwin
 from schlieren.pipeline.params import ParamsError, validate
 from schlieren.pipeline.stages import RunConfig
 from schlieren.workers import tasks
@@ -25,7 +25,7 @@ def test_the_window_is_the_flow_averaging_times_the_scale(scale):
     got = tasks.choose_flow_window(_ctx(cfg, factor=1))
     # at factor 1 (no block mean, no cell solve) the width is the LK window's, from its
     # taps, and the smoothing's, added in quadrature
-    taps = flowmod._window_taps(9, flow.window_type).astype(np.float64)
+    taps = flowwin._window_taps(9, flow.window_type).astype(np.float64)
     x = np.arange(len(taps)) - (len(taps) - 1) / 2.0
     var = np.sum(taps * x * x) / np.sum(taps) + flow.smoothing_sigma ** 2
     assert var > 1.0

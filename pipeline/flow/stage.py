@@ -1,0 +1,262 @@
+"""The flow entry points: :func:`deflection_field` (full-resolution flow by one of
+:data:`~.params.METHODS` behind one pyramid driver) and :func:`deflection_stage` (the
+per camera-frame stage kernel of paper sec. 4: flow at full resolution, then area
+downsampling to the flow grid, invalid cells, outliers, texture-bias correction and
+smoothing, in named steps).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from schlieren.pipeline.geometry import FlowGrid
+
+from .correlation import _correlation_flow
+from .dis import _dis_flow
+from .hs import _hs_level
+from .images import _as_image, _fill_nonfinite, _normalisation, _pyramid, _standardise
+from .lk import _lk_level, _texture_bias, _upsample_cells, ici_windows
+from .params import METHODS, FlowParams, uses_cell_solve
+from .post import _block_mean, _median_test, _nearest_fill, _smooth_cells
+from .reference import PreparedReference, _weight_pyramid, invalid_pixels, prepare_reference
+from .splines import prolong_flow
+from .windows import _window_filter, _window_taps
+
+__all__ = ["deflection_field", "deflection_stage"]
+
+log = logging.getLogger(__name__)
+
+
+def _pyramid_flow(level_solver, prep: PreparedReference, frame_pyr, *, iterations,
+                  fine_iterations, keep=None, weights=None, cells=0, **kw):
+    """Coarse to fine: ``level_solver`` (:func:`_lk_level`, :func:`_hs_level`) on each level
+    of the prepared pyramid, from zero flow, each level's flow prolonged to start the next."""
+    kw0 = kw
+    h, w = prep.pyramid[-1].shape
+    u = np.zeros((h, w), np.float32)
+    v = np.zeros((h, w), np.float32)
+    for lev in range(len(prep.pyramid) - 1, -1, -1):
+        if "gradient" in kw0:  # coarse levels only initialise: frame gradient (cheapest)
+            kw = dict(kw0, gradient=kw0["gradient"] if lev == 0 else "frame")
+        if u.shape != prep.pyramid[lev].shape:
+            u, v = prolong_flow(u, v, prep.pyramid[lev].shape)
+        it = fine_iterations if lev == 0 else iterations
+        w = weights[lev] if weights is not None and lev < len(weights) else None
+        extra = {} if lev == 0 or "ici" not in kw else {"ici": None}
+        if cells > 1:  # every level on f x f cells of its pixels; the finest returns the cell grid
+            extra["cells"] = cells
+        u, v = level_solver(prep.coefficients[lev], frame_pyr[lev], u, v, iterations=it,
+                            keep=keep if lev == 0 else None, weight=w, **{**kw, **extra})
+        if lev > 0 and cells > 1:  # a coarse level's cells -> its pixels, for the prolongation
+            u, v = _upsample_cells(u, v, cells, prep.pyramid[lev].shape)
+    return u, v
+
+
+def deflection_field(
+    reference,
+    frame: np.ndarray,
+    *,
+    method: str = "lk",
+    window: int = 17,
+    window_type: str = "gaussian",
+    levels: int = 3,
+    iterations: int = 2,
+    fine_iterations: int = 1,
+    presmooth: float = 0.6,
+    regularisation: float = 1e-3,
+    gradient: str = "frame",
+    alpha: float = 0.3,
+    inner_iterations: int = 30,
+    dis_preset: str = "medium",
+    corr_window: int = 32,
+    corr_step: int = 16,
+    corr_taper: bool = False,
+    ici_gamma: float = 0.0,
+    ici_min_window: int = 5,
+) -> np.ndarray:
+    """Full-resolution BOS deflection field between a reference background and a frame.
+
+    Paper sec. 4 ("Computing BOS deflections"): dense pyramidal Lucas-Kanade (default),
+    Horn-Schunck, OpenCV DIS, or window cross-correlation. Keyword parameters are those of
+    :class:`FlowParams` (see there for units); each method uses its own subset.
+
+    Parameters
+    ----------
+    reference : ndarray, shape (H, W), or PreparedReference
+        Background without flow, grey levels (any range; float32 internally).
+    frame : ndarray, shape (H, W)
+        Image through the flow.
+
+    Returns
+    -------
+    flow : ndarray, shape (H, W, 2), float32
+        ``delta`` in pixels such that ``frame(p) ~= reference(p + delta)``;
+        ``[..., 0]`` = u (columns), ``[..., 1]`` = v (rows).
+    """
+    kw = {k: val for k, val in locals().items() if k not in ("reference", "frame")}
+    u, v = _flow_components(reference, frame, **kw)
+    out = np.empty(u.shape + (2,), np.float32)
+    out[..., 0] = u
+    out[..., 1] = v
+    return out
+
+
+def _flow_components(reference, frame, *, method, window, window_type, levels, iterations,
+                     fine_iterations, presmooth, regularisation, gradient, alpha,
+                     inner_iterations, dis_preset, corr_window, corr_step, corr_taper,
+                     ici_gamma=0.0, ici_min_window=5, keep=None, valid=None, info=None, cells=0):
+    """:func:`deflection_field` as two (H, W) float32 arrays (u, v); for LK, ``keep``
+    (a dict) receives the full-resolution frame gradients ``gx``, ``gy``. ``valid``
+    (H, W) bool: pixels the flow may use (LK and HS weight the others out; every method
+    gets NaN-free images). ``cells`` = f > 1 with LK (frame gradient, no ICI): the finest
+    level is solved per f x f cell (:func:`_lk_cells`) and (u, v) are (H // f, W // f);
+    ``keep["mom"]`` then holds the block moments. Other methods ignore it."""
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    frm = _as_image(frame, "frame")
+    if isinstance(reference, PreparedReference):
+        prep = reference
+        if method in ("lk", "hs") and (prep.presmooth != presmooth or prep.levels != levels):
+            raise ValueError("PreparedReference was built with presmooth="
+                             f"{prep.presmooth}, levels={prep.levels}; the flow asks for "
+                             f"presmooth={presmooth}, levels={levels}")
+    elif method in ("lk", "hs"):
+        prep = prepare_reference(reference, presmooth=presmooth, levels=levels)
+    else:
+        img = _as_image(reference, "reference")
+        mean, scale = _normalisation(img)
+        prep = PreparedReference(_fill_nonfinite(img, mean), mean, scale, 0.0, 1, (), ())
+    if prep.shape != frm.shape:
+        raise ValueError(f"reference {prep.shape} and frame {frm.shape} differ in shape")
+    frm = _fill_nonfinite(frm, prep.mean)
+    if method in ("lk", "hs"):
+        fpyr = _pyramid(_standardise(frm, prep.mean, prep.scale, presmooth), len(prep.pyramid))
+        weights = None if valid is None or valid.all() else _weight_pyramid(valid, len(prep.pyramid))
+        if method == "lk":
+            ici = None
+            if ici_gamma > 0 and gradient == "frame":
+                ici = {"windows": ici_windows(min(ici_min_window, window), window), "gamma": ici_gamma,
+                       "info": info}
+            u, v = _pyramid_flow(_lk_level, prep, fpyr, window=window, window_type=window_type,
+                                 iterations=iterations, fine_iterations=fine_iterations,
+                                 regularisation=regularisation, gradient=gradient,
+                                 keep=keep, weights=weights, ici=ici, cells=cells)
+        else:
+            u, v = _pyramid_flow(_hs_level, prep, fpyr, iterations=iterations,
+                                 fine_iterations=fine_iterations, alpha=alpha,
+                                 inner_iterations=inner_iterations, weights=weights)
+    else:
+        ref = _standardise(prep.image, prep.mean, prep.scale, 0.0)
+        frs = _standardise(frm, prep.mean, prep.scale, 0.0)
+        if method == "dis":
+            u, v = _dis_flow(ref, frs, dis_preset=dis_preset)
+        else:
+            u, v = _correlation_flow(ref, frs, corr_window=corr_window, corr_step=corr_step,
+                                     corr_taper=corr_taper)
+    return u, v
+
+
+def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowParams(), *,
+                     info: dict | None = None) -> np.ndarray:
+    """Per camera-frame deflection stage: flow, area downsampling, outliers, smoothing.
+
+    Paper sec. 4: full-resolution optical flow, downsampled to the flow grid
+    ``FlowGrid((W, H), params.factor)`` *after* the flow, smoothed and filtered for
+    outliers. The normalised median test and the smoothing run on the flow grid: the LK
+    flow is correlated over its window (``window`` > ``factor``), so its outliers are
+    window-sized, not single pixels, and filtering the 9x smaller grid is far cheaper.
+    ``smoothing_sigma`` is given in full-resolution pixels (``sigma / factor`` on the grid).
+
+    With ``texture_correction`` (LK), the first-order bias of the LK window mean is
+    subtracted after the outlier test (:func:`_texture_bias`): where the deflection varies
+    across the window, LK returns its structure-tensor weighted mean, centred on the
+    texture's weighted centroid rather than on the pixel. On the buoyant-plume phantom this
+    was the largest error term (benchmarks/flow.py); it costs about 10 % of the stage.
+    Finally, with ``adaptive_sigma`` > 0, :func:`_adaptive_smoothing` smooths more where
+    the flow is smooth (weak, slowly varying deflections: mostly noise) and keeps the
+    ``smoothing_sigma`` result across structure.
+
+    With ``invalid_check``, pixels of the reference or the frame that cannot carry a
+    deflection (:func:`invalid_pixels`) get zero weight in the flow, and the flow-grid
+    cells where they hold half or more of the cell or of its LK window come back as NaN
+    (the masks treat them as "possibly flow", the tomography drops their rays).
+
+    Parameters
+    ----------
+    reference : ndarray, shape (H, W), or PreparedReference
+        Background (float32 grey levels, 8- or 16-bit range). Passing the
+        :class:`PreparedReference` of the camera saves its per-call preparation.
+    frame : ndarray, shape (H, W)
+    params : FlowParams
+    info : dict, optional
+        Receives what the data chose (with ICI: the image noise, the median window, the
+        fraction of pixels per window and the median predicted flow noise in pixels).
+
+    Returns
+    -------
+    flow : ndarray, shape (H // f, W // f, 2), float32
+        Deflection in original-image pixels (component 0 = u, 1 = v).
+    """
+    f = params.factor
+    H, W = np.shape(frame)[:2]
+    rows, cols = FlowGrid((W, H), f).shape
+    valid = _valid_pixels(reference, frame, params.texture_threshold) if params.invalid_check else None
+    on_cells = uses_cell_solve(params)
+    ici = params.method == "lk" and params.ici_gamma > 0 and params.gradient == "frame"
+    texture = params.method == "lk" and params.texture_correction and not ici
+    keep = {} if texture or on_cells else None
+    u, v = _flow_components(reference, frame, **params.field_kwargs(), keep=keep, valid=valid, info=info,
+                            cells=f if on_cells else 0)
+    if u.shape == (rows, cols) and on_cells:
+        comps = [u, v]
+    else:
+        comps = [_block_mean(u, f, (rows, cols)), _block_mean(v, f, (rows, cols))]
+    bad_cells = None
+    if valid is not None:
+        bad_cells = _bad_cells(valid, params.window, params.window_type, f, (rows, cols))
+        if bad_cells.all():
+            return np.full((rows, cols, 2), np.nan, np.float32)
+        filled = _nearest_fill(np.dstack(comps), bad_cells)
+        comps = [np.ascontiguousarray(filled[..., 0]), np.ascontiguousarray(filled[..., 1])]
+    if params.outlier_threshold > 0:
+        comps = _replace_outliers(comps, params.outlier_threshold, params.outlier_epsilon)
+    if keep and params.texture_correction:
+        bu, bv = _texture_bias(keep["gx"], keep["gy"], comps[0], comps[1], window=params.window,
+                               window_type=params.window_type, factor=params.factor, mom=keep.get("mom"),
+                               linear=on_cells, T=keep.get("T"))
+        comps = [comps[0] - bu, comps[1] - bv]
+    out = _smooth_cells(comps, params.smoothing_sigma / f, params.adaptive_sigma / f, params.adaptive_threshold)
+    if bad_cells is not None and bad_cells.any():
+        out[bad_cells] = np.nan
+    return out
+
+
+def _valid_pixels(reference, frame: np.ndarray, texture_threshold: float) -> np.ndarray | None:
+    """Pixels of both the reference and the frame that can carry a deflection
+    (:func:`invalid_pixels`; a :class:`PreparedReference` keeps its own map); ``None``
+    when all can."""
+    inv_ref = reference.invalid(texture_threshold) if isinstance(reference, PreparedReference) \
+        else invalid_pixels(reference, texture_threshold=texture_threshold)
+    inv = inv_ref | invalid_pixels(frame, texture_threshold=texture_threshold)
+    return ~inv if inv.any() else None
+
+
+def _bad_cells(valid: np.ndarray, window: int, window_type: str, f: int, shape: tuple[int, int]) -> np.ndarray:
+    """Flow-grid cells where invalid pixels hold half or more of the cell or of the LK
+    window weight around its pixels."""
+    # a cell is kept if most of the window weight around its pixels lies on valid ones
+    w0 = _weight_pyramid(valid, 1)[0]
+    support = _block_mean(_window_filter(w0, _window_taps(window, window_type)), f, shape)
+    return (_block_mean(w0, f, shape) < 0.5) | (support < 0.5)
+
+
+def _replace_outliers(comps: list, threshold: float, epsilon: float) -> list:
+    """The normalised median test on the flow grid's (u, v) (:func:`_median_test`)."""
+    cu, cv_, bad = _median_test(comps[0], comps[1], threshold, epsilon)
+    n_out = int(np.count_nonzero(bad))
+    if n_out:
+        log.debug("deflection_stage: replaced %d outlier vectors (%.3f%%)",
+                  n_out, 100.0 * n_out / bad.size)
+    return [cu, cv_]
