@@ -37,7 +37,6 @@ from schlieren.workers.cluster import (
     IMAGE_UID,
     THREAD_ENV,
     TOMO,
-    _VERSION_PACKAGES,
     daskcluster_manifest,
     job_script,
     jobqueue_cluster,
@@ -46,6 +45,7 @@ from schlieren.workers.cluster import (
     schlieren_section,
     unique_cluster_config,
 )
+from schlieren.workers.cluster.scheduler import _VERSION_PACKAGES
 from schlieren.workers.commands.submit import load_submit_config
 
 REPO = Path(__file__).resolve().parents[2]
