@@ -1,5 +1,12 @@
 """Kubernetes through the Dask operator: the ``DaskCluster`` resource of a submit config
 (``deploy/kubernetes/schlieren.yaml``) and the ``KubeCluster`` that creates it.
+
+The resource starts from dask-kubernetes' own template (``make_cluster_spec``: scheduler
+and worker containers, ports, health probes, the scheduler service) and adds what the
+template cannot express, each in a small function: our worker and scheduler command lines
+(one thread, ``TOMO``, memory limit, ``dask scheduler`` with its dashboard and TLS),
+separate scheduler resources, the "restricted" Pod Security Standard, the volumes (data
+and the TLS secret), the service account and the namespace.
 """
 
 from __future__ import annotations
@@ -8,7 +15,7 @@ import copy
 import json
 import re
 import secrets
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 from schlieren.workers.cluster.options import schlieren_section, underscore_keys
@@ -23,6 +30,12 @@ _K8S_NAME = re.compile(r"^[a-z]([-a-z0-9]*[a-z0-9])?$")
 #: longest ``kubernetes.name``: it gets a ``-xxxxxx`` suffix per submit, and the operator
 #: names worker deployments ``<name>-default-worker-<10 chars>`` (63 at most)
 _MAX_NAME = 32
+#: keys of the ``kubernetes:`` section (with ``_``)
+_KNOWN_KEYS = {
+    "name", "image", "workers", "worker_memory", "worker_cpu", "scheduler_memory", "scheduler_cpu",
+    "env", "tls_secret", "image_pull_policy", "service_account", "namespace", "volumes", "idle_timeout",
+    "run_as_user",
+}
 _NOT_INSTALLED = "dask-kubernetes is not installed: pip install dask-kubernetes"
 
 
@@ -69,6 +82,121 @@ def _volumes(raw: Any) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     return volumes, mounts
 
 
+def _sections(config: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The ``kubernetes:`` section (keys with ``_``; its name, image and uid checked) and
+    the ``schlieren:`` section (:func:`~schlieren.workers.cluster.options.schlieren_section`)."""
+    k8s = config.get("kubernetes")
+    if not isinstance(k8s, Mapping):
+        raise ValueError("the config has no 'kubernetes:' section")
+    kc = underscore_keys(k8s)
+    unknown = set(kc) - _KNOWN_KEYS
+    if unknown:
+        raise ValueError(f"unknown key(s) in the 'kubernetes' section: {', '.join(sorted(unknown))}")
+    sec = schlieren_section(config)
+    name = str(kc.get("name", "schlieren"))
+    if not _K8S_NAME.match(name) or len(name) > _MAX_NAME + 7:
+        raise ValueError(
+            f"kubernetes.name {name!r}: lowercase letters, digits and '-', starting with a letter, at most {_MAX_NAME}"
+        )
+    if not kc.get("image"):
+        raise ValueError("kubernetes.image is required (the image built from deploy/Containerfile)")
+    if int(kc.get("run_as_user", IMAGE_UID)) < 1:
+        raise ValueError("kubernetes.run-as-user must be a non-root uid (the image's is 10001)")
+    return kc, sec
+
+
+def _make_cluster_spec() -> Callable[..., dict[str, Any]]:
+    """dask-kubernetes' ``make_cluster_spec`` (imported when a manifest is made: it loads kr8s)."""
+    try:
+        from dask_kubernetes.operator import make_cluster_spec
+    except ImportError as exc:
+        raise RuntimeError(_NOT_INSTALLED) from exc
+    return make_cluster_spec
+
+
+def _requests_are_limits(cpu: str, memory: str) -> dict[str, dict[str, str]]:
+    return {"requests": {"cpu": cpu, "memory": memory}, "limits": {"cpu": cpu, "memory": memory}}
+
+
+def _tls_args(tls_secret: Any, role: str) -> list[str]:
+    """``--tls-*`` flags of ``role``, naming the files of the mounted ``tls-secret``."""
+    if not tls_secret:
+        return []
+    return [
+        "--tls-ca-file", f"{TLS_MOUNT}/ca.pem",
+        "--tls-cert", f"{TLS_MOUNT}/{role}.pem",
+        "--tls-key", f"{TLS_MOUNT}/{role}-key.pem",
+    ]
+
+
+def _worker_command(name: str, memory: str, tomo_slots: int, tls_secret: Any) -> list[str]:
+    """``dask worker`` with one thread, a memory limit equal to the pod's, ``TOMO`` and TLS
+    (the template appends ``--name $(DASK_WORKER_NAME)`` and the dashboard port)."""
+    command = ["dask", "worker"]
+    if tls_secret:
+        # the operator's DASK_SCHEDULER_ADDRESS is tcp://; name the tls:// service address instead
+        command.append(f"tls://{name}-scheduler:8786")
+    return [
+        *command,
+        "--nthreads", "1",
+        "--memory-limit", memory.replace("Gi", "GiB").replace("Mi", "MiB"),
+        "--resources", f"{TOMO}={tomo_slots}",
+        *_tls_args(tls_secret, "worker"),
+    ]
+
+
+def _scheduler_args(template_args: list[str], tls_secret: Any) -> list[str]:
+    """The template's ``dask-scheduler ARGS`` (a script distributed removed in 2026.6) as
+    ``dask scheduler ARGS`` with the dashboard on ``:8787`` and, with a secret, TLS."""
+    args = ["dask", "scheduler", *template_args[1:], "--dashboard-address", ":8787"]
+    if tls_secret:
+        args += ["--protocol", "tls", *_tls_args(tls_secret, "scheduler")]
+    return args
+
+
+def _restrict(pod: dict[str, Any], uid: int) -> None:
+    """The "restricted" Pod Security Standard on a pod spec and its containers.
+
+    Pods run as ``uid`` and its gid, with it as ``fsGroup`` (mounted secrets are
+    group-readable, mode 0440), ``seccompProfile: RuntimeDefault``; containers drop every
+    capability and cannot escalate privileges.
+    """
+    pod["securityContext"] = {
+        "runAsNonRoot": True,
+        "runAsUser": uid,
+        "runAsGroup": uid,
+        "fsGroup": uid,
+        # chown a volume only when its root is not yet ours: a store holds millions of chunk files
+        "fsGroupChangePolicy": "OnRootMismatch",
+        "seccompProfile": {"type": "RuntimeDefault"},
+    }
+    for container in pod["containers"]:
+        container["securityContext"] = {
+            "runAsNonRoot": True,
+            "allowPrivilegeEscalation": False,
+            "capabilities": {"drop": ["ALL"]},
+        }
+
+
+def _mount(pod: dict[str, Any], volumes: list[dict[str, Any]], mounts: list[dict[str, Any]]) -> None:
+    """Add ``volumes`` to a pod spec and ``mounts`` to its (only) container, if any."""
+    if volumes:
+        pod["volumes"] = volumes
+    if mounts:
+        pod["containers"][0]["volumeMounts"] = mounts
+
+
+def _tls_volume(tls_secret: Any) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """The ``tls-secret`` as (pod volumes, container mounts), read-only at :data:`TLS_MOUNT`."""
+    if not tls_secret:
+        return [], []
+    # 0440 + fsGroup: the kubelet makes the files root:<uid>, readable by the pod's group only
+    return (
+        [{"name": "tls", "secret": {"secretName": str(tls_secret), "defaultMode": 0o440}}],
+        [{"name": "tls", "mountPath": TLS_MOUNT, "readOnly": True}],
+    )
+
+
 def daskcluster_manifest(config: Mapping[str, Any]) -> dict[str, Any]:
     """A ``DaskCluster`` resource (Dask Kubernetes operator, ``kubernetes.dask.org/v1``).
 
@@ -87,149 +215,36 @@ def daskcluster_manifest(config: Mapping[str, Any]) -> dict[str, Any]:
     privilege escalation (the "restricted" Pod Security Standard). Workers run one thread,
     advertise ``TOMO=<tomo-slots>``, get the thread caps as environment variables and a
     memory limit equal to their request.
+
+    Built on dask-kubernetes' ``make_cluster_spec`` (the ``kubernetes`` extra).
     """
-    k8s = config.get("kubernetes")
-    if not isinstance(k8s, Mapping):
-        raise ValueError("the config has no 'kubernetes:' section")
-    kc = underscore_keys(k8s)
-    known = {
-        "name", "image", "workers", "worker_memory", "worker_cpu", "scheduler_memory", "scheduler_cpu",
-        "env", "tls_secret", "image_pull_policy", "service_account", "namespace", "volumes", "idle_timeout",
-        "run_as_user",
-    }
-    unknown = set(kc) - known
-    if unknown:
-        raise ValueError(f"unknown key(s) in the 'kubernetes' section: {', '.join(sorted(unknown))}")
-    sec = schlieren_section(config)
+    kc, sec = _sections(config)
     name = str(kc.get("name", "schlieren"))
-    if not _K8S_NAME.match(name) or len(name) > _MAX_NAME + 7:
-        raise ValueError(
-            f"kubernetes.name {name!r}: lowercase letters, digits and '-', starting with a letter, at most {_MAX_NAME}"
-        )
-    image = kc.get("image")
-    if not image:
-        raise ValueError("kubernetes.image is required (the image built from deploy/Containerfile)")
-    raw_sec = underscore_keys(config.get("schlieren") or {})
-    replicas = int(raw_sec.get("scale", kc.get("workers", 2)))
-    wmem = str(kc.get("worker_memory", "4Gi"))
-    wcpu = str(kc.get("worker_cpu", "1"))
-    smem = str(kc.get("scheduler_memory", "2Gi"))
-    scpu = str(kc.get("scheduler_cpu", "1"))
-    env = {**THREAD_ENV, **{str(k): str(v) for k, v in (kc.get("env") or {}).items()}}
-    env_list = [{"name": k, "value": v} for k, v in env.items()]
+    replicas = int(underscore_keys(config.get("schlieren") or {}).get("scale", kc.get("workers", 2)))
+    wmem, smem = str(kc.get("worker_memory", "4Gi")), str(kc.get("scheduler_memory", "2Gi"))
     tls_secret = kc.get("tls_secret")
-    pull = str(kc.get("image_pull_policy", "IfNotPresent"))
-    uid = int(kc.get("run_as_user", IMAGE_UID))
-    if uid < 1:
-        raise ValueError("kubernetes.run-as-user must be a non-root uid (the image's is 10001)")
     data_volumes, data_mounts = _volumes(kc.get("volumes"))
-
-    def tls_args(role: str) -> list[str]:
-        if not tls_secret:
-            return []
-        return [
-            "--tls-ca-file", f"{TLS_MOUNT}/ca.pem",
-            "--tls-cert", f"{TLS_MOUNT}/{role}.pem",
-            "--tls-key", f"{TLS_MOUNT}/{role}-key.pem",
-        ]
-
-    # 0440 + fsGroup: the kubelet makes the files root:<uid>, readable by the pod's group only
-    tls_volumes = [{"name": "tls", "secret": {"secretName": str(tls_secret), "defaultMode": 0o440}}] if tls_secret else []
-    tls_mounts = [{"name": "tls", "mountPath": TLS_MOUNT, "readOnly": True}] if tls_secret else []
-    pod_security = {
-        "runAsNonRoot": True,
-        "runAsUser": uid,
-        "runAsGroup": uid,
-        "fsGroup": uid,
-        # chown a volume only when its root is not yet ours: a store holds millions of chunk files
-        "fsGroupChangePolicy": "OnRootMismatch",
-        "seccompProfile": {"type": "RuntimeDefault"},
-    }
-    container_security = {
-        "runAsNonRoot": True,
-        "allowPrivilegeEscalation": False,
-        "capabilities": {"drop": ["ALL"]},
-    }
-
-    worker_args = ["dask", "worker"]
-    if tls_secret:
-        # the operator's DASK_SCHEDULER_ADDRESS is tcp://; name the tls:// service address instead
-        worker_args.append(f"tls://{name}-scheduler:8786")
-    worker_args += [
-        "--name", "$(DASK_WORKER_NAME)",
-        "--nthreads", "1",
-        "--memory-limit", wmem.replace("Gi", "GiB").replace("Mi", "MiB"),
-        "--resources", f"{TOMO}={sec['tomo_slots']}",
-        "--dashboard-address", "8788",
-        *tls_args("worker"),
-    ]
-    scheduler_args = ["dask", "scheduler", "--host", "0.0.0.0", "--dashboard-address", ":8787"]
-    if tls_secret:
-        scheduler_args += ["--protocol", "tls", *tls_args("scheduler")]
-
-    def pod(container: dict[str, Any], volumes: list[dict[str, Any]]) -> dict[str, Any]:
-        spec: dict[str, Any] = {"securityContext": pod_security, "containers": [container]}
-        if volumes:
-            spec["volumes"] = volumes
+    manifest = _make_cluster_spec()(
+        name,
+        image=kc["image"],
+        n_workers=replicas,
+        resources=_requests_are_limits(str(kc.get("worker_cpu", "1")), wmem),
+        env={**THREAD_ENV, **{str(k): str(v) for k, v in (kc.get("env") or {}).items()}},
+        worker_command=_worker_command(name, wmem, sec["tomo_slots"], tls_secret),
+        idle_timeout=int(kc["idle_timeout"]) if kc.get("idle_timeout") is not None else 0,
+    )
+    worker_pod, scheduler_pod = manifest["spec"]["worker"]["spec"], manifest["spec"]["scheduler"]["spec"]
+    (scheduler,) = scheduler_pod["containers"]
+    scheduler["args"] = _scheduler_args(scheduler["args"], tls_secret)
+    scheduler["resources"] = _requests_are_limits(str(kc.get("scheduler_cpu", "1")), smem)
+    tls_volumes, tls_mounts = _tls_volume(tls_secret)
+    _mount(worker_pod, tls_volumes + data_volumes, tls_mounts + data_mounts)
+    _mount(scheduler_pod, tls_volumes, tls_mounts)  # the scheduler reads no data
+    for pod in (worker_pod, scheduler_pod):
+        pod["containers"][0]["imagePullPolicy"] = str(kc.get("image_pull_policy", "IfNotPresent"))
+        _restrict(pod, int(kc.get("run_as_user", IMAGE_UID)))
         if kc.get("service_account"):
-            spec["serviceAccountName"] = str(kc["service_account"])
-        return spec
-
-    worker = {
-        "name": "worker",
-        "image": image,
-        "imagePullPolicy": pull,
-        "args": worker_args,
-        "env": env_list,
-        "resources": {"requests": {"cpu": wcpu, "memory": wmem}, "limits": {"cpu": wcpu, "memory": wmem}},
-        "ports": [{"name": "http-dashboard", "containerPort": 8788, "protocol": "TCP"}],
-        "securityContext": container_security,
-    }
-    scheduler = {
-        "name": "scheduler",
-        "image": image,
-        "imagePullPolicy": pull,
-        "args": scheduler_args,
-        "env": env_list,
-        "resources": {"requests": {"cpu": scpu, "memory": smem}, "limits": {"cpu": scpu, "memory": smem}},
-        "ports": [
-            {"name": "tcp-comm", "containerPort": 8786, "protocol": "TCP"},
-            {"name": "http-dashboard", "containerPort": 8787, "protocol": "TCP"},
-        ],
-        "readinessProbe": {
-            "httpGet": {"port": "http-dashboard", "path": "/health"},
-            "initialDelaySeconds": 0,
-            "periodSeconds": 1,
-            "timeoutSeconds": 300,
-        },
-        "livenessProbe": {"httpGet": {"port": "http-dashboard", "path": "/health"}, "initialDelaySeconds": 15, "periodSeconds": 20},
-        "securityContext": container_security,
-    }
-    if tls_mounts or data_mounts:
-        worker["volumeMounts"] = tls_mounts + data_mounts
-    if tls_mounts:
-        scheduler["volumeMounts"] = tls_mounts
-    spec: dict[str, Any] = {}
-    if kc.get("idle_timeout") is not None:
-        spec["idleTimeout"] = int(kc["idle_timeout"])
-    spec["worker"] = {"replicas": replicas, "spec": pod(worker, tls_volumes + data_volumes)}
-    spec["scheduler"] = {
-        "spec": pod(scheduler, tls_volumes),
-        "service": {
-            "type": "ClusterIP",
-            "selector": {"dask.org/cluster-name": name, "dask.org/component": "scheduler"},
-            "ports": [
-                {"name": "tcp-comm", "protocol": "TCP", "port": 8786, "targetPort": "tcp-comm"},
-                {"name": "http-dashboard", "protocol": "TCP", "port": 8787, "targetPort": "http-dashboard"},
-            ],
-        },
-    }
-    manifest: dict[str, Any] = {
-        "apiVersion": "kubernetes.dask.org/v1",
-        "kind": "DaskCluster",
-        "metadata": {"name": name},
-        "spec": spec,
-    }
+            pod["serviceAccountName"] = str(kc["service_account"])
     if kc.get("namespace"):
         manifest["metadata"]["namespace"] = str(kc["namespace"])
     return json.loads(json.dumps(manifest))  # no shared sub-objects (YAML anchors when dumped)
