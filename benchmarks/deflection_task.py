@@ -21,7 +21,7 @@
 4. Checks that both stores hold bit-identical ``flow_raw`` and ``frame_quality``.
 
 The process runs as a Dask worker does: OpenCV single-threaded, and glibc's allocator with
-the settings the cluster gives its workers (``workers/cluster.MALLOC_ENV``; the script
+the settings the cluster gives its workers (``workers/cluster/settings.MALLOC_ENV``; the script
 re-executes itself with them). Without them every large temporary is page-faulted afresh:
 about 17 ms of system CPU per task on top of what is reported here.
 

@@ -26,9 +26,13 @@ import os
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from distributed.security import Security
+
+if TYPE_CHECKING:
+    from cryptography import x509
+    from cryptography.hazmat.primitives.asymmetric import ec
 
 log = logging.getLogger(__name__)
 
@@ -200,11 +204,6 @@ def make_certificates(
     -------
     CertificateSet
     """
-    from cryptography import x509
-    from cryptography.hazmat.primitives import hashes, serialization
-    from cryptography.hazmat.primitives.asymmetric import ec
-    from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     if (out / CA_CERT).exists() and not overwrite:
@@ -216,56 +215,75 @@ def make_certificates(
         raise ValueError(f"days must be positive, got {days}")
 
     now = _dt.datetime.now(_dt.timezone.utc) - _dt.timedelta(minutes=5)
-    until = now + _dt.timedelta(days=days)
+    validity = (now, now + _dt.timedelta(days=days))
+    ca_key = _new_key()
+    ca_cert = _ca_certificate(ca_key, f"{common_name} project CA", validity)
+    _write_key(out / CA_KEY, ca_key)
+    _write_cert(out / CA_CERT, ca_cert)
+    sans = _subject_alt_names(hosts)
+    for role in ROLES:
+        key = _new_key()
+        cert = _role_certificate(key, f"{common_name}-{role}", sans, ca_key, ca_cert, validity)
+        _write_key(out / key_name(role), key)
+        _write_cert(out / cert_name(role), cert)
+    log.info("wrote a project CA and %s certificates to %s", "/".join(ROLES), out)
+    return CertificateSet(directory=out, ca_file=out / CA_CERT, ca_key=out / CA_KEY)
 
-    def new_key() -> ec.EllipticCurvePrivateKey:
-        return ec.generate_private_key(ec.SECP256R1())
 
-    def write_key(path: Path, key: ec.EllipticCurvePrivateKey) -> None:
-        data = key.private_bytes(
-            serialization.Encoding.PEM,
-            serialization.PrivateFormat.PKCS8,
-            serialization.NoEncryption(),
-        )
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.chmod(path, 0o600)
+# ----------------------------------------------------------------------------------------
+# the pieces of make_certificates (cryptography is imported only when certificates are made)
 
-    def write_cert(path: Path, cert: x509.Certificate) -> None:
-        path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
 
-    ca_key = new_key()
-    ca_name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, f"{common_name} project CA")])
-    ca_ski = x509.SubjectKeyIdentifier.from_public_key(ca_key.public_key())
-    ca_cert = (
-        x509.CertificateBuilder()
-        .subject_name(ca_name)
-        .issuer_name(ca_name)
-        .public_key(ca_key.public_key())
-        .serial_number(x509.random_serial_number())
-        .not_valid_before(now)
-        .not_valid_after(until)
-        .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
-        .add_extension(
-            x509.KeyUsage(
-                digital_signature=True,
-                content_commitment=False,
-                key_encipherment=False,
-                data_encipherment=False,
-                key_agreement=False,
-                key_cert_sign=True,
-                crl_sign=True,
-                encipher_only=False,
-                decipher_only=False,
-            ),
-            critical=True,
-        )
-        .add_extension(ca_ski, critical=False)
-        .sign(ca_key, hashes.SHA256())
+def _new_key() -> ec.EllipticCurvePrivateKey:
+    """A fresh ECDSA P-256 private key."""
+    from cryptography.hazmat.primitives.asymmetric import ec
+
+    return ec.generate_private_key(ec.SECP256R1())
+
+
+def _key_usage(*, ca: bool) -> x509.KeyUsage:
+    """Key usage of the CA (signs certificates and CRLs) or of a party (signs, agrees keys)."""
+    from cryptography import x509
+
+    return x509.KeyUsage(
+        digital_signature=True,
+        content_commitment=False,
+        key_encipherment=False,
+        data_encipherment=False,
+        key_agreement=not ca,
+        key_cert_sign=ca,
+        crl_sign=ca,
+        encipher_only=False,
+        decipher_only=False,
     )
-    write_key(out / CA_KEY, ca_key)
-    write_cert(out / CA_CERT, ca_cert)
+
+
+def _ca_certificate(key: ec.EllipticCurvePrivateKey, subject: str,
+                    validity: tuple[_dt.datetime, _dt.datetime]) -> x509.Certificate:
+    """The self-signed project CA (``path_length=0``: it signs the parties' certificates only)."""
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes
+    from cryptography.x509.oid import NameOID
+
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, subject)])
+    return (
+        x509.CertificateBuilder()
+        .subject_name(name)
+        .issuer_name(name)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(validity[0])
+        .not_valid_after(validity[1])
+        .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+        .add_extension(_key_usage(ca=True), critical=True)
+        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
+        .sign(key, hashes.SHA256())
+    )
+
+
+def _subject_alt_names(hosts: Iterable[str]) -> list[x509.GeneralName]:
+    """IP addresses as IP SANs, everything else as DNS SANs."""
+    from cryptography import x509
 
     sans: list[x509.GeneralName] = []
     for h in hosts:
@@ -273,42 +291,56 @@ def make_certificates(
             sans.append(x509.IPAddress(ipaddress.ip_address(h)))
         except ValueError:
             sans.append(x509.DNSName(h))
+    return sans
 
-    for role in ROLES:
-        key = new_key()
-        cert = (
-            x509.CertificateBuilder()
-            .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, f"{common_name}-{role}")]))
-            .issuer_name(ca_name)
-            .public_key(key.public_key())
-            .serial_number(x509.random_serial_number())
-            .not_valid_before(now)
-            .not_valid_after(until)
-            .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
-            .add_extension(
-                x509.KeyUsage(
-                    digital_signature=True,
-                    content_commitment=False,
-                    key_encipherment=False,
-                    data_encipherment=False,
-                    key_agreement=True,
-                    key_cert_sign=False,
-                    crl_sign=False,
-                    encipher_only=False,
-                    decipher_only=False,
-                ),
-                critical=True,
-            )
-            .add_extension(
-                x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]),
-                critical=False,
-            )
-            .add_extension(x509.SubjectAlternativeName(sans), critical=False)
-            .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
-            .add_extension(x509.AuthorityKeyIdentifier.from_issuer_subject_key_identifier(ca_ski), critical=False)
-            .sign(ca_key, hashes.SHA256())
+
+def _role_certificate(key: ec.EllipticCurvePrivateKey, subject: str, sans: list[x509.GeneralName],
+                      ca_key: ec.EllipticCurvePrivateKey, ca_cert: x509.Certificate,
+                      validity: tuple[_dt.datetime, _dt.datetime]) -> x509.Certificate:
+    """A scheduler, worker or client certificate signed by the CA, for both server and
+    client authentication (workers connect to each other), valid for ``sans``."""
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes
+    from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+    ca_ski = ca_cert.extensions.get_extension_for_class(x509.SubjectKeyIdentifier).value
+    return (
+        x509.CertificateBuilder()
+        .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, subject)]))
+        .issuer_name(ca_cert.subject)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(validity[0])
+        .not_valid_after(validity[1])
+        .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+        .add_extension(_key_usage(ca=False), critical=True)
+        .add_extension(
+            x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]),
+            critical=False,
         )
-        write_key(out / key_name(role), key)
-        write_cert(out / cert_name(role), cert)
-    log.info("wrote a project CA and %s certificates to %s", "/".join(ROLES), out)
-    return CertificateSet(directory=out, ca_file=out / CA_CERT, ca_key=out / CA_KEY)
+        .add_extension(x509.SubjectAlternativeName(sans), critical=False)
+        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
+        .add_extension(x509.AuthorityKeyIdentifier.from_issuer_subject_key_identifier(ca_ski), critical=False)
+        .sign(ca_key, hashes.SHA256())
+    )
+
+
+def _write_key(path: Path, key: ec.EllipticCurvePrivateKey) -> None:
+    """``key`` as unencrypted PKCS#8 PEM, created with mode 0600 (never readable by others)."""
+    from cryptography.hazmat.primitives import serialization
+
+    data = key.private_bytes(
+        serialization.Encoding.PEM,
+        serialization.PrivateFormat.PKCS8,
+        serialization.NoEncryption(),
+    )
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "wb") as fh:
+        fh.write(data)
+    os.chmod(path, 0o600)
+
+
+def _write_cert(path: Path, cert: x509.Certificate) -> None:
+    from cryptography.hazmat.primitives import serialization
+
+    path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))

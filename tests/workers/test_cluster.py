@@ -114,9 +114,9 @@ def test_a_dashboard_port_taken_after_the_check_is_no_warning(recwarn, caplog, m
     (another run starting at the same moment): the cluster starts on another port without
     distributed's multi-line UserWarning on stderr (on Ctrl-C the run's stderr must stay the
     one-line message) and says so in the log."""
-    import schlieren.workers.cluster as clustermod
+    import schlieren.workers.cluster.dashboard as dashboardmod
 
-    monkeypatch.setattr(clustermod, "_port_is_free", lambda host, port: True)  # the check passes
+    monkeypatch.setattr(dashboardmod, "_port_is_free", lambda host, port: True)  # the check passes
     monkeypatch.setattr(logging.getLogger("schlieren"), "propagate", True)
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

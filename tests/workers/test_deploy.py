@@ -300,6 +300,15 @@ def test_submit_dry_run_and_config_errors(tmp_path, capsys):
     assert os.environ.get("SCHLIEREN_PWNED") is None
 
 
+def test_kubernetes_dry_run_without_dask_kubernetes_says_what_to_install(monkeypatch, capsys):
+    """The manifest comes from dask-kubernetes' template: without the package, one line."""
+    monkeypatch.setitem(sys.modules, "dask_kubernetes.operator", None)  # its import fails
+    assert cli_main(["submit", "S", "--out", "O", "--cluster", "kubernetes",
+                     "--config", str(DEPLOY / "kubernetes/schlieren.yaml"), "--dry-run"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "dask-kubernetes is not installed: pip install dask-kubernetes" in err[0]
+
+
 @pytest.mark.timeout(120)
 def test_submit_runs_the_session_on_the_cluster_it_creates(tiny_session, tmp_path, monkeypatch, capsys):
     """The submit glue: config -> cluster -> client (plugin, TOMO) -> run_session -> exit code.

@@ -37,7 +37,6 @@ from schlieren.workers.cluster import (
     IMAGE_UID,
     THREAD_ENV,
     TOMO,
-    _VERSION_PACKAGES,
     daskcluster_manifest,
     job_script,
     jobqueue_cluster,
@@ -46,6 +45,7 @@ from schlieren.workers.cluster import (
     schlieren_section,
     unique_cluster_config,
 )
+from schlieren.workers.cluster.scheduler import _VERSION_PACKAGES
 from schlieren.workers.commands.submit import load_submit_config
 
 REPO = Path(__file__).resolve().parents[2]
@@ -133,6 +133,27 @@ def test_the_strict_crd_refuses_what_the_operator_would_drop(daskcluster_validat
     missing = copy.deepcopy(manifest)
     del missing["spec"]["worker"]
     assert any("'worker' is a required property" in e for e in _crd_errors(daskcluster_validator, missing))
+
+
+def test_manifest_is_the_operator_template_plus_ours():
+    """daskcluster_manifest starts from dask-kubernetes' make_cluster_spec: what the template
+    gives (ports, probes, service, the worker's operator-set name and dashboard) is kept."""
+    from dask_kubernetes.operator import make_cluster_spec
+
+    cfg = _k8s_config()
+    m = daskcluster_manifest(cfg)
+    t = make_cluster_spec("schlieren", image=cfg["kubernetes"]["image"], n_workers=4, idle_timeout=3600)
+    assert m["spec"]["scheduler"]["service"] == t["spec"]["scheduler"]["service"]
+    assert (m["spec"]["idleTimeout"], m["spec"]["worker"]["replicas"]) == (3600, 4)
+    for role in ("worker", "scheduler"):
+        (mc,), (tc,) = m["spec"][role]["spec"]["containers"], t["spec"][role]["spec"]["containers"]
+        for key in ("name", "image", "ports", "readinessProbe", "livenessProbe"):
+            assert mc.get(key) == tc.get(key), (role, key)
+    (mw,), (tw,) = m["spec"]["worker"]["spec"]["containers"], t["spec"]["worker"]["spec"]["containers"]
+    assert mw["args"][-5:] == tw["args"][-5:] == ["--name", "$(DASK_WORKER_NAME)", "--dashboard", "--dashboard-address", "8788"]
+    # no idle-timeout: the CRD's default, 0 (never)
+    cfg["kubernetes"].pop("idle-timeout")
+    assert daskcluster_manifest(cfg)["spec"]["idleTimeout"] == 0
 
 
 def test_kubernetes_volumes_are_mounted_in_every_worker():

@@ -182,7 +182,7 @@ def test_worker_log_filter_drops_a_dying_peer_only_after_ctrl_c(monkeypatch):
     errors, the latter seen with a traceback in a CI run) and nothing else."""
     import logging
 
-    from schlieren.workers import cluster
+    from schlieren.workers.cluster import interrupts as cluster
 
     def rec(msg, level=logging.ERROR):
         return logging.LogRecord("distributed.worker", level, __file__, 1, msg, None, None)

@@ -129,7 +129,7 @@ def handler(args: argparse.Namespace) -> int:
         if args.dry_run:
             print(render(args.cluster, config))
             return 0
-    except (ValueError, TypeError, FileNotFoundError) as exc:
+    except (ValueError, TypeError, FileNotFoundError, RuntimeError) as exc:
         raise CLIError(f"config {args.config}: {exc}") from None
 
     # the run entry points belong to the executor; imported here so this module loads without them
