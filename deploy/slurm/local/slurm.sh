@@ -1,0 +1,137 @@
+#!/usr/bin/env bash
+# A real single-node SLURM on this machine, from Debian's packages, for the system tests
+# (tests/system/) and CI: no systemd, no site configuration touched.
+#
+#   deploy/slurm/local/slurm.sh start    # install if missing (root + apt-get), start, wait until the node is idle
+#   deploy/slurm/local/slurm.sh env      # print the `export SLURM_CONF=...` line for clients
+#   deploy/slurm/local/slurm.sh status   # exit 0 if the controller answers and the node is up
+#   deploy/slurm/local/slurm.sh stop     # stop slurmd, slurmctld (munged is left running)
+#
+# Everything lives in $SCHLIEREN_SLURM_DIR (default /tmp/schlieren-slurm): slurm.conf,
+# state, spool, logs and pid files. Clients find it through SLURM_CONF, so an existing
+# /etc/slurm is never read or written. Exit codes: 0 ok, 3 SLURM cannot be installed or
+# started here (the message says why: the tests skip with it).
+set -euo pipefail
+
+DIR=${SCHLIEREN_SLURM_DIR:-/tmp/schlieren-slurm}
+CONF=$DIR/slurm.conf
+PACKAGES="slurmctld slurmd slurm-client munge"
+# seconds to wait for the node to come up after the daemons start
+WAIT=${SCHLIEREN_SLURM_WAIT:-30}
+
+die() { echo "slurm.sh: $*" >&2; exit 3; }
+
+install_packages() {
+    command -v slurmctld >/dev/null && command -v slurmd >/dev/null && command -v munged >/dev/null \
+        && command -v sbatch >/dev/null && return 0
+    [[ $(id -u) == 0 ]] || die "SLURM is not installed and installing it needs root (apt-get install $PACKAGES)"
+    command -v apt-get >/dev/null || die "SLURM is not installed and this machine has no apt-get"
+    echo "slurm.sh: installing $PACKAGES (Debian packages)" >&2
+    { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $PACKAGES; } \
+        >"${TMPDIR:-/tmp}/schlieren-slurm-apt.log" 2>&1 \
+        || die "apt-get install $PACKAGES failed (log: ${TMPDIR:-/tmp}/schlieren-slurm-apt.log)"
+}
+
+start_munge() {
+    if munge -n 2>/dev/null | unmunge >/dev/null 2>&1; then return 0; fi
+    [[ -r /etc/munge/munge.key ]] || die "/etc/munge/munge.key is missing (the munge package creates it)"
+    mkdir -p /run/munge /var/log/munge /var/lib/munge
+    chown munge:munge /run/munge /var/log/munge /var/lib/munge
+    chmod 0755 /run/munge
+    setsid runuser -u munge -- /usr/sbin/munged </dev/null >/dev/null 2>&1 || die "munged did not start"
+    for _ in $(seq 50); do
+        munge -n 2>/dev/null | unmunge >/dev/null 2>&1 && return 0
+        sleep 0.1
+    done
+    die "munged started but does not answer"
+}
+
+write_conf() {
+    local host cpus mem
+    host=$(hostname -s)
+    cpus=$(nproc)
+    # the node's memory in MB, less 1 GB for the system (slurmd refuses a node that claims more than it has)
+    mem=$(( $(awk '/^MemTotal:/ {print $2}' /proc/meminfo) / 1024 - 1024 ))
+    mkdir -p "$DIR"/{state,spool,log,run}
+    chown -R slurm:slurm "$DIR"/state "$DIR"/log "$DIR"/run
+    cat >"$CONF" <<CONF
+# written by deploy/slurm/local/slurm.sh: one node, for tests
+ClusterName=schlieren-local
+SlurmctldHost=$host
+AuthType=auth/munge
+SlurmUser=slurm
+SlurmdUser=root
+ProctrackType=proctrack/linuxproc
+TaskPlugin=task/none
+SelectType=select/cons_tres
+SelectTypeParameters=CR_Core_Memory
+JobAcctGatherType=jobacct_gather/none
+AccountingStorageType=accounting_storage/none
+SchedulerType=sched/backfill
+MpiDefault=none
+ReturnToService=2
+StateSaveLocation=$DIR/state
+SlurmdSpoolDir=$DIR/spool
+SlurmctldLogFile=$DIR/log/slurmctld.log
+SlurmdLogFile=$DIR/log/slurmd.log
+SlurmctldPidFile=$DIR/run/slurmctld.pid
+SlurmdPidFile=$DIR/run/slurmd.pid
+SlurmctldPort=${SCHLIEREN_SLURMCTLD_PORT:-6817}
+SlurmdPort=${SCHLIEREN_SLURMD_PORT:-6818}
+SlurmctldTimeout=30
+SlurmdTimeout=30
+InactiveLimit=0
+KillWait=5
+MinJobAge=30
+NodeName=$host CPUs=$cpus RealMemory=$mem State=UNKNOWN
+PartitionName=debug Nodes=$host Default=YES MaxTime=INFINITE State=UP
+CONF
+}
+
+node_state() { SLURM_CONF=$CONF sinfo -h -N -o '%t' 2>/dev/null | head -1; }
+
+status() {
+    [[ -f $CONF ]] || return 1
+    local s
+    s=$(node_state)
+    [[ -n $s && $s != down* && $s != drain* && $s != unk* ]]
+}
+
+start() {
+    install_packages
+    if status; then echo "slurm.sh: already running ($CONF)" >&2; return 0; fi
+    start_munge
+    stop_daemons
+    write_conf
+    local t0=$SECONDS
+    SLURM_CONF=$CONF setsid slurmctld -D -i -f "$CONF" </dev/null >>"$DIR/log/slurmctld.out" 2>&1 &
+    SLURM_CONF=$CONF setsid slurmd -D -f "$CONF" </dev/null >>"$DIR/log/slurmd.out" 2>&1 &
+    for _ in $(seq $((WAIT * 5))); do
+        if status; then
+            echo "slurm.sh: node $(hostname -s) is $(node_state) after $((SECONDS - t0)) s; export SLURM_CONF=$CONF" >&2
+            return 0
+        fi
+        sleep 0.2
+    done
+    die "the node did not come up within $WAIT s (logs: $DIR/log)"
+}
+
+stop_daemons() {
+    for d in slurmd slurmctld; do
+        if [[ -f $DIR/run/$d.pid ]]; then kill "$(cat "$DIR/run/$d.pid")" 2>/dev/null || true; fi
+        pkill -f "^$d -D .*-f $CONF" 2>/dev/null || true
+    done
+    for _ in $(seq 50); do
+        pgrep -f "^slurm(ctld|d) -D .*-f $CONF" >/dev/null || return 0
+        sleep 0.1
+    done
+    pkill -9 -f "^slurm(ctld|d) -D .*-f $CONF" 2>/dev/null || true
+}
+
+case ${1:-} in
+    start) start ;;
+    stop) stop_daemons ;;
+    status) status ;;
+    env) echo "export SLURM_CONF=$CONF" ;;
+    *) echo "usage: $0 start|stop|status|env" >&2; exit 2 ;;
+esac
