@@ -89,7 +89,7 @@ def test_dask_workers_read_the_session_and_write_the_store_in_the_bucket(s3_serv
 
 
 class _Counting:
-    """``storage.location`` as seen by storage/frames.py, recording the listings and reads."""
+    """``storage.location`` as seen by the frame readers (storage/readers/), recording the listings and reads."""
 
     def __init__(self, real):
         self._real = real

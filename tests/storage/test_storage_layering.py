@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 import pytest
 
 from schlieren.storage.errors import SessionError
-from schlieren.storage.session import _check_range
+from schlieren.storage.session.checks import _check_range
 
 
 def test_storage_modules_do_not_import_dask():
