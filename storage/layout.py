@@ -321,7 +321,6 @@ def marker_spec(stage: str, dims_or_shape, sizes: dict[str, int]) -> ArraySpec:
                      {"long_name": f"completion of stage {stage} (1 = done)", "stage": stage})
 
 
-
 # --------------------------------------------------------------------------------------
 # regions
 # --------------------------------------------------------------------------------------

@@ -11,6 +11,7 @@ import numpy as np
 
 from schlieren.storage.errors import DroppedFrame, SessionError
 
+
 def format_ranges(indices) -> str:
     """``"5, 9-11"`` for indices 5, 9, 10, 11 (sorted)."""
     out: list[list[int]] = []

@@ -11,6 +11,7 @@ from schlieren.storage.errors import SessionError
 from schlieren.storage.readers.kinds import IMAGE_EXTENSIONS, _natural_key, is_glob
 from schlieren.storage.readers.sequence import ImageSequence
 
+
 class ImageFiles(ImageSequence):
     """Frames stored one image file each, from a glob pattern or a folder.
 

@@ -6,6 +6,7 @@ import numpy as np
 
 from schlieren.storage.readers.base import FrameSource
 
+
 class InterlacedFields(FrameSource):
     """The two fields of every interlaced frame, as frames of their own (twice as many).
 

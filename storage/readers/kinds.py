@@ -1,7 +1,7 @@
 """What a frames specification is: printf pattern, glob, folder, video, multi-page TIFF or image.
 
 The one list of video containers and image types every reader uses (session, init,
-calibrate), and the tests that classify a specification without opening it.
+calibrate), and the predicates that classify a specification without opening it.
 """
 
 from __future__ import annotations

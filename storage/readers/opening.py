@@ -17,6 +17,7 @@ from schlieren.storage.readers.sequence import ImageSequence
 from schlieren.storage.readers.tiff import MultiPageTiff
 from schlieren.storage.readers.video import VideoFrames
 
+
 def _source_path_and_name(source, camera_name):
     # a CameraSource (storage.session) or anything with .frames/.name, or a path
     if hasattr(source, "frames") and hasattr(source, "name") and not isinstance(source, (str, os.PathLike)):

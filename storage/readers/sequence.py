@@ -20,6 +20,7 @@ from schlieren.storage.readers.kinds import _DIRECTIVE, is_pattern
 
 log = logging.getLogger(__name__)
 
+
 class ImageSequence(FrameSource):
     """Frames stored one file each, named by a printf pattern.
 

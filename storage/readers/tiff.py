@@ -11,6 +11,7 @@ from schlieren.storage.errors import SessionError
 from schlieren.storage.readers.base import FrameSource
 from schlieren.storage.readers.decoding import _grey_of_raw
 
+
 class MultiPageTiff(FrameSource):
     """Frames stored as the pages of one TIFF file (8/16-bit or float, read with Pillow)."""
 

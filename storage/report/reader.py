@@ -34,6 +34,7 @@ VOLUME_ARRAYS = ("hull", "gradient", "refractivity", "density", "temperature")
 # Reading the store
 # ---------------------------------------------------------------------------------------
 
+
 def open_result(store_path: str | os.PathLike):
     """Open a result store read-only, every chunk read checked (storage/integrity.py).
 

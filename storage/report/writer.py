@@ -25,6 +25,7 @@ log = logging.getLogger(__name__)
 # The page (HTML markup) and the files
 # ---------------------------------------------------------------------------------------
 
+
 def html_img(rel: str, alt: str, caption: str | None = None) -> str:
     """A linked ``<figure>`` for the image at relative path ``rel``."""
     cap = f"<figcaption>{html.escape(caption)}</figcaption>" if caption else ""

@@ -25,6 +25,7 @@ from schlieren.storage.readers.video import VideoFrames
 from schlieren.storage.session.paths import check_contained
 from schlieren.storage.session.types import CameraSource
 
+
 class _qualified:
     """Re-raise a reader's SessionError with the manifest field of camera ``i`` in front.
 

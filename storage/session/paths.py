@@ -13,6 +13,7 @@ from pathlib import Path
 from schlieren.storage import location
 from schlieren.storage.errors import SessionError
 
+
 def resolve_path(spec: str, root: Path | str, *, allow_external: bool, file: str, camera: str, field: str) -> str:
     if location.is_url(spec):
         if not allow_external:

@@ -16,6 +16,7 @@ import yaml
 from schlieren.storage import location
 from schlieren.storage.errors import SessionError
 
+
 class _ManifestLoader(yaml.SafeLoader):
     """SafeLoader that keeps dates as strings and refuses duplicate keys."""
 

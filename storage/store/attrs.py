@@ -17,6 +17,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+
 def to_json(obj: Any) -> Any:
     """Plain JSON data from numpy values, tuples, paths, dataclasses and datetimes.
 

@@ -9,7 +9,10 @@ import zarr
 from schlieren.storage import location
 from schlieren.storage.integrity import checked
 
+
 def store_location(path) -> str:
+    """The store's location as messages name it: a normalised folder path or URL, or the
+    type (and root) of a store object."""
     if isinstance(path, (str, os.PathLike)):
         return location.normalize(path)
     root = getattr(path, "root", None)  # LocalStore and friends
