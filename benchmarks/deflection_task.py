@@ -287,7 +287,7 @@ def main(argv=None):
                               text=True).stdout.strip()
         dirty = bool(subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--"]
                                     + ["pipeline/flow.py", "pipeline/frame_quality.py", "storage/frames.py",
-                                       "storage/readers", "workers/tasks.py"], capture_output=True, text=True).stdout.strip())
+                                       "workers/tasks.py"], capture_output=True, text=True).stdout.strip())
         params = new_tasks.flow_params(ctx, 0)
         result = {"machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
                   "load_start": load_start, "load_end": load_average(), "baseline": args.baseline,
