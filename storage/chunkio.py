@@ -29,7 +29,7 @@ tests check byte-identity with zarr's files both ways.
 
 A store on object storage uses the same encoding (:func:`chunk_encoding`,
 :meth:`ChunkLayout.encode` and :meth:`ChunkLayout.key`) to send a task's whole chunk as
-one PUT of these bytes (storage/store.py).
+one PUT of these bytes (storage/store/writes.py).
 """
 
 from __future__ import annotations

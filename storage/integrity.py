@@ -24,7 +24,7 @@ The design (docs/design.md, "Integrity"):
   store, the array and the chunk.
 * **Older stores** (no ``integrity`` attribute: written before checksums) are read as
   before, without checks (a missing chunk reads as the fill value, as their writer meant);
-  a run refuses to resume them (``store.py``).
+  a run refuses to resume them (``store/template.py``).
 
 :func:`scan_store` lists (cheap) or reads (``full``) every chunk and reports what is
 missing or corrupt; ``workers/verify.py`` turns that into recomputation.
@@ -37,16 +37,14 @@ import json
 import logging
 import os
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 from zarr.storage import WrapperStore
 
 from schlieren.storage.chunkio import CorruptChunk, strip_checksum
 from schlieren.storage.errors import ChunkError
-
-if TYPE_CHECKING:  # pragma: no cover
-    from schlieren.storage.store import ResultStore
+from schlieren.storage.layout import MARKER_GROUP
 
 __all__ = ["INTEGRITY_VERSION", "CheckedStore", "Problem", "ScanResult", "scan_store", "chunk_error",
            "marker_index", "open_dataset", "format_chunk"]
@@ -55,7 +53,6 @@ log = logging.getLogger(__name__)
 
 #: Version of the ``integrity`` root attribute (crc32c on every chunk, empty chunks stored).
 INTEGRITY_VERSION = 1
-MARKER_GROUP = "status"
 
 
 def format_chunk(coords) -> str:
@@ -366,7 +363,26 @@ class ScanResult:
         return not self.problems
 
 
-def scan_store(store: "ResultStore", *, full: bool = False) -> ScanResult:
+class ScannedStore(Protocol):
+    """What :func:`scan_store` asks of a store (:class:`~schlieren.storage.store.ResultStore`
+    has it; this module does not import the store, which reads through :class:`CheckedStore`)."""
+
+    @property
+    def integrity(self) -> dict | None: ...
+    @property
+    def remote(self) -> bool: ...
+    def check_metadata(self) -> list[tuple[str, str]]: ...
+    def list_all_chunks(self) -> dict[str, set[tuple[int, ...]]] | None: ...
+    def list_chunks(self, name: str) -> tuple[set[tuple[int, ...]], list[str]]: ...
+    def stages(self) -> list[str]: ...
+    def marker_chunk_set(self, stage: str, coords) -> bool: ...
+    def marker_dims(self, stage: str) -> tuple[str, ...]: ...
+    def all_array_names(self) -> list[str]: ...
+    def chunk_grid(self, name: str) -> tuple[tuple[str, ...], tuple[int, ...], tuple[int, ...]]: ...
+    def check_chunk(self, name: str, coords) -> str | None: ...
+
+
+def scan_store(store: ScannedStore, *, full: bool = False) -> ScanResult:
     """Check a result store's chunks against its completion markers.
 
     Parameters
@@ -386,31 +402,53 @@ def scan_store(store: "ResultStore", *, full: bool = False) -> ScanResult:
     res = ScanResult()
     info = store.integrity
     res.legacy = info is None
-    producers = dict((info or {}).get("producers") or {})
-    static = set((info or {}).get("static") or ())
-    listed: dict[str, set] = {}
     # metadata: every array's and group's zarr.json against the root's consolidated copy
     # (a few small reads; on object storage only with ``full``)
     if full or not store.remote:
         for name, why in store.check_metadata():
             res.problems.append(Problem(name, (), "corrupt-metadata", why))
-    everything = store.list_all_chunks()  # object stores: one listing, not one per array
+    listing = _Listing(store, res)
+    _scan_markers(store, listing, res)
+    # data arrays: a set marker needs every chunk of its producer's outputs
+    producers = dict((info or {}).get("producers") or {})
+    static = set((info or {}).get("static") or ())
+    for name in store.all_array_names():
+        if name.startswith(f"{MARKER_GROUP}/"):
+            continue
+        have = listing(name)
+        grid = store.chunk_grid(name)
+        _scan_missing(store, name, grid, have, producers.get(name), name in static, res)
+        if full:
+            _scan_stored(store, name, grid, have, producers.get(name), name in static, res)
+    return res
 
-    def listing(name: str) -> set:
-        if everything is not None:
-            keys = everything.get(name, set())
-            if name not in listed:
-                listed[name] = keys
-                res.chunks_listed += len(keys)
+
+class _Listing:
+    """The stored chunks of each array, listed once (an object store lists them all in one
+    pass, not one request per array); counts them and the orphaned ``*.partial`` files."""
+
+    def __init__(self, store: ScannedStore, res: ScanResult):
+        self.store, self.res = store, res
+        self.everything = store.list_all_chunks()  # object stores: one listing, not one per array
+        self.listed: dict[str, set] = {}
+
+    def __call__(self, name: str) -> set:
+        if self.everything is not None:
+            keys = self.everything.get(name, set())
+            if name not in self.listed:
+                self.listed[name] = keys
+                self.res.chunks_listed += len(keys)
             return keys
-        if name not in listed:
-            keys, partial = store.list_chunks(name)
-            listed[name] = keys
-            res.partial_files += partial
-            res.chunks_listed += len(keys)
-        return listed[name]
+        if name not in self.listed:
+            keys, partial = self.store.list_chunks(name)
+            self.listed[name] = keys
+            self.res.partial_files += partial
+            self.res.chunks_listed += len(keys)
+        return self.listed[name]
 
-    # markers: read every stored marker chunk
+
+def _scan_markers(store: ScannedStore, listing: _Listing, res: ScanResult) -> None:
+    """Read every stored marker chunk: ``res.done`` gets the set ones, corrupt ones are problems."""
     for stage in store.stages():
         mname = f"{MARKER_GROUP}/{stage}"
         done = set()
@@ -424,42 +462,47 @@ def scan_store(store: "ResultStore", *, full: bool = False) -> ScanResult:
             if ok:
                 done.add(tuple(coords))
         res.done[stage] = done
-    # data arrays: a set marker needs every chunk of its producer's outputs
-    for name in store.all_array_names():
-        if name.startswith(f"{MARKER_GROUP}/"):
+
+
+def _scan_missing(store: ScannedStore, name: str, grid, have: set, stage: str | None, static: bool,
+                  res: ScanResult) -> None:
+    """Chunks of array ``name`` (``grid``: its :meth:`chunk_grid`) without a file: any in a
+    template array, or under a set marker."""
+    dims, chunks, counts = grid
+    if static:
+        for coords in np.ndindex(*counts):
+            if coords not in have:
+                res.problems.append(Problem(name, coords, "missing", "no chunk file in a template array"))
+    elif stage is not None and stage in res.done:
+        mdims = store.marker_dims(stage)
+        for coords in np.ndindex(*counts):
+            idx = marker_index(dims, chunks, mdims, coords)
+            if idx in res.done[stage] and coords not in have:
+                res.problems.append(Problem(name, coords, "missing",
+                                            f"no chunk file although stage {stage} is marked complete",
+                                            stage, idx))
+
+
+def _scan_stored(store: ScannedStore, name: str, grid, have: set, stage: str | None, static: bool,
+                 res: ScanResult) -> None:
+    """Read every stored chunk of array ``name`` (``grid``: its :meth:`chunk_grid`): a damaged
+    one under a set marker (or in a template array) is ``corrupt``, its task recomputed; any
+    other is ``stray``."""
+    dims, chunks, _ = grid
+    for coords in sorted(have):
+        res.chunks_read += 1
+        reason = store.check_chunk(name, coords)
+        if reason is None:
             continue
-        have = listing(name)
-        stage = producers.get(name)
-        dims, chunks, counts = store.chunk_grid(name)
-        if name in static:
-            for coords in np.ndindex(*counts):
-                if coords not in have:
-                    res.problems.append(Problem(name, coords, "missing", "no chunk file in a template array"))
-        elif stage is not None and stage in res.done:
-            mdims = store.marker_dims(stage)
-            for coords in np.ndindex(*counts):
-                idx = marker_index(dims, chunks, mdims, coords)
-                if idx in res.done[stage] and coords not in have:
-                    res.problems.append(Problem(name, coords, "missing",
-                                                f"no chunk file although stage {stage} is marked complete",
-                                                stage, idx))
-        if not full:
-            continue
-        for coords in sorted(have):
-            res.chunks_read += 1
-            reason = store.check_chunk(name, coords)
-            if reason is None:
-                continue
-            idx = None
-            if stage is not None and stage in res.done:
-                idx = marker_index(dims, chunks, store.marker_dims(stage), coords)
-                if idx not in res.done[stage]:
-                    idx = None
-            if name in static or idx is not None:
-                res.problems.append(Problem(name, coords, "corrupt", reason, stage if idx is not None else None, idx))
-            else:
-                res.problems.append(Problem(name, coords, "stray", reason))
-    return res
+        idx = None
+        if stage is not None and stage in res.done:
+            idx = marker_index(dims, chunks, store.marker_dims(stage), coords)
+            if idx not in res.done[stage]:
+                idx = None
+        if static or idx is not None:
+            res.problems.append(Problem(name, coords, "corrupt", reason, stage if idx is not None else None, idx))
+        else:
+            res.problems.append(Problem(name, coords, "stray", reason))
 
 
 def _reason(exc: ChunkError) -> str:

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from schlieren.storage import frames as frames_module
+from schlieren.storage.readers import video as video_module
 from schlieren.storage.errors import DroppedFrame, SessionError
 from schlieren.storage.frames import (
     ImageSequence,
@@ -225,7 +226,7 @@ def test_sequence_source_pickles(tmp_path, grey8):
 @pytest.mark.parametrize("grab_limit", [0, 16])  # 0: every jump seeks; 16: short jumps decode forward
 @pytest.mark.parametrize("name, fourcc", [("v.avi", "FFV1"), ("v.mkv", "FFV1"), ("v.avi", "png ")])
 def test_lossless_video_random_access_is_exact(tmp_path, grey8, name, fourcc, grab_limit, monkeypatch):
-    monkeypatch.setattr(frames_module, "FORWARD_GRAB_LIMIT", grab_limit)
+    monkeypatch.setattr(video_module, "FORWARD_GRAB_LIMIT", grab_limit)
     path = write_video(tmp_path / name, grey8, fourcc)
     src = open_frames(path, camera_name="cam00")
     assert isinstance(src, VideoFrames)
@@ -249,7 +250,7 @@ def test_lossy_video_returns_the_right_frame(tmp_path, rng, name, fourcc):
 
 
 def test_sequential_fallback_when_seek_is_refused(tmp_path, grey8, monkeypatch):
-    monkeypatch.setattr(frames_module, "FORWARD_GRAB_LIMIT", 0)
+    monkeypatch.setattr(video_module, "FORWARD_GRAB_LIMIT", 0)
     src = open_frames(write_video(tmp_path / "v.avi", grey8, "FFV1"), camera_name="c")
     src.read(0)
     real_open = src._open

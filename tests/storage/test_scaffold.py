@@ -1,4 +1,4 @@
-"""``schlieren init`` scaffolding (storage/scaffold.py): videos + calibration -> a session
+"""``schlieren init`` scaffolding (storage/scaffold/): videos + calibration -> a session
 that storage.session.load_session accepts, and refusals that name the camera."""
 
 from __future__ import annotations

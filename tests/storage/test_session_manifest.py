@@ -528,7 +528,7 @@ def test_camera_looking_away_is_only_a_warning(session_builder, caplog, look_at_
 
 def test_sees_volume_when_the_box_covers_the_image_without_a_corner_inside():
     from schlieren.pipeline.geometry import Grid
-    from schlieren.storage.session import _sees_volume
+    from schlieren.storage.session.checks import _sees_volume
 
     K = [[60.0, 0, 19.5], [0, 60.0, 14.5], [0, 0, 1]]
     cam = Camera("c", K, np.zeros(5), np.eye(3), np.zeros(3), (40, 30), [0, 0, 10], [0, 0, -1])
