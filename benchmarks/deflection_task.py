@@ -286,7 +286,7 @@ def main(argv=None):
         head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
                               text=True).stdout.strip()
         dirty = bool(subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--"]
-                                    + ["pipeline/flow", "pipeline/frame_quality.py", "storage/frames.py",
+                                    + ["pipeline/flow", "pipeline/frame_quality.py", "storage/frames.py", "storage/readers",
                                        "workers/tasks.py"], capture_output=True, text=True).stdout.strip())
         params = new_tasks.flow_params(ctx, 0)
         result = {"machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
