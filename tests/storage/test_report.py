@@ -165,7 +165,9 @@ def make_store(root: Path, *, partial: str | None = None, seed: int = 0) -> Path
 
 
 STORAGE_REPORT = Path(__file__).resolve().parents[2] / "storage" / "report.py"
-COMPUTING_MODULES = ("schlieren.pipeline.viz", "schlieren.pipeline.residuals", "schlieren.pipeline.tomography")
+COMPUTING_MODULES = ("schlieren.workers.report.figures", "schlieren.workers.report.volume_figures",
+                     "schlieren.workers.report.volume_render", "schlieren.pipeline.residuals",
+                     "schlieren.pipeline.tomography")
 
 
 @pytest.fixture(scope="module")
@@ -319,7 +321,7 @@ def _imported_modules(path: Path) -> set[str]:
 def test_ast_import_check_sees_computing_imports(tmp_path):
     """The checker below is not vacuous: it finds each way of importing a kernel module."""
     src = tmp_path / "m.py"
-    for line in ("from schlieren.pipeline import viz", "import schlieren.pipeline.residuals as r",
+    for line in ("from schlieren.workers.report import figures", "import schlieren.pipeline.residuals as r",
                  "from schlieren.pipeline.tomography import build_geometry",
                  "def f():\n    from schlieren.pipeline import tomography\n"):
         src.write_text(line + "\n")
@@ -328,7 +330,7 @@ def test_ast_import_check_sees_computing_imports(tmp_path):
 
 def test_storage_report_does_not_import_computing_modules():
     """storage/report.py only reads and writes (STYLE.md): the figures and residuals are
-    made in workers/report_build.py, so no pipeline kernel module is imported here, not
+    made in workers/report/, so no drawing or pipeline kernel module is imported here, not
     even inside a function, and importing it loads none of them (nor matplotlib)."""
     found = _imported_modules(STORAGE_REPORT)
     assert "schlieren.pipeline.geometry" in found  # the plain types are allowed (and parsed)
