@@ -1,4 +1,4 @@
-"""Ground-truth tests of the ChArUco rig calibration (pipeline/calibration.py).
+"""Ground-truth tests of the ChArUco rig calibration (pipeline/calibration/).
 
 Synthetic board views are rendered through known cameras (K, distortion, R, t): the
 printed board is mapped into each camera by exact inverse mapping (plane homography +
