@@ -9,8 +9,9 @@ The steps, all on arrays (file reading lives in :mod:`schlieren.storage.calibrat
 3. :func:`calibrate_rig` chains the board poses seen by several cameras in the same
    view into camera-to-camera poses, then refines every camera's intrinsics,
    distortion and pose and every board pose jointly by bundle adjustment
-   (Levenberg-Marquardt on a Huber cost, block-structured finite-difference Jacobian),
-   and finally expresses the rig in the world frame defined by one board view.
+   (``scipy.optimize.least_squares`` on a Huber cost, block-structured
+   finite-difference Jacobian), and finally expresses the rig in the world frame
+   defined by one board view.
 4. :func:`background_plane` fits each camera's background plane from views of a
    board laid on the background.
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from schlieren.pipeline.calibration.board import BoardSpec, CalibrationError
-from schlieren.pipeline.calibration.bundle import _BundleProblem, _levenberg_marquardt
+from schlieren.pipeline.calibration.bundle import _bundle_adjust, _BundleProblem
 from schlieren.pipeline.calibration.intrinsics import calibrate_intrinsics
 from schlieren.pipeline.calibration.projection import _inv, _mean_pose, _pose_matrix
 
@@ -41,9 +41,11 @@ class CalibrationParams:
     world_board_orientation : str
         ``"flat"`` (board lying face-up) or ``"upright"`` (standing, printed top up).
     robust_scale : float
-        Huber loss scale of the bundle adjustment, pixels.
+        Huber loss scale of the bundle adjustment (``f_scale``), pixels per residual
+        component.
     max_iter : int
-        Most Levenberg-Marquardt iterations of the bundle adjustment.
+        Most residual evaluations of the bundle adjustment (``max_nfev`` of
+        :func:`scipy.optimize.least_squares`: one per trust-region iteration).
     """
 
     n_dist: int = 5
@@ -230,7 +232,7 @@ def calibrate_rig(detections, image_sizes, board: BoardSpec, *, n_dist: int = 5,
                    {n: np.pad(intr[n].dist, (0, max(0, n_dist - len(intr[n].dist)))) for n in names},
                    T_cam_ref, T_ref_board)
     r0 = prob.residuals(x0)
-    x, info = _levenberg_marquardt(prob, x0, robust_scale=float(robust_scale), max_iter=int(max_iter))
+    x, info = _bundle_adjust(prob, x0, robust_scale=float(robust_scale), max_iter=int(max_iter))
     r = prob.residuals(x).reshape(-1, 2)
     log.info("bundle adjustment: %d observations, %d parameters, RMS %.3f -> %.3f px in %d "
              "iterations (%s)", len(r), prob.n_params,
