@@ -7,16 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from schlieren.pipeline.geometry import FlowGrid, Grid
+from schlieren.pipeline.geometry import FlowGrid
 from schlieren.workers.report import figures, volume_figures
 
-GRID = Grid((-0.02, -0.03, 0.0), (0.02, 0.03, 0.05), 0.0025)  # nx, ny, nz = 16, 24, 20
-R_AMB = 2.9e-4
-
-
-def blob(centre, amp=5e-5, sigma=0.004, grid=GRID):
-    d = grid.centres() - np.asarray(centre)
-    return R_AMB - amp * np.exp(-np.sum(d ** 2, axis=-1) / (2 * sigma ** 2))
+from report_volumes import GRID, blob
 
 
 # -- colour coding --------------------------------------------------------------------------
