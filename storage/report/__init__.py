@@ -1,9 +1,9 @@
 """The files of the HTML report: what it reads from a result store, and how it is written.
 
-No computation happens here: :mod:`schlieren.workers.report_build` asks a
+No computation happens here: :mod:`schlieren.workers.report.build` asks a
 :class:`ReportReader` for plain data (arrays, attributes, completion markers, the
 :class:`~schlieren.pipeline.geometry.Grid`, the cameras and the medium), makes the
-figures and residuals with :mod:`schlieren.pipeline`, and hands finished RGB images,
+figures (:mod:`schlieren.workers.report.figures`) and residuals (:mod:`schlieren.pipeline.residuals`), and hands finished RGB images,
 HTML sections and summary numbers to a :class:`ReportWriter`.
 
 The reader tolerates a partial run: a missing array, a frame whose completion marker

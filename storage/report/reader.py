@@ -1,6 +1,6 @@
 """What the report (and the exports) read from a result store.
 
-:class:`ReportReader` hands :mod:`schlieren.workers.report_build` plain data: arrays,
+:class:`ReportReader` hands :mod:`schlieren.workers.report.build` plain data: arrays,
 attributes, completion markers, the :class:`~schlieren.pipeline.geometry.Grid`, the
 cameras and the medium. It tolerates a partial run: a missing array, a frame whose
 completion marker ``status/<stage>`` is unset, or a chunk left at its NaN fill value

@@ -3,8 +3,9 @@
 Both read the store directly (no Dask needed: the figures are small and the per-camera
 forward operators are built once); these functions only choose default output paths and
 log, so that ``schlieren report``, ``schlieren export`` and ``schlieren demo`` share them.
-The report itself is built by :func:`schlieren.workers.report_build.build_report`
-(reads via :mod:`schlieren.storage.report`, computes via :mod:`schlieren.pipeline`).
+The report itself is built by :func:`schlieren.workers.report.build.build_report`
+(reads via :mod:`schlieren.storage.report`, computes via :mod:`schlieren.pipeline` and
+draws with the figure modules beside it).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from pathlib import Path
 
 from schlieren.storage import location
 from schlieren.storage.export import ExportResult, export
-from schlieren.workers.report_build import build_report
+from schlieren.workers.report.build import build_report
 
 __all__ = ["default_report_dir", "default_export_dir", "make_report", "generate_export", "build_report"]
 
