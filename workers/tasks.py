@@ -27,7 +27,7 @@ from schlieren.pipeline import derived, flow as flowmod, frame_quality as fq, hu
 from schlieren.pipeline import poisson, sync, tomography
 from schlieren.pipeline.geometry import Camera, FlowGrid, pixel_footprint
 from schlieren.pipeline.stages import RunConfig, config_from_dict, kernel_kwargs, middle_frame, stage
-from schlieren.pipeline.tomography.operator import SHARED_RESTRICTIONS
+from schlieren.pipeline.tomography.restriction import SHARED_RESTRICTIONS
 from schlieren.pipeline.tomography.solve import RUN_SMALLEST_WEIGHT
 from schlieren.storage import arrays_cache
 from schlieren.storage.errors import SessionError

@@ -45,9 +45,13 @@ import scipy.ndimage as ndi
 import scipy.sparse as sp
 
 from schlieren.pipeline.tomography.geometry import TomoGeometry
-from schlieren.pipeline.tomography.operator import (RestrictedOperator, SubsetOperator, _move3, matvec3,
-                                                    restrict_with_setup,
-                                                    row_dot3, shared_restriction)
+from schlieren.pipeline.tomography._restriction_kernels import _move3, matvec3, row_dot3
+from schlieren.pipeline.tomography.restriction import (
+    RestrictedOperator,
+    SubsetOperator,
+    restrict_with_setup,
+    shared_restriction,
+)
 from schlieren.pipeline.tomography.params import TomoParams
 from schlieren.pipeline.tomography.rays import rhs_from_d_out, rhs_from_flows
 

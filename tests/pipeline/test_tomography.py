@@ -23,7 +23,7 @@ from schlieren.pipeline.tomography import (
     solve_gradient_d_out,
     solve_refractivity,
 )
-from schlieren.pipeline.tomography.operator import basis_weights, clip_rays_to_box
+from schlieren.pipeline.tomography.projection import basis_weights, clip_rays_to_box
 from schlieren.pipeline.tomography.solve import cgls, difference_normal, difference_operator, prepare_frame
 
 R_AMB = 2.9e-4
@@ -138,7 +138,7 @@ def test_dot_test_restricted_operator(setup):
 
 def test_fused_restriction_matches_prepared_system(setup):
     """solve_gradient's fused restrict+setup pass equals prepare_frame + setup_products."""
-    from schlieren.pipeline.tomography.operator import restrict_with_setup
+    from schlieren.pipeline.tomography.restriction import restrict_with_setup
 
     grid, cams, fg, geom = setup
     hull = np.zeros(grid.shape, bool)
@@ -350,7 +350,7 @@ def test_projection_row_bound_and_the_two_pass_guard(monkeypatch):
     """The one-pass build sizes its buffers by a bound on each row's entries: no row of
     random, axis-parallel, diagonal or grazing rays exceeds it, and a bound forced too
     small (the guard's two-pass build) gives the same matrix bit for bit."""
-    from schlieren.pipeline.tomography import operator as op
+    from schlieren.pipeline.tomography import projection as op
 
     shape, h, origin = (9, 11, 13), 0.5, np.array([0.3, -0.2, 0.1])
     nz, ny, nx = shape
@@ -383,7 +383,7 @@ def test_prune_rows_drops_small_entries_and_keeps_each_rays_length(setup, unprun
     """Pruning keeps the entries >= fraction x the row's largest, scaled to the row's sum,
     so a constant field keeps its exact line integrals; the default geometry is the pruned
     one, under its own cache key."""
-    from schlieren.pipeline.tomography.operator import prune_rows
+    from schlieren.pipeline.tomography.projection import prune_rows
 
     grid, cams, fg, geom = setup
     S = unpruned.S
@@ -408,7 +408,7 @@ def test_pruned_matrix_keeps_the_built_buffers():
     """Pruning compacts in place and keeps the arrays (scipy's constructor would copy
     data and indices once they view less than half their buffer); csr_view refuses
     arrays that do not make a CSR matrix of the shape."""
-    from schlieren.pipeline.tomography.operator import csr_view, prune_rows
+    from schlieren.pipeline.tomography.projection import csr_view, prune_rows
 
     rng = np.random.default_rng(7)
     buf_d = rng.random(1000).astype(np.float32)
@@ -883,7 +883,7 @@ def test_block_support_gives_the_frames_own_system(setup, caplog):
     on products against scipy, on cold and warm solves with invalid rays, and the shared
     restriction is built once per support and rebuilt after another restriction."""
     from schlieren.pipeline.tomography import block_support
-    from schlieren.pipeline.tomography import operator as opmod
+    from schlieren.pipeline.tomography import restriction as opmod
     from schlieren.pipeline.tomography.solve import _subset_system, basis_set, valid_rays
 
     grid, cams, fg, geom = setup
