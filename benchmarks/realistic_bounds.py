@@ -85,7 +85,7 @@ def bounds(case_dir: Path, frame: int) -> dict:
     from scipy import ndimage
 
     from schlieren.pipeline import metrics, tomography
-    from schlieren.pipeline.tomography.solve import VolumeBlur
+    from schlieren.pipeline.tomography.blur import VolumeBlur
     from schlieren.workers import tasks
 
     k = int(frame)

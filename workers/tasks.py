@@ -27,8 +27,8 @@ from schlieren.pipeline import derived, flow as flowmod, frame_quality as fq, hu
 from schlieren.pipeline import poisson, sync, tomography
 from schlieren.pipeline.geometry import Camera, FlowGrid, pixel_footprint
 from schlieren.pipeline.stages import RunConfig, config_from_dict, kernel_kwargs, middle_frame, stage
-from schlieren.pipeline.tomography.operator import SHARED_RESTRICTIONS
-from schlieren.pipeline.tomography.solve import RUN_SMALLEST_WEIGHT
+from schlieren.pipeline.tomography.reg_choice import RUN_SMALLEST_WEIGHT
+from schlieren.pipeline.tomography.restriction import SHARED_RESTRICTIONS
 from schlieren.storage import arrays_cache
 from schlieren.storage.errors import SessionError
 from schlieren.storage.frames import open_frames, read_reference
@@ -554,7 +554,7 @@ def _regularisation(ctx: RunContext) -> dict:
     chosen on the middle frame's hull and used for every frame (one weight per run keeps
     the frames comparable and costs one frame's search: a cold solve at the search's start
     and about 1-5 warm-started ones bracketing the crossing, :func:`~schlieren.pipeline.
-    tomography.solve.choose_reg_weight`).
+    tomography.reg_choice.choose_reg_weight`).
     """
     params = ctx.config.tomography
     out = {"reg_choice": params.reg_choice}
