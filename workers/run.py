@@ -379,9 +379,9 @@ def _run_leased(session, out_path, cfg, *, client, serial, report, on_receipt, o
     try:
         store.update_attrs({"stage_times": times})
     except OSError as exc:  # only the timing attributes are lost; every chunk and marker stays
-        from schlieren.workers.tasks import _failure_text
+        from schlieren.workers.tasks.runner import failure_text
 
-        summary.failures["store-attributes"] = _failure_text(f"recording stage times in {out_path}", exc)
+        summary.failures["store-attributes"] = failure_text(f"recording stage times in {out_path}", exc)
     from schlieren.workers.diagnostics import diagnose
 
     summary.warnings = diagnose(receipts, n_voxels=math.prod(session.grid.shape))
