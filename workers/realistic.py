@@ -388,7 +388,6 @@ def ensure_session(case: RealisticCase, work: Path, *, progress: Callable[[str],
     say = progress or (lambda m: log.info("%s", m))
     d = Path(work) / case.name
     stamp = d / "case.json"
-    voxel = case.voxel
     key = case.key()
     if stamp.exists():
         info = json.loads(stamp.read_text())
@@ -396,14 +395,30 @@ def ensure_session(case: RealisticCase, work: Path, *, progress: Callable[[str],
             return info
     bench_io.remove_tree(d)
     t0 = time.perf_counter()
+    syn, scale, peak = _render_at_peak(case, d, _flow_knots(case, work, say), say)
+    info = {"key": key, "case": dataclasses.asdict(case), "session": str(syn.session), "truth": str(syn.truth),
+            "scale": scale, "peak_px": peak, "render_seconds": time.perf_counter() - t0}
+    bench_io.write_json(stamp, info)
+    say(f"{case.name}: rendered ({info['render_seconds']:.0f} s, peak deflection {peak:.3f} px)")
+    return info
+
+
+def _flow_knots(case: RealisticCase, work: Path, say: Callable[[str], None]):
+    """The case's flow (the CFD knots, or the quick cases' analytic stand-in), upsampled
+    ``case.upsample`` times."""
     from schlieren.pipeline.synthetic.cfd import upsample_cfd
 
     if case.name.startswith("quick"):
-        knots = _quick_flow(_grid(voxel))
+        knots = _quick_flow(_grid(case.voxel))
     else:
-        knots = cfd_flow(FLOWS[case.flow], Path(work) / "_cfd", voxel=voxel, progress=say)
-    base = upsample_cfd(knots, case.upsample)
+        knots = cfd_flow(FLOWS[case.flow], Path(work) / "_cfd", voxel=case.voxel, progress=say)
+    return upsample_cfd(knots, case.upsample)
 
+
+def _render_at_peak(case: RealisticCase, d: Path, base, say: Callable[[str], None]):
+    """Render ``case`` into ``d`` with the flow ``base`` scaled to the requested peak
+    deflection (re-rendered once if the truth misses it, see :func:`ensure_session`):
+    ``(SynthResult, scale, truth's peak)``."""
     def probe(scale: float) -> float:
         return _probe_peak(case, _scaled(base, scale))
 
@@ -417,7 +432,7 @@ def ensure_session(case: RealisticCase, work: Path, *, progress: Callable[[str],
         warn_unconverged(case.peak_px, probed)
     say(f"{case.name}: unscaled peak deflection {probes[0][1]:.3f} px -> excess temperature x {scale:.3f} "
         f"({len(probes)} probes)")
-    syn = _render(case, d, _scaled(base, scale), voxel=voxel)
+    syn = _render(case, d, _scaled(base, scale), voxel=case.voxel)
     peak = _peak_deflection(syn.truth)
     if peak > 0 and probed > 0 and abs(peak / case.peak_px - 1.0) > RENDER_TOL:
         # calibrate the probe against the truth: their ratio hardly depends on the scale
@@ -432,13 +447,9 @@ def ensure_session(case: RealisticCase, work: Path, *, progress: Callable[[str],
             warn_unconverged(target, probed)
         say(f"{case.name}: excess temperature x {scale:.3f} ({len(probes) - n0} more probes)")
         bench_io.remove_tree(d)
-        syn = _render(case, d, _scaled(base, scale), voxel=voxel)
+        syn = _render(case, d, _scaled(base, scale), voxel=case.voxel)
         peak = _peak_deflection(syn.truth)
-    info = {"key": key, "case": dataclasses.asdict(case), "session": str(syn.session), "truth": str(syn.truth),
-            "scale": scale, "peak_px": peak, "render_seconds": time.perf_counter() - t0}
-    bench_io.write_json(stamp, info)
-    say(f"{case.name}: rendered ({info['render_seconds']:.0f} s, peak deflection {peak:.3f} px)")
-    return info
+    return syn, scale, peak
 
 
 def _rows_from(ev: dict) -> dict:

@@ -306,22 +306,10 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
 
 def _run_leased(session, out_path, cfg, *, client, serial, report, on_receipt, on_failure, on_plan,
                 frames_per_task, overwrite, verify) -> RunSummary:
-    from schlieren.workers.verify import verify_store
-
-    try:
-        store, ext, token = prepare_store(session, out_path, cfg)
-    except StoreError as exc:
-        if not (overwrite and exc.field == "fingerprint"):
-            raise
-        log.warning("replacing the store %s of another configuration (--overwrite)", out_path)
-        remove_store(out_path)
-        store, ext, token = prepare_store(session, out_path, cfg)
+    store, ext, token = _open_store(session, out_path, cfg, overwrite=overwrite)
     if frames_per_task is None:
         frames_per_task = default_frames_per_task(session.cameras[0].image_size, cfg.flow_factor)
-    try:
-        check = verify_store(store, full=verify, repair=True, ext=ext)
-    except OSError as exc:
-        raise StoreError(f"cannot check the store ({exc.strerror or exc})", file=str(out_path)) from None
+    check = _verify(store, out_path, ext, full=verify)
     if not isinstance(frames_per_task, dict):
         frames_per_task = int(frames_per_task)
     plan = make_plan(ext, token, done=_done_predicate(check.done, ext), frames_per_task=frames_per_task)
@@ -330,61 +318,101 @@ def _run_leased(session, out_path, cfg, *, client, serial, report, on_receipt, o
     summary = RunSummary(store=str(out_path), executor="serial" if (serial or client is None) else "dask",
                          tasks=len(plan.tasks), skipped=plan.skipped, integrity=check)
     t0 = time.time()
-    stage_first: dict[str, float] = {}
-    stage_last: dict[str, float] = {}
-    stage_busy: dict[str, float] = {}
-    stage_cpu: dict[str, float] = {}
-
-    def _receipt(r: dict) -> None:
-        if summary.executor == "dask":  # the serial loop's tasks log their own, in this process
-            log_receipt(r, level=logging.DEBUG if r.get("skipped") else logging.INFO)
-        now = time.time()
-        s = r["stage"]
-        stage_first.setdefault(s, now - r.get("seconds", 0.0))
-        stage_last[s] = now
-        stage_busy[s] = stage_busy.get(s, 0.0) + float(r.get("seconds", 0.0))
-        stage_cpu[s] = stage_cpu.get(s, 0.0) + float(r.get("cpu_seconds", 0.0))
-        if on_receipt:
-            on_receipt(r)
-
-    if summary.executor == "serial":
-        from schlieren.workers.serial import run_serial
-
-        receipts, failures = run_serial(str(out_path), plan, on_receipt=_receipt, on_failure=on_failure)
-    else:
-        from schlieren.workers.graph import run_graph
-
-        if report:
-            from distributed import performance_report
-
-            # inline: BokehJS embedded, so the report opens offline (the default loads it from a CDN)
-            with performance_report(filename=str(report), mode="inline"):
-                receipts, failures = run_graph(client, str(out_path), plan,
-                                               on_receipt=_receipt, on_failure=on_failure)
-        else:
-            receipts, failures = run_graph(client, str(out_path), plan,
-                                           on_receipt=_receipt, on_failure=on_failure)
+    clock = _StageClock(summary.executor, on_receipt)
+    receipts, failures = _execute(summary.executor, client, str(out_path), plan, report=report,
+                                  on_receipt=clock, on_failure=on_failure)
     summary.receipts = receipts
     summary.failures = failures
     summary.seconds = time.time() - t0
-    summary.stage_seconds = dict(stage_busy)
-    summary.stage_cpu_seconds = dict(stage_cpu)
-    times = dict(store.attrs.get("stage_times") or {})
-    done_stages = {t.stage for t in plan.tasks} - {k.split("-")[0] for k in failures}
-    for s in done_stages:
-        if s in stage_first:
-            times[s] = {"started": stage_first[s], "completed": stage_last[s],
-                        "task_seconds": stage_busy.get(s, 0.0), "executor": summary.executor}
+    summary.stage_seconds = dict(clock.busy)
+    summary.stage_cpu_seconds = dict(clock.cpu)
     summary.bad_frames = excluded_frames(store, receipts)
-    try:
-        store.update_attrs({"stage_times": times})
-    except OSError as exc:  # only the timing attributes are lost; every chunk and marker stays
-        from schlieren.workers.tasks import _failure_text
-
-        summary.failures["store-attributes"] = _failure_text(f"recording stage times in {out_path}", exc)
+    _record_stage_times(store, out_path, plan, summary, clock)
     from schlieren.workers.diagnostics import diagnose
 
     summary.warnings = diagnose(receipts, n_voxels=math.prod(session.grid.shape))
     for w in summary.warnings:
         log.warning("%s", w)
     return summary
+
+
+def _open_store(session, out_path, cfg, *, overwrite: bool) -> tuple[ResultStore, Extents, str]:
+    """:func:`prepare_store`; with ``overwrite`` a store of another configuration is replaced."""
+    try:
+        return prepare_store(session, out_path, cfg)
+    except StoreError as exc:
+        if not (overwrite and exc.field == "fingerprint"):
+            raise
+        log.warning("replacing the store %s of another configuration (--overwrite)", out_path)
+        remove_store(out_path)
+        return prepare_store(session, out_path, cfg)
+
+
+def _verify(store: ResultStore, out_path, ext: Extents, *, full: bool):
+    """The markers checked (and damaged ones cleared) before planning: the ``VerifyReport``."""
+    from schlieren.workers.verify import verify_store
+
+    try:
+        return verify_store(store, full=full, repair=True, ext=ext)
+    except OSError as exc:
+        raise StoreError(f"cannot check the store ({exc.strerror or exc})", file=str(out_path)) from None
+
+
+class _StageClock:
+    """The receipt callback of a run: per stage, the first start, the last completion and the
+    summed task seconds and CPU seconds; logs the Dask workers' receipts and passes every
+    receipt on to ``on_receipt``."""
+
+    def __init__(self, executor: str, on_receipt: Callable[[dict], None] | None):
+        self.executor = executor
+        self.on_receipt = on_receipt
+        self.first: dict[str, float] = {}
+        self.last: dict[str, float] = {}
+        self.busy: dict[str, float] = {}
+        self.cpu: dict[str, float] = {}
+
+    def __call__(self, r: dict) -> None:
+        if self.executor == "dask":  # the serial loop's tasks log their own, in this process
+            log_receipt(r, level=logging.DEBUG if r.get("skipped") else logging.INFO)
+        now = time.time()
+        s = r["stage"]
+        self.first.setdefault(s, now - r.get("seconds", 0.0))
+        self.last[s] = now
+        self.busy[s] = self.busy.get(s, 0.0) + float(r.get("seconds", 0.0))
+        self.cpu[s] = self.cpu.get(s, 0.0) + float(r.get("cpu_seconds", 0.0))
+        if self.on_receipt:
+            self.on_receipt(r)
+
+
+def _execute(executor: str, client, store_path: str, plan: Plan, *, report, on_receipt, on_failure):
+    """Run ``plan`` in the serial loop or on the Dask cluster: ``(receipts, failures)``."""
+    if executor == "serial":
+        from schlieren.workers.serial import run_serial
+
+        return run_serial(store_path, plan, on_receipt=on_receipt, on_failure=on_failure)
+    from schlieren.workers.graph import run_graph
+
+    if report:
+        from distributed import performance_report
+
+        # inline: BokehJS embedded, so the report opens offline (the default loads it from a CDN)
+        with performance_report(filename=str(report), mode="inline"):
+            return run_graph(client, store_path, plan, on_receipt=on_receipt, on_failure=on_failure)
+    return run_graph(client, store_path, plan, on_receipt=on_receipt, on_failure=on_failure)
+
+
+def _record_stage_times(store: ResultStore, out_path, plan: Plan, summary: RunSummary, clock: _StageClock) -> None:
+    """Store each stage's first start, last completion and task seconds of this run in the
+    store's ``stage_times`` (stages with a failed task keep their previous entry)."""
+    times = dict(store.attrs.get("stage_times") or {})
+    done_stages = {t.stage for t in plan.tasks} - {k.split("-")[0] for k in summary.failures}
+    for s in done_stages:
+        if s in clock.first:
+            times[s] = {"started": clock.first[s], "completed": clock.last[s],
+                        "task_seconds": clock.busy.get(s, 0.0), "executor": summary.executor}
+    try:
+        store.update_attrs({"stage_times": times})
+    except OSError as exc:  # only the timing attributes are lost; every chunk and marker stays
+        from schlieren.workers.tasks.runner import failure_text
+
+        summary.failures["store-attributes"] = failure_text(f"recording stage times in {out_path}", exc)

@@ -54,7 +54,7 @@ from schlieren.workers.evaluate import evaluate
 
 __all__ = ["Table1Config", "PAPER_TABLE1", "PAPER_POISSON_BOUND", "DEFAULT_RIGS", "QUICK_RIGS",
            "parse_rigs", "run_table1", "bench_rig", "truth_rows", "poisson_bound", "bound_gradient",
-           "table1_markdown"]
+           "ref_rig", "rig_failures"]
 
 log = logging.getLogger(__name__)
 
@@ -448,39 +448,7 @@ def run_table1(work_dir, config: Table1Config = Table1Config(), *, client=None,
     bound: dict = {}
     ok = [r for r in rigs if "paths" in r]
     if ok:
-        tb = time.perf_counter()
-        ref = next((r for r in ok if config.hull_rig and (r["ring"], r["cameras"]) == tuple(config.hull_rig)),
-                   ok[0])
-        session = load_session(ref["paths"]["session"])
-        cfg = bind_medium(RunConfig(), session.medium.n_ambient)
-        store = ResultStore.open(ref["paths"]["store"], mode="r")
-        times = np.asarray(store.read("time"), dtype=np.float64)
-        r_amb = session.medium.refractivity_ambient
-        wd = Path(work_dir) / "poisson_bound"
-        vols = poisson_bound(ref["paths"]["truth"], session.grid, times, r_ambient=r_amb, params=cfg.poisson,
-                             dilation=config.bound_dilation, support_threshold=config.support_threshold)
-        bound["support"] = _score(wd / "est_support.zarr", vols, times, session.grid, ref["paths"]["truth"],
-                                  "poisson_bound_support")
-        support_text = f"truth support (abs(r - r_amb) > {config.support_threshold:g} x range) dilated by " \
-                       f"{config.bound_dilation} voxels"
-        bound["support"]["hull"] = support_text
-        bound["support"]["scheme"] = FINE_BLOCK_TEXT
-        vols = poisson_bound(ref["paths"]["truth"], session.grid, times, r_ambient=r_amb, params=cfg.poisson,
-                             dilation=config.bound_dilation, support_threshold=config.support_threshold,
-                             scheme="coarse_central")
-        bound["coarse_central"] = _score(wd / "est_coarse.zarr", vols, times, session.grid,
-                                         ref["paths"]["truth"], "poisson_bound_coarse_central")
-        bound["coarse_central"]["hull"] = support_text
-        bound["coarse_central"]["scheme"] = COARSE_CENTRAL_TEXT
-        if config.hull_rig and (ref["ring"], ref["cameras"]) == tuple(config.hull_rig):
-            hulls = np.stack([store.read("hull", (k,)) for k in range(len(times))])
-            vols = poisson_bound(ref["paths"]["truth"], session.grid, times, r_ambient=r_amb,
-                                 params=cfg.poisson, hulls=hulls)
-            bound["pipeline_hull"] = _score(wd / "est_hull.zarr", vols, times, session.grid,
-                                            ref["paths"]["truth"], "poisson_bound_hull")
-            bound["pipeline_hull"]["hull"] = f"pipeline hull of the {_rig_name(ref_rig(ref))} run"
-            bound["pipeline_hull"]["scheme"] = FINE_BLOCK_TEXT
-        bound["seconds"] = time.perf_counter() - tb
+        bound = _bound_rows(work_dir, ok, config)
         say(f"Poisson-only bound: {bound['support']['psnr']:.2f} dB")
     return {"config": dataclasses.asdict(config), "rigs": rigs, "poisson_bound": bound,
             "paper": {"table1": {f"{k[0]}:{k[1]}": v for k, v in PAPER_TABLE1.items()},
@@ -488,130 +456,49 @@ def run_table1(work_dir, config: Table1Config = Table1Config(), *, client=None,
             "seconds": time.perf_counter() - t0}
 
 
-def _grid_text(result: dict) -> str:
-    shapes = {tuple(r["grid_shape"]) for r in result["rigs"] if "grid_shape" in r}
-    return ", ".join("x".join(map(str, s)) for s in sorted(shapes)) or "n/a"
-
-
-def _flow_text(result: dict) -> str:
-    shapes = {tuple(r["flow_shape"]) for r in result["rigs"] if "flow_shape" in r}
-    return ", ".join("x".join(map(str, s)) for s in sorted(shapes)) or "n/a"
+def _bound_rows(work_dir, ok: list[dict], config: Table1Config) -> dict:
+    """The Poisson-only bound's rows (sec. 6) on the truth of the :attr:`Table1Config.hull_rig`
+    run (else the first rig that ran): inside the dilated truth support with two gradient
+    discretisations, and inside that run's pipeline hull."""
+    bound: dict = {}
+    tb = time.perf_counter()
+    ref = next((r for r in ok if config.hull_rig and (r["ring"], r["cameras"]) == tuple(config.hull_rig)),
+               ok[0])
+    session = load_session(ref["paths"]["session"])
+    cfg = bind_medium(RunConfig(), session.medium.n_ambient)
+    store = ResultStore.open(ref["paths"]["store"], mode="r")
+    times = np.asarray(store.read("time"), dtype=np.float64)
+    r_amb = session.medium.refractivity_ambient
+    wd = Path(work_dir) / "poisson_bound"
+    vols = poisson_bound(ref["paths"]["truth"], session.grid, times, r_ambient=r_amb, params=cfg.poisson,
+                         dilation=config.bound_dilation, support_threshold=config.support_threshold)
+    bound["support"] = _score(wd / "est_support.zarr", vols, times, session.grid, ref["paths"]["truth"],
+                              "poisson_bound_support")
+    support_text = f"truth support (abs(r - r_amb) > {config.support_threshold:g} x range) dilated by " \
+                   f"{config.bound_dilation} voxels"
+    bound["support"]["hull"] = support_text
+    bound["support"]["scheme"] = FINE_BLOCK_TEXT
+    vols = poisson_bound(ref["paths"]["truth"], session.grid, times, r_ambient=r_amb, params=cfg.poisson,
+                         dilation=config.bound_dilation, support_threshold=config.support_threshold,
+                         scheme="coarse_central")
+    bound["coarse_central"] = _score(wd / "est_coarse.zarr", vols, times, session.grid,
+                                     ref["paths"]["truth"], "poisson_bound_coarse_central")
+    bound["coarse_central"]["hull"] = support_text
+    bound["coarse_central"]["scheme"] = COARSE_CENTRAL_TEXT
+    if config.hull_rig and (ref["ring"], ref["cameras"]) == tuple(config.hull_rig):
+        hulls = np.stack([store.read("hull", (k,)) for k in range(len(times))])
+        vols = poisson_bound(ref["paths"]["truth"], session.grid, times, r_ambient=r_amb,
+                             params=cfg.poisson, hulls=hulls)
+        bound["pipeline_hull"] = _score(wd / "est_hull.zarr", vols, times, session.grid,
+                                        ref["paths"]["truth"], "poisson_bound_hull")
+        bound["pipeline_hull"]["hull"] = f"pipeline hull of the {_rig_name(ref_rig(ref))} run"
+        bound["pipeline_hull"]["scheme"] = FINE_BLOCK_TEXT
+    bound["seconds"] = time.perf_counter() - tb
+    return bound
 
 
 def ref_rig(r: dict) -> tuple[str, int]:
     return r["ring"], r["cameras"]
-
-
-def _cell(row: dict | None) -> str:
-    if not row or not np.isfinite(row.get("psnr", float("nan"))):
-        return "— | —"
-    return f"{row['psnr']:.2f} | {100 * row['rms']:.2f} %"
-
-
-def _paper_cell(v) -> str:
-    return "— | —" if v is None else f"{v[0]:.2f} | {v[1]:.2f} %"
-
-
-def table1_markdown(result: dict, *, wall_seconds: float | None = None, executor: str = "",
-                    machine: str = "") -> str:
-    """Markdown rendering of :func:`run_table1`'s result, our figures beside the paper's."""
-    c = result["config"]
-    lines = ["# Table 1 reproduction (paper sec. 6)", "",
-             "Command: `schlieren bench table1`. Ours = the project's synthetic plume; paper = fuel "
-             "injection data set. PSNR in dB, relative RMS in % of the truth's range per frame "
-             "(SPEC section 4), overall = RMS over frames.", ""]
-    by_rig = {(r["ring"], r["cameras"]): r for r in result["rigs"]}
-    for ring, title in (("half", "Half ring setup"), ("full", "Full ring setup")):
-        rigs = [r for r in result["rigs"] if r["ring"] == ring]
-        if not rigs:
-            continue
-        lines += [f"## {title}", ""]
-        head = "| Direction estimate |"
-        sep = "|---|"
-        for r in rigs:
-            head += f" {r['cameras']} cams ours PSNR | ours RMS | paper PSNR | paper RMS |"
-            sep += "---:|---:|---:|---:|"
-        lines += [head, sep]
-        row_names = list(ROWS)
-        if any("approximate_aniso" in r["rows"] for r in rigs):
-            row_names.append("approximate_aniso")
-        for name in row_names:
-            line = f"| {ROW_LABELS[name]} |"
-            for r in rigs:
-                paper = PAPER_TABLE1.get((r["ring"], r["cameras"]), {}).get(name)
-                line += f" {_cell(r['rows'].get(name))} | {_paper_cell(paper)} |"
-            lines.append(line)
-        lines.append("")
-    lines += ["## In-plume PSNR (dB)", "",
-              "The same RMS over the voxels where the truth departs from ambient by more than 1 % of its range "
-              "(SPEC section 4); the whole box is dominated by ambient voxels.", "",
-              "| Rig | " + " | ".join(ROW_LABELS[n] for n in ROWS) + " |", "|---|" + "---:|" * len(ROWS)]
-    for r in result["rigs"]:
-        vals = " | ".join(f"{r['rows'][n]['psnr_plume']:.2f}" if n in r["rows"] and "psnr_plume" in r["rows"][n]
-                          else "—" for n in ROWS)
-        lines.append(f"| {r['ring']} {r['cameras']} | {vals} |")
-    lines.append("")
-    b = result.get("poisson_bound") or {}
-    lines += ["## Poisson-only bound", "",
-              "True gradient, \"unknown\" discretisation, Poisson integration (default parameters) inside a hull; "
-              "no tomography, no optical flow.", "",
-              "| Gradient discretisation | Hull | ours PSNR | ours RMS | paper PSNR | paper RMS |",
-              "|---|---|---:|---:|---:|---:|"]
-    for key in ("support", "pipeline_hull", "coarse_central"):
-        if key in b:
-            lines.append(f"| {b[key].get('scheme', '')} | {b[key]['hull']} | {_cell(b[key])} | "
-                         f"{_paper_cell(PAPER_POISSON_BOUND)} |")
-    lines.append("")
-    for r in result["rigs"]:
-        rows = r["rows"]
-        if "approximate_aniso" in rows and "approximate" in rows:
-            gain = rows["approximate_aniso"]["psnr"] - rows["approximate"]["psnr"]
-            lines += [f"Anisotropic vs plain Poisson ({r['ring']} ring, {r['cameras']} cameras, approximate "
-                      f"d_out): {gain:+.2f} dB for alpha = 0.8 with the tensor active over the default alpha = 1 "
-                      f"(paper: about +1 dB).", ""]
-    lines += ["## Per-frame PSNR (dB)", "", "| Rig | Row | " + " | ".join(f"frame {i}" for i in range(c["frames"]))
-              + " |", "|---|---|" + "---:|" * c["frames"]]
-    for r in result["rigs"]:
-        for name, row in r["rows"].items():
-            vals = " | ".join(f"{f['psnr']:.2f}" for f in row["frames"])
-            lines.append(f"| {r['ring']} {r['cameras']} | {name} | {vals} |")
-    lines.append("")
-    w, h = c["size"]
-    secs = [f"{r['ring']} {r['cameras']}: synth {r['seconds'].get('synth', 0):.0f} s, pipeline "
-            f"{r['seconds'].get('pipeline', 0):.0f} s, truth rows {r['seconds'].get('truth_rows', 0):.0f} s"
-            for r in result["rigs"]]
-    lines += ["## Setup", "",
-              f"* Images {w}x{h} px, rendered (truth deflections, the exact and approximate rows) on the "
-              f"flow grid of factor {c['flow_factor']}; the pipeline's flow grid (flow.auto_factor): factor "
-              f"{', '.join(sorted({str(r.get('flow_factor', c['flow_factor'])) for r in result['rigs']}))}; supersampling "
-              f"{c['supersample']}, sensor noise {c['noise']} grey levels, seed {c['seed']}.",
-              f"* {c['frames']} output frame(s) per rig; reconstruction voxel {1000 * c['recon_voxel']:.1f} mm, "
-              f"grid (nz, ny, nx) = {_grid_text(result)}; truth on a grid of half that voxel.",
-              f"* Flow grid (rows, cols) per camera: {_flow_text(result)}.",
-              "* Truth-driven rows use the pipeline run's visual hull per frame and the default tomography "
-              "and Poisson parameters (plain Poisson, alpha = 1); `approximate_aniso` has the Appendix's tensor "
-              "active (alpha 0.8, 16-bit units).",
-              f"* Pipeline executor: {executor or 'serial'}. Machine: {machine or 'n/a'}.",
-              f"* Wall time of the whole command: {wall_seconds if wall_seconds is not None else result['seconds']:.0f} s "
-              f"({'; '.join(secs)}).", ""]
-    lines += ["## Differences from the paper", "",
-              "* Different phantom: the project's synthetic buoyant plume (a puffing hot source from a small "
-              "Boussinesq simulation whose head rolls up into vortex rings) instead of the DFG fuel-injection "
-              "data set; absolute numbers are therefore not comparable, only the "
-              "trends (more cameras, exact vs approximate vs optical flow, half vs full ring).",
-              "* Smaller images than the paper (to finish in well under 30 min on 2 shared cores): the paper's "
-              "cameras are 1440x1080 and its deflection fields 480x270; ours are stated above. The paper does "
-              "not give the volume resolution of Table 1.",
-              "* Only a few frames per rig, so the overall figures carry frame-to-frame variation (see the "
-              "per-frame table).",
-              "* The truth-driven rows (exact / approximate d_out) carry no image noise and no optical-flow "
-              "error; with many cameras they approach or exceed our Poisson-only figure, which is therefore not "
-              "a strict bound here: it measures the mismatch between one particular gradient discretisation and "
-              "the Poisson solver's, and the table shows it depends strongly on that choice. The paper's hull "
-              "and discretisation for its bound are not specified; ours are stated in the table.",
-              "* The optical-flow row is limited by the flow estimate on small, noisy images; its gap to the "
-              "approximate row is much larger than in the paper.", ""]
-    return "\n".join(lines)
 
 
 def rig_failures(result: dict) -> list[str]:
