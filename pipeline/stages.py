@@ -26,28 +26,16 @@ from schlieren.pipeline import masks as _masks
 from schlieren.pipeline import poisson as _poisson
 from schlieren.pipeline import sync as _sync
 from schlieren.pipeline import tomography as _tomo
+from schlieren.pipeline.params import param, parameters
 from schlieren.pipeline.params import validate as _validate
-from schlieren.pipeline.params import param
 
 __all__ = ["Stage", "RunConfig", "STAGES", "stage", "middle_frame",
-           "config_from_dict", "config_to_dict", "check_config", "kernel_kwargs", "bind_medium",
-           "bind_flow_factor"]
+           "config_from_dict", "config_to_dict", "check_config", "bind_medium", "bind_flow_factor"]
 
 
-@dataclass(frozen=True)
+@parameters
 class RunConfig:
-    """Every parameter of a run, one frozen dataclass per stage (saved in the store).
-
-    Attributes
-    ----------
-    reconstruction : {"two-step", "direct"}
-        Reconstruction method. ``two-step``: the paper's gradient tomography (``tomography``) followed by the
-        anisotropic Poisson integration (``poisson``); ``direct``: refractivity solved
-        directly from the deflections (``direct``, beyond the paper).
-    warm_start_block : int
-        Frames solved in sequence, each tomography solve warm-started from the previous
-        frame's solution; blocks are independent (more blocks, more parallel work).
-    """
+    """Every parameter of a run, one frozen params class per stage (saved in the store)."""
 
     flow: _flow.FlowParams = field(default_factory=_flow.FlowParams)
     flash: _sync.FlashParams = field(default_factory=_sync.FlashParams)
@@ -56,15 +44,16 @@ class RunConfig:
     hull: _hull.HullParams = field(default_factory=_hull.HullParams)
     tomography: _tomo.TomoParams = field(default_factory=_tomo.TomoParams)
     poisson: _poisson.PoissonParams = field(default_factory=_poisson.PoissonParams)
-    reconstruction: str = param("two-step", choices=("two-step", "direct"))
-    warm_start_block: int = param(4, unit="frames", ge=1, le=10000)
+    reconstruction: str = param(
+        "two-step", choices=("two-step", "direct"),
+        help="`two-step`: the paper's gradient tomography (`tomography`) followed by the anisotropic Poisson "
+             "integration (`poisson`); `direct`: refractivity solved directly from the deflections "
+             "(`direct`, beyond the paper).")
+    warm_start_block: int = param(
+        4, unit="frames", ge=1, le=10000,
+        help="Frames solved in sequence, each tomography solve warm-started from the previous frame's; "
+             "blocks are independent, so more blocks give more parallel work.")
     direct: _tomo.RefractivityParams = field(default_factory=_tomo.RefractivityParams)
-
-    def __post_init__(self):
-        if self.reconstruction not in {"two-step", "direct"}:
-            raise ValueError(f"reconstruction must be 'two-step' or 'direct', not {self.reconstruction!r}")
-        if self.warm_start_block < 1:
-            raise ValueError("warm_start_block must be at least 1")
 
     @property
     def flow_factor(self) -> int:
@@ -92,16 +81,6 @@ def bind_medium(cfg: RunConfig, n_ambient: float) -> RunConfig:
         if dataclasses.is_dataclass(value) and any(g.name == "n_ambient" for g in dataclasses.fields(value)):
             out[f.name] = dataclasses.replace(value, n_ambient=float(n_ambient))
     return dataclasses.replace(cfg, **out)
-
-
-def kernel_kwargs(params, kernel: Callable) -> dict:
-    """The fields of a params dataclass that ``kernel`` takes as keyword arguments."""
-    import inspect
-
-    if params is None:
-        return {}
-    accepted = inspect.signature(kernel).parameters
-    return {f.name: getattr(params, f.name) for f in dataclasses.fields(params) if f.name in accepted}
 
 
 @dataclass(frozen=True)
