@@ -3,14 +3,18 @@
 :class:`FlowParams` (one frozen params class; field names = the kernels' keyword names),
 :data:`METHODS`, when the finest LK level is solved per flow cell
 (:func:`uses_cell_solve`) and the LK window a reconstruction voxel asks for
-(:func:`window_for_voxel`).
+(:func:`window_for_voxel`, :func:`camera_window`).
 """
 
 from __future__ import annotations
 
+import numpy as np
+
+from schlieren.pipeline.geometry import pixel_footprint
 from schlieren.pipeline.params import param, parameters
 
-__all__ = ["METHODS", "FlowParams", "CELL_SOLVE_MIN_CELLS", "uses_cell_solve", "window_for_voxel"]
+__all__ = ["METHODS", "FlowParams", "CELL_SOLVE_MIN_CELLS", "uses_cell_solve", "window_for_voxel",
+           "px_per_voxel", "camera_window"]
 
 
 METHODS = ("lk", "hs", "dis", "correlation")
@@ -164,3 +168,17 @@ def window_for_voxel(px_per_voxel: float, window_per_voxel: float, *, smallest: 
     w = min(max(w, smallest), largest)
     return w if w % 2 else w + 1
 
+
+def px_per_voxel(camera, grid) -> float:
+    """Image pixels the reconstruction voxel spans in ``camera`` at the box centre."""
+    centre = 0.5 * (np.asarray(grid.vmin) + np.asarray(grid.vmax))
+    return grid.voxel_size / pixel_footprint(camera, centre)
+
+
+def camera_window(camera, grid, *, window: int = FlowParams.window,
+                  window_per_voxel: float = FlowParams.window_per_voxel) -> int:
+    """The LK window a run uses for ``camera``: :func:`window_for_voxel` of the voxel's
+    footprint (:func:`px_per_voxel`) when ``window_per_voxel`` > 0, else ``window``."""
+    if window_per_voxel <= 0:
+        return window
+    return window_for_voxel(px_per_voxel(camera, grid), window_per_voxel)
