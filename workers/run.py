@@ -226,6 +226,21 @@ def excluded_frames(store: ResultStore, receipts: list[dict] | None = None) -> l
             for c, j in zip(*np.nonzero(problems))]
 
 
+def flash_spans(store: ResultStore) -> dict[str, tuple[int, int]]:
+    """Camera -> first and last frame the strobe flash lit (``(-1, -1)``: none; empty when
+    the sync has not run)."""
+    import numpy as np
+
+    from schlieren.storage.errors import ChunkError
+
+    try:
+        spans = np.asarray(store.array("flash_frames")[...])
+        names = [str(n) for n in np.asarray(store.array("camera")[...])]
+    except (ChunkError, StoreError):
+        return {}
+    return {n: (int(lo), int(hi)) for n, (lo, hi) in zip(names, spans) if np.isfinite([lo, hi]).all()}
+
+
 def store_lease(out_path, purpose: str = "run"):
     """The lease of the store (:func:`schlieren.storage.lease.lease_for`): a folder's lease
     file or an S3 store's lease object; a no-op context for other stores."""
@@ -330,7 +345,7 @@ def _run_leased(session, out_path, cfg, *, client, serial, report, on_receipt, o
     _record_stage_times(store, out_path, plan, summary, clock)
     from schlieren.workers.diagnostics import diagnose
 
-    summary.warnings = diagnose(receipts, n_voxels=math.prod(session.grid.shape))
+    summary.warnings = diagnose(receipts, n_voxels=math.prod(session.grid.shape), flash_frames=flash_spans(store))
     for w in summary.warnings:
         log.warning("%s", w)
     return summary
