@@ -160,7 +160,8 @@ def _check_reference(i: int, cam: Camera, source: CameraSource) -> None:
         vid.close()
     else:  # an image sequence (pattern, glob, folder) or a multi-page TIFF
         seq = open_frames(ref, camera_name=cam.name)
-        if seq.dropped:  # references are not a capture with drops: a lost file
+        if seq.dropped and source.reference_kind == "sequence":  # a printf pattern's lost file (a folder's
+            # or glob's files are averaged as they are)
             k = seq.dropped[0]
             raise SessionError(f"reference file {seq.file_of(k)} is missing while later reference files exist",
                                file=seq.file_of(k), camera=cam.name, field=f"frames[{k}]")
