@@ -91,10 +91,19 @@ def default_frames_per_task(image_size: tuple[int, int], flow_factor: int | None
 
 @dataclass
 class RunSummary:
+    """What a run did. Counts are of *steps*: one stage at one index (a camera and frame, a
+    frame, or the whole run), the unit a completion marker records; a task computes one
+    step or several consecutive frames of one camera (``frames_per_task``).
+
+    ``steps``: steps this run set out to compute, in ``tasks`` tasks; ``skipped``: steps
+    already complete in the store (not run again)."""
+
     store: str
     executor: str
     tasks: int = 0
     skipped: int = 0
+    steps: int = 0
+    task_steps: dict[str, int] = field(default_factory=dict)  # task key -> its steps
     failures: dict[str, str] = field(default_factory=dict)
     seconds: float = 0.0
     stage_seconds: dict[str, float] = field(default_factory=dict)
@@ -108,6 +117,11 @@ class RunSummary:
     @property
     def ok(self) -> bool:
         return not self.failures
+
+    @property
+    def steps_computed(self) -> int:
+        """Steps this run computed (those of its failed and not-run tasks left out)."""
+        return self.steps - sum(self.task_steps.get(k, 1) for k in self.failures if k in self.task_steps)
 
     def root_failures(self) -> dict[str, str]:
         return {k: v for k, v in self.failures.items() if not v.startswith("not run:")}
@@ -331,7 +345,9 @@ def _run_leased(session, out_path, cfg, *, client, serial, report, on_receipt, o
     if on_plan:
         on_plan(plan)
     summary = RunSummary(store=str(out_path), executor="serial" if (serial or client is None) else "dask",
-                         tasks=len(plan.tasks), skipped=plan.skipped, integrity=check)
+                         tasks=len(plan.tasks), skipped=plan.skipped, integrity=check,
+                         steps=sum(len(t.indices) for t in plan.tasks),
+                         task_steps={t.key: len(t.indices) for t in plan.tasks})
     t0 = time.time()
     clock = _StageClock(summary.executor, on_receipt)
     receipts, failures = _execute(summary.executor, client, str(out_path), plan, report=report,

@@ -167,16 +167,7 @@ class TemplateMixin:
             if not found:
                 return None
         elif isinstance(path, (str, os.PathLike)):
-            p = Path(path)
-            if not p.exists():
-                return None
-            if p.is_file():
-                raise StoreError("the path exists and is a file, not a result store; not overwriting it",
-                                 file=loc)
-            if not (p / "zarr.json").is_file():
-                if any(p.iterdir()):
-                    raise StoreError("the folder exists, is not empty and is not a result store; not "
-                                     "overwriting it", file=loc)
+            if not check_store_target(path):
                 return None
         try:
             group = open_group(path, mode="r+", zarr_format=3)
@@ -274,6 +265,30 @@ class TemplateMixin:
                 same = False
             if not same:
                 arr[...] = want
+
+
+def check_store_target(path) -> bool:
+    """Whether the folder ``path`` holds a store (a ``zarr.json``) to open; False for a
+    missing or empty folder (a new store goes there). Anything else is refused, before
+    any work: a file, or a folder that is not empty and holds no store.
+
+    Raises
+    ------
+    StoreError
+        Naming the path; nothing is touched.
+    """
+    p = Path(path)
+    if not p.exists():
+        return False
+    loc = store_location(path)
+    if p.is_file():
+        raise StoreError("the path exists and is a file, not a result store; not overwriting it", file=loc)
+    if (p / "zarr.json").is_file():
+        return True
+    if any(p.iterdir()):
+        raise StoreError("the folder exists, is not empty and is not a result store; not overwriting it",
+                         file=loc)
+    return False
 
 
 def _root_attrs(attrs: Mapping[str, Any], loc: str) -> dict:

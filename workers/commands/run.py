@@ -119,6 +119,7 @@ def execute(session: str, out: str, frames, args, *, console=None):
     cfg = load_params(getattr(args, "params", None))
     # validate everything before a cluster is even started
     loaded = load_session(session, frames=frames)
+    check_out(out)
     with open_run_log(getattr(args, "log", None), loaded.name) as run_log, client_for(args) as (client, info):
         link = None
         if client is not None:
@@ -140,6 +141,16 @@ def execute(session: str, out: str, frames, args, *, console=None):
     return summary
 
 
+def check_out(out: str) -> None:
+    """Refuse an ``--out`` that exists and is no result store (a file, a folder of other
+    things) before any cluster starts; a URL is checked when the store is opened."""
+    from schlieren.storage import location
+    from schlieren.storage.store import check_store_target
+
+    if not location.is_url(location.normalize(out)):
+        check_store_target(out)
+
+
 def open_run_log(path, session_name: str):
     """The ``--log`` file (a no-op log without a path); an unwritable path is a CLI error."""
     from schlieren.workers.cli import CLIError
@@ -154,7 +165,7 @@ def open_run_log(path, session_name: str):
 def log_finished(run_log, summary) -> None:
     """The closing line of ``--log``: counts, wall time and executor of the run."""
     run_log.finished(store=summary.store, executor=summary.executor, tasks=summary.tasks,
-                     skipped=summary.skipped, seconds=round(summary.seconds, 3),
+                     steps=summary.steps_computed, skipped=summary.skipped, seconds=round(summary.seconds, 3),
                      failed=len(summary.root_failures()),
                      not_run=len(summary.failures) - len(summary.root_failures()))
 
@@ -172,7 +183,10 @@ def print_summary(summary, *, stream=None) -> None:
         shown = "; ".join(f"{cam} frame {f} ({', '.join(why)})" for cam, f, why in bad[:20])
         more = f"; and {len(bad) - 20} more" if len(bad) > 20 else ""
         print(f"excluded from the reconstruction: {shown}{more}", file=stream)
-    print(f"store: {summary.store}  ({summary.tasks} tasks run, {summary.skipped} already complete, "
+    # steps: one stage at one camera and frame (what a completion marker records); a task
+    # computes one step or several frames of one camera, so only steps add up across runs
+    print(f"store: {summary.store}  ({summary.steps_computed} steps computed in {summary.tasks} "
+          f"task{'' if summary.tasks == 1 else 's'}, {summary.skipped} already complete; "
           f"{summary.seconds:.1f} s, {summary.executor} executor)", file=stream)
     if summary.failures:
         print(f"FAILED: {len(roots)} task(s) failed, {len(summary.failures) - len(roots)} not run "

@@ -134,14 +134,15 @@ def handler(args: argparse.Namespace) -> int:
 
     # the run entry points belong to the executor; imported here so this module loads without them
     from schlieren.storage.session import load_session
-    from schlieren.workers.commands.run import (fan_out, load_params, log_finished, open_run_log, parse_frames,
-                                                print_summary)
+    from schlieren.workers.commands.run import (check_out, fan_out, load_params, log_finished, open_run_log,
+                                                parse_frames, print_summary)
     from schlieren.workers.progress import StageProgress
     from schlieren.workers.run import run_session
 
     frames = parse_frames(args.frames)
     run_config = load_params(args.params)
     session = load_session(args.session, frames=frames)  # bad input refused before any job starts
+    check_out(args.out)
     with open_run_log(args.log, session.name) as run_log:
         try:
             cluster = make_batch_cluster(args.cluster, config)
