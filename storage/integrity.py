@@ -191,6 +191,8 @@ class CheckedStore(WrapperStore):
         self._meta: dict[str, _Meta | None] = {}
         self._integrity: dict | None = None
         self._integrity_read = False
+        self._consolidated: dict = {}  # array -> its metadata in the root's consolidated copy
+        self._gone: set[str] = set()  # arrays whose own zarr.json is missing (the array was deleted)
         # metadata fetches in flight, by key: zarr requests the chunks of a read together,
         # and each would otherwise fetch the array's zarr.json again before the first
         # answer is cached (one fetch per chunk of a multi-chunk read from an object store)
@@ -231,6 +233,13 @@ class CheckedStore(WrapperStore):
         if name not in self._meta:
             buf = await self._fetch_once(f"{name}/zarr.json", prototype)
             meta = _parse_meta(buf.to_bytes() if buf is not None else None)
+            if meta is None and buf is None:
+                # no zarr.json: an array deleted from the store (``rm -rf STORE/temperature``)
+                # is still listed in the root's consolidated metadata, which readers use
+                await self._get_integrity(prototype)
+                meta = _meta_from_dict(self._consolidated.get(name) or {})
+                if meta is not None:
+                    self._gone.add(name)
             if meta is None:
                 return None  # not cached: the array may be created later
             self._meta[name] = meta
@@ -240,10 +249,12 @@ class CheckedStore(WrapperStore):
         if not self._integrity_read:
             buf = await self._fetch_once("zarr.json", prototype)
             try:
-                attrs = json.loads(buf.to_bytes()).get("attributes") or {} if buf is not None else {}
+                root = json.loads(buf.to_bytes()) if buf is not None else {}
             except ValueError:
-                attrs = {}
+                root = {}
+            attrs = root.get("attributes") or {}
             self._integrity = _integrity_attr(attrs)
+            self._consolidated = dict(((root.get("consolidated_metadata") or {}).get("metadata")) or {})
             self._integrity_read = buf is not None
         return self._integrity
 
@@ -265,7 +276,9 @@ class CheckedStore(WrapperStore):
             done = _decode_marker(buf.to_bytes(), mmeta)
         except CorruptChunk as exc:
             raise chunk_error(self.location, mname, idx, exc.reason) from None
-        return missing_reason(stage) if done else None
+        if not done:
+            return None
+        return missing_reason(stage) + (" (the whole array is gone: its zarr.json too)" if name in self._gone else "")
 
     async def get(self, key, prototype, byte_range=None):
         buf = await self._store.get(key, prototype, byte_range)
