@@ -281,7 +281,7 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
                 on_failure: Callable[[str, str], None] | None = None,
                 on_plan: Callable[[Plan], None] | None = None,
                 progress: bool = False, frames_per_task: int | None = None,
-                overwrite: bool = False, verify: bool = False) -> RunSummary:
+                overwrite: bool = False, verify: bool = False, keep=None) -> RunSummary:
     """Validate ``session_path``, then compute every missing chunk of ``out_path``.
 
     Parameters
@@ -309,11 +309,22 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
         Read every chunk of the existing store and check its checksum before trusting the
         markers (otherwise only a listing checks that the marked chunks exist). Damaged
         chunks are recomputed with everything downstream of them.
+    keep : str or list of str, optional
+        The intermediates the store keeps (:func:`~schlieren.workers.retention.arrays_to_drop`):
+        ``"all"`` (default), ``"results"`` (``flow_raw``, ``flow`` and ``potential`` are
+        dropped once the stages reading them are done) or the names of those to keep.
+        Results do not depend on it; it is not part of the run's fingerprint.
     """
     from schlieren.workers.preflight import WorkerSlots, preflight, workers_of_client
     from schlieren.workers.tasks import adopt_session
 
+    from schlieren.workers.retention import arrays_to_drop
+
     config = check_config(config or RunConfig())  # a bad value stops here, before the store exists
+    try:
+        arrays_to_drop(keep)
+    except ValueError as exc:
+        raise StoreError(str(exc), field="keep") from None
     session = session_path if isinstance(session_path, Session) else load_session(session_path, frames=frames)
     adopt_session(session_location(session), session)  # this process's task contexts reuse it
     cfg = bind_flow_factor(bind_medium(config, session.medium.n_ambient), session.cameras, session.grid)
@@ -330,15 +341,16 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
     with store_lease(out_path):
         return _run_leased(session, out_path, cfg, client=client, serial=serial, report=report,
                            on_receipt=on_receipt, on_failure=on_failure, on_plan=on_plan,
-                           frames_per_task=frames_per_task, overwrite=overwrite, verify=verify)
+                           frames_per_task=frames_per_task, overwrite=overwrite, verify=verify, keep=keep)
 
 
 def _run_leased(session, out_path, cfg, *, client, serial, report, on_receipt, on_failure, on_plan,
-                frames_per_task, overwrite, verify) -> RunSummary:
+                frames_per_task, overwrite, verify, keep) -> RunSummary:
     store, ext, token = _open_store(session, out_path, cfg, overwrite=overwrite)
     if frames_per_task is None:
         frames_per_task = default_frames_per_task(session.cameras[0].image_size, cfg.flow_factor)
     check = _verify(store, out_path, ext, full=verify)
+    dropper = _retention(store, ext, check, keep)
     if not isinstance(frames_per_task, dict):
         frames_per_task = int(frames_per_task)
     plan = make_plan(ext, token, done=_done_predicate(check.done, ext), frames_per_task=frames_per_task)
@@ -349,6 +361,14 @@ def _run_leased(session, out_path, cfg, *, client, serial, report, on_receipt, o
                          steps=sum(len(t.indices) for t in plan.tasks),
                          task_steps={t.key: len(t.indices) for t in plan.tasks})
     t0 = time.time()
+    if dropper is not None:
+        dropper.start()
+        user_receipt = on_receipt
+
+        def on_receipt(r: dict) -> None:
+            dropper.receipt(r)
+            if user_receipt:
+                user_receipt(r)
     clock = _StageClock(summary.executor, on_receipt)
     receipts, failures = _execute(summary.executor, client, str(out_path), plan, report=report,
                                   on_receipt=clock, on_failure=on_failure)
@@ -364,7 +384,33 @@ def _run_leased(session, out_path, cfg, *, client, serial, report, on_receipt, o
     summary.warnings = diagnose(receipts, n_voxels=math.prod(session.grid.shape), flash_frames=flash_spans(store))
     for w in summary.warnings:
         log.warning("%s", w)
+    if dropper is not None and summary.ok:  # complete: the arrays left without chunks go
+        removed = dropper.finish()
+        store.set_retention(dropper.keep, dropper.drop)
+        log.info("retention %s: %d chunks dropped this run%s", dropper.keep, dropper.dropped,
+                 f"; {', '.join(removed)} removed" if removed else "")
     return summary
+
+
+def _retention(store: ResultStore, ext: Extents, check, keep):
+    """The run's :class:`~schlieren.workers.retention.Dropper` (None when nothing is or was
+    dropped: today's store, no attribute written), after clearing the markers of the
+    producers whose dropped chunks this run needs again."""
+    from schlieren.workers.retention import Dropper, arrays_to_drop, keep_text, to_regenerate
+
+    drop, before = arrays_to_drop(keep), store.dropped_arrays
+    if not drop and not before:
+        return None
+    regen = to_regenerate(store, ext, check.done, drop, before)
+    for stage, idx in sorted(regen):
+        store.unmark(stage, idx)
+        check.done.get(stage, set()).discard(idx)
+    if regen:
+        log.info("recomputing %d dropped intermediate chunk(s) that this run needs again", len(regen))
+    store.set_retention(keep_text(keep), drop | before)  # until the run completes: either may be missing
+    dropper = Dropper(store, ext, drop, _done_predicate(check.done, ext))
+    dropper.keep = keep_text(keep)
+    return dropper
 
 
 def _open_store(session, out_path, cfg, *, overwrite: bool) -> tuple[ResultStore, Extents, str]:

@@ -41,10 +41,28 @@ def add_common_run_args(p: argparse.ArgumentParser) -> None:
                    help="frames of one camera per task in the cheap 2D stages (default: the deflection about "
                         "3.1 megapixels per task, 8 frames at 480x360, 2 at 1440x1080; results and resume do not "
                         "depend on it)")
+    add_keep_arg(p)
     p.add_argument("--verify", action="store_true",
                    help="before resuming, read every chunk of the existing store and check its checksum "
                         "(a rerun always checks that the chunks of every completed task exist); damaged "
                         "chunks are recomputed with everything downstream")
+
+
+def _keep(text: str) -> str:
+    """An argparse ``type`` for ``--keep`` (checked here, so a typo stops before any work)."""
+    from schlieren.workers.retention import arrays_to_drop
+
+    try:
+        arrays_to_drop(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("--keep ")) from None
+    return text
+
+
+def add_keep_arg(p: argparse.ArgumentParser) -> None:
+    from schlieren.workers.retention import KEEP_HELP
+
+    p.add_argument("--keep", default="all", metavar="WHAT", type=_keep, help=KEEP_HELP)
 
 
 def add_log_arg(p: argparse.ArgumentParser) -> None:
@@ -135,7 +153,7 @@ def execute(session: str, out: str, frames, args, *, console=None):
                                   on_failure=fan_out(prog.failure, run_log.failure),
                                   on_plan=prog.plan, frames_per_task=args.frames_per_task,
                                   overwrite=getattr(args, "overwrite", False),
-                                  verify=bool(getattr(args, "verify", False)))
+                                  verify=bool(getattr(args, "verify", False)), keep=getattr(args, "keep", None))
             log_finished(run_log, summary)
         summary.dashboard = link
     return summary

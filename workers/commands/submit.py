@@ -53,6 +53,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--verify", action="store_true",
                    help="before resuming, read every chunk of the existing store and check its checksum "
                         "(as `schlieren run --verify`); damaged chunks are recomputed with everything downstream")
+    from schlieren.workers.commands.run import add_keep_arg
+
+    add_keep_arg(p)
     p.add_argument("--dry-run", action="store_true", help="print the job script / manifest and exit")
     p.set_defaults(func=handler)
 
@@ -171,6 +174,7 @@ def handler(args: argparse.Namespace) -> int:
                     frames_per_task=args.frames_per_task,
                     overwrite=bool(args.overwrite),
                     verify=bool(args.verify),
+                    keep=getattr(args, "keep", None),
                 )
             log_finished(run_log, summary)
             summary.dashboard = info.dashboard_link
