@@ -130,16 +130,8 @@ def _readers(ext: Extents) -> dict[tuple, set[tuple[str, tuple[int, ...]]]]:
     return out
 
 
-def _chunk_coords(index: tuple[int, ...], ndim: int) -> tuple[int, ...]:
-    """Grid coordinates of a droppable array's chunk at its producer's ``index`` (one
-    camera-frame per chunk, whole in the other dims)."""
-    return tuple(index) + (0,) * (ndim - len(index))
-
-
 def _stored(store, name: str) -> set[tuple[int, ...]]:
     """Producer indices of the stored chunks of ``name`` (a listing; empty if the array is gone)."""
-    if name not in store:
-        return set()
     keys, _ = store.list_chunks(name)
     n = len(stage_of(PRODUCER[name]).over)
     return {tuple(k[:n]) for k in keys}
@@ -171,7 +163,6 @@ class Dropper:
             self.pending[group] = {m for m in members if not done(*m)}
             for chunk in reads:
                 self.groups_of[chunk].append(group)
-        self._ndim = {a: len(store.chunk_grid(a)[0]) for a in self.drop if a in store}
 
     def start(self) -> None:
         """Drop the stored chunks no task of this run reads (their producers done)."""
@@ -194,12 +185,12 @@ class Dropper:
                 self._delete(a, i)
 
     def _delete(self, a: str, i: tuple[int, ...]) -> None:
-        self.store.drop_chunk(a, _chunk_coords(i, self._ndim[a]))
+        self.store.drop_chunk(a, i)
         self.dropped += 1
 
     def finish(self) -> list[str]:
         """After a complete run: remove the dropped arrays that hold no chunk any more."""
-        empty = [a for a in DROPPABLE if a in self.drop and a in self.store and not _stored(self.store, a)]
+        empty = [a for a in DROPPABLE if a in self.drop and not _stored(self.store, a)]
         return self.store.remove_arrays(empty)
 
 

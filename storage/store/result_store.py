@@ -347,8 +347,7 @@ class ResultStore(TemplateMixin, MarkersMixin, ChunksMixin, RetentionMixin):
             # "consolidated metadata is not part of the Zarr v3 specification": xarray, zarr-python
             # and the other main readers use it; readers without it read the metadata files
             warnings.simplefilter("ignore", category=UserWarning)
-            # the group it returns lists what the store holds now (arrays a resume created included)
-            self._group = zarr.consolidate_metadata(self._group.store, zarr_format=3)
+            zarr.consolidate_metadata(self._group.store, zarr_format=3)
 
     def __repr__(self) -> str:
         return f"ResultStore({self._location!r}, mode={self._mode!r})"

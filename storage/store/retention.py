@@ -51,9 +51,17 @@ class RetentionMixin:
         """Record the run's policy and the arrays whose chunks may be missing (coordinator only)."""
         self.update_attrs({"retention": {"keep": str(keep), "dropped": sorted(set(dropped))}})
 
-    def drop_chunk(self, name: str, coords) -> None:
-        """Delete one chunk of a dropped intermediate (its readers are done)."""
-        self.remove_chunk(name, coords)
+    def drop_chunk(self, name: str, index) -> None:
+        """Delete the chunk of a dropped intermediate at its producer's ``index`` (one
+        camera-frame per chunk: the chunk's grid coordinates are ``index`` then zeros)."""
+        ndims = self.__dict__.setdefault("_ndims", {})
+        if name not in ndims:  # from its own zarr.json: the group's consolidated copy may predate it
+            import json
+
+            meta = json.loads(location.read_bytes(location.join(self._location, *name.split("/"), "zarr.json"))) \
+                if isinstance(self._store_arg, (str, os.PathLike)) else self.array(name).metadata.to_dict()
+            ndims[name] = len(meta["shape"])
+        self.remove_chunk(name, tuple(int(i) for i in index) + (0,) * (ndims[name] - len(index)))
 
     def remove_arrays(self, names) -> list[str]:
         """Remove whole arrays (their metadata and any chunk) and rewrite the consolidated
