@@ -72,6 +72,9 @@ def test_a_run_keeps_what_it_is_told_and_the_rest_is_bit_identical(keep, serial_
     again = run_session(tiny_session.session, out, serial=True, keep=keep)
     assert again.ok and again.steps_computed == 0
     assert_kept_like(serial_store, out, POLICIES[keep])
+    if keep == "results":  # the report says why its deflection figures are missing
+        assert _cli("report", out, "--out", tmp_path / "rep").returncode == 0
+        assert "<code>flow</code> was not kept" in (tmp_path / "rep" / "index.html").read_text()
 
 
 @pytest.mark.parametrize("keep", list(POLICIES))
