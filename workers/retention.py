@@ -3,7 +3,8 @@
 ``schlieren run --keep`` (:func:`arrays_to_drop`): ``all`` (the default) keeps every
 array; ``results`` drops the three large intermediates :data:`DROPPABLE` (``flow_raw``,
 ``flow``, ``potential``: nearly all of a paper-scale store, benchmarks/results/retention.md)
-and keeps the volumes, masks, hulls and the small per-frame arrays; a comma-separated list keeps those intermediates and drops the others.
+and keeps the volumes, masks, hulls and the small per-frame arrays; a comma-separated
+list keeps those intermediates and drops the others.
 
 How it stays correct (docs/store.md, "Retention"):
 
