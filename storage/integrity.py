@@ -1,6 +1,6 @@
 """Chunk integrity of the result store: checksums, completion coverage and scans.
 
-The design (docs/design.md, "Integrity"):
+The design (docs/design.md, "Integrity, resume and preflight"):
 
 * **Checksums in the codec chain.** Every array the store creates ends its codecs with
   zarr's ``crc32c`` codec (``bytes``, ``zstd``, ``crc32c``), so zarr itself computes and

@@ -47,20 +47,16 @@ __all__ = ["run_session", "RunSummary", "prepare_store"]
 
 RAW_MARGIN = 2  # raw frames either side of the output range used by rolling-shutter resampling
 #: Image pixels per task the deflection aims for by default (its cost grows with the
-#: image: ~12 ms per 480x360 frame, ~75 ms per 1440x1080 one here): 8 frames per task at
-#: 480x360, 4 at 960x720, 2 at 1440x1080, 1 from 2560x1440 up. On benchmarks/scaling.py's
-#: 480x360 session (8 cameras x 16 frames) batching took the plan from 730 tasks to 150.
-#: A task also decodes the frame before its first (the frozen-frame test): at 1440x1080 two
-#: frames per task decode three frames instead of four (one task per frame decoded two
-#: each, the tasks of one camera's neighbouring frames landing on different workers) and
-#: the paper-scale session benchmark's deflection went from 2.71-2.91 to 2.58-2.84 s per
-#: time step (2 workers, runs alternated), its tasks from 348 to 252.
+#: image): 8 frames per task at 480x360, 4 at 960x720, 2 at 1440x1080, 1 from 2560x1440
+#: up, so that a task's work outweighs what Dask spends on it. A task also decodes the
+#: frame before its first (the frozen-frame test), so two frames per task decode three
+#: frames instead of four (docs/tuning.md, "Scheduling").
 PIXELS_PER_TASK = 3.1e6
 MAX_FRAMES_PER_TASK = 8
 
 
 #: Flow-grid cells per task the batched stages on the flow grid (resampling, potential,
-#: mask: 16-65 ms per 480x360 field here) aim for: 4 frames per task at 1440x1080 with
+#: mask) aim for: 4 frames per task at 1440x1080 with
 #: flow factor 3. Consecutive frames in one task also share work: an output instant's
 #: resampling reuses the motion of the frame pair it shares with the previous instant,
 #: and a mask the per-frame evidence its neighbours' masks computed.

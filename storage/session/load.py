@@ -367,7 +367,7 @@ def _check_contents(cameras: list[Camera], sources: list[CameraSource], found: _
         if hasattr(fs, "close"):
             fs.close()
     # videos are decoded whole for their timestamps (dropped frames): the cameras together
-    # (OpenCV's decoder releases the GIL; 1.4x on 2 cores for 1440x1080 H.264)
+    # (OpenCV's decoder releases the GIL; docs/tuning.md, "Speed")
     videos = any(src.frames_kind == "video" for src in sources)
     _per_camera(check_content, len(cameras), remote or videos)
     if dropped:

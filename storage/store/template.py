@@ -126,8 +126,8 @@ class TemplateMixin:
         """Create the template at an object-store URL: built in memory, uploaded in one batch.
 
         Through zarr's API each array costs several sequential requests (existence checks
-        of the node and its parents, then the metadata): some 370 for the result layout,
-        4 s against a local S3 server. The same objects are built here in a MemoryStore
+        of the node and its parents, then the metadata): hundreds for the result layout
+        (docs/tuning.md, "Chunk I/O and object storage"). The same objects are built here in a MemoryStore
         and uploaded concurrently, between a first root metadata (``template_complete``
         false, so a run killed meanwhile resumes through :meth:`_create_missing`) and the
         final one, which also holds every array's metadata (zarr's consolidated metadata:
