@@ -36,7 +36,7 @@ class HullParams:
         help="A voxel is carved when more than this many of the cameras that see it put it outside their "
              "mask: 0 is the paper's strict intersection; 1 may suit many cameras with ragged masks from "
              "lossy video.",
-        see=("benchmarks/results/realistic_hull_misses1.md", "docs/tuning.md"))
+        see="benchmarks/results/realistic_hull_misses1.md", tuned=True)
 
 
 @dataclass(frozen=True)

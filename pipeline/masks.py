@@ -50,7 +50,6 @@ __all__ = [
 #: of lossless frames and of lossy video (docs/tuning.md, "Masks and hull").
 GROW_NOISE_RATIO = 2.0
 
-_TUNING = "docs/tuning.md"
 
 
 @parameters
@@ -68,12 +67,12 @@ class MaskParams:
         1, unit="flow cells", ge=0, le=100,
         help="Radius of the disk each mask is dilated by: the hull is carved from the dilated masks, so a "
              "tighter mask leaves fewer unknowns that the few views cannot determine.",
-        see=_TUNING)
+        tuned=True)
     temporal_radius: int = param(
         1, unit="frames", ge=0, le=10,
         help="The mask of frame `t` is the union of the thresholded frames `t - r .. t + r` (the paper's "
              "temporal dilation), which also covers for a degraded frame.",
-        see=_TUNING)
+        tuned=True)
     n_quantiles: int = param(
         2000, unit="1", ge=10, le=100000,
         help="Size of each camera-frame's summary of `|P|` (its quantiles), pooled into the sequence-wide "
@@ -95,7 +94,7 @@ class MaskParams:
         help="Hysteresis for noisy flow: cells above `max(deflection_threshold, grow_factor * sigma)` that "
              "connect to the evidence join it, where the noise lifts the criterion above `GROW_NOISE_RATIO` "
              "times `deflection_threshold` (lossy video). 0 (or at least `noise_factor`) disables it.",
-        see=("benchmarks/results/realistic_no_grow.md", _TUNING))
+        see="benchmarks/results/realistic_no_grow.md", tuned=True)
 
 
 def flow_potential(flow: np.ndarray) -> np.ndarray:

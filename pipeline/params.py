@@ -2,8 +2,9 @@
 
 A params class is a frozen dataclass declared with :func:`parameters`; each of its fields
 is declared once, with :func:`param`: default, unit, valid values, a one- or two-sentence
-help (what it is and why; measurement history goes to the results it links with ``see``)
-and, for a value the run replaces by a derived one, what it derives it from::
+help (what it is and why; measurement history goes to the results it links with ``see``
+or to its entry on the tuning page, ``tuned=True``) and, for a value the run replaces by a
+derived one, what it derives it from::
 
     @parameters
     class FlowParams:
@@ -52,7 +53,7 @@ from dataclasses import dataclass
 from typing import Any, Annotated, Literal, Union
 
 __all__ = ["Param", "param", "parameters", "FieldSchema", "ParamsError", "schema", "class_schema", "validate",
-           "expected", "params_yaml", "params_markdown"]
+           "expected", "params_yaml", "params_markdown", "tuning_anchor"]
 
 _KEY = "schlieren.param"
 _MARK = "__schlieren_parameters__"
@@ -80,8 +81,10 @@ class Param:
         For a value a run replaces by a derived one: from what (printed as "Derived by
         the run: ..."; the run logs the replacement and stores both values).
     see : tuple of str
-        Repository paths of the results or notes behind the default
-        (``benchmarks/results/<name>.md``, ``docs/tuning.md``).
+        Repository paths of the results behind the default (``benchmarks/results/<name>.md``).
+    tuned : bool
+        The tuning page keeps this parameter's history under a heading of its dotted name
+        (section "Run parameters"); docs/parameters.md links it.
     """
 
     unit: str = ""
@@ -95,14 +98,16 @@ class Param:
     help: str = ""
     derived: str = ""
     see: tuple[str, ...] = ()
+    tuned: bool = False
 
 
 def param(default: Any, *, help: str = "", unit: str = "", ge: float | None = None, gt: float | None = None,
           le: float | None = None, lt: float | None = None, odd: bool = False, even: bool = False,
-          choices: tuple[str, ...] = (), derived: str = "", see: str | tuple[str, ...] = ()) -> Any:
+          choices: tuple[str, ...] = (), derived: str = "", see: str | tuple[str, ...] = (),
+          tuned: bool = False) -> Any:
     """A dataclass field with its default and its :class:`Param` declaration."""
     meta = Param(unit=unit, ge=ge, gt=gt, le=le, lt=lt, odd=odd, even=even, choices=tuple(choices),
-                 help=help, derived=derived, see=(see,) if isinstance(see, str) else tuple(see))
+                 help=help, derived=derived, see=(see,) if isinstance(see, str) else tuple(see), tuned=tuned)
     return dataclasses.field(default=default, metadata={_KEY: meta})
 
 
@@ -509,8 +514,9 @@ def _docstring(cls) -> str:
         fs = schemas[f.name]
         text = fs.spec.help + (f" Derived by the run: {fs.spec.derived}" if fs.spec.derived else "")
         text += (f" Unit {fs.unit}, default" if fs.unit else " Default") + f" ``{_yaml_scalar(fs.default)}``."
-        if fs.spec.see:
-            text += " See " + ", ".join(fs.spec.see) + "."
+        see = list(fs.spec.see) + ['docs/tuning.md, "Run parameters"'] * fs.spec.tuned
+        if see:
+            text += " See " + ", ".join(see) + "."
         lines.append(f"{f.name} : {_type_text(fs)}")
         lines += textwrap.wrap(text, 88, initial_indent="    ", subsequent_indent="    ", break_on_hyphens=False)
     return "\n".join(lines) + "\n"
@@ -558,6 +564,12 @@ def _md_link(path: str) -> str:
     return f"[{path.split('/')[-1].split('#')[0]}]({target})"
 
 
+def tuning_anchor(path: str) -> str:
+    """The link from docs/parameters.md to a tuned parameter's heading on the tuning page
+    (the heading is the dotted name in backticks: GitHub's anchor drops the dot)."""
+    return "tuning.md#" + re.sub(r"[^\w\- ]", "", path.lower()).replace(" ", "-")
+
+
 def params_markdown(config_cls) -> str:
     """docs/parameters.md: one table per group with meaning, unit, default and valid values."""
     out = ["# Run parameters", "",
@@ -588,8 +600,9 @@ def params_markdown(config_cls) -> str:
         text = fs.meaning
         if fs.spec.derived:
             text += f" *Derived by the run*: {_plain(fs.spec.derived)}"
-        if fs.spec.see:
-            text += " See " + ", ".join(_md_link(p) for p in fs.spec.see) + "."
+        see = [_md_link(p) for p in fs.spec.see] + [f"[tuning]({tuning_anchor(fs.path)})"] * fs.spec.tuned
+        if see:
+            text += " See " + ", ".join(see) + "."
         out.append(f"| `{fs.path}` | {_md_cell(text)} | {fs.unit or '-'} | "
                    f"`{_yaml_scalar(fs.default)}` | {_md_cell(fs.valid)} |")
     return "\n".join(out).replace("\n\n\n", "\n\n") + "\n"

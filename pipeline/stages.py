@@ -147,8 +147,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("clock", _sync.output_times, None, ("time_offset",), ("time",), (),
           after=(("sync", "all"),), cost=0.001),
     # a raw frame of the rolling-shutter margins is processed only if an output instant
-    # needs it, which the clock decides (4 of the 12 raw frames per camera of an 8-frame
-    # run; 2 of them were never used on the paper-scale session benchmark)
+    # needs it, which the clock decides (docs/tuning.md, "Frame quality")
     Stage("deflection", _flow.deflection_stage, "flow", ("images",), ("flow_raw", "frame_quality"),
           ("camera", "raw_frame"), after=(("clock", "margin"),), batch=True, cost=0.014),
     Stage("resample", _sync.resample_flow, "resample", ("flow_raw", "time_offset", "time"),
@@ -160,8 +159,7 @@ STAGES: tuple[Stage, ...] = (
           ("mask_threshold",), (), after=(("potential", "all"),), cost=0.02),
     # the potential edges are implied by the threshold's, but without them Dask counts
     # masks as root tasks (one small dependency group) and holds them in its scheduler
-    # queue until a worker runs out of hull and solve tasks: at 960x720 the last masks
-    # ran 7 s after the threshold, and the last warm-start chain ran alone at the end
+    # queue until a worker runs out of hull and solve tasks (docs/tuning.md, "Scheduling")
     Stage("mask", _masks.make_mask, "masks", ("potential", "mask_threshold"), ("mask",),
           ("camera", "frame"), after=(("threshold", "all"), ("potential", "window")), frame_halo=1,
           batch=True, cost=0.003, grid="flow"),
@@ -170,9 +168,8 @@ STAGES: tuple[Stage, ...] = (
           after=(("mask", "same"),), cost=0.36),
     # the regularisation weight, from the noise measured outside the masks (discrepancy
     # principle on the middle frame; with reg_choice "fixed" it only records reg_weight).
-    # It reads the middle frame's masks only: waiting for every mask (as it once did) held
-    # every solve until all masks were done, then kept one worker busy with this task alone
-    # (3.2 idle worker-seconds of 175 on the 32-frame paper-scale session)
+    # It reads the middle frame's masks only, so the solves need not wait for every mask
+    # (docs/tuning.md, "Tomography weight")
     Stage("regularisation", _tomo.choose_reg_weight, "tomography", ("flow", "mask", "geometry"),
           ("reg_weight", "rhs_noise"), (), after=(("mask", "middle"), ("geometry", "all")),
           resources={"TOMO": 1}, cost=2.5),

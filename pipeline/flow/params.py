@@ -18,7 +18,6 @@ __all__ = ["METHODS", "FlowParams", "CELL_SOLVE_MIN_CELLS", "uses_cell_solve", "
 
 
 METHODS = ("lk", "hs", "dis", "correlation")
-_TUNING = "docs/tuning.md"
 
 
 @parameters
@@ -50,7 +49,7 @@ class FlowParams:
         1, unit="1", ge=1, le=50,
         help="Warping iterations on the full-resolution level (LK and HS): the costliest, and after a "
              "converged coarser level one reaches the accuracy of several.",
-        see=_TUNING)
+        tuned=True)
     presmooth: float = param(
         0.6, unit="px", ge=0, le=20,
         help="Gaussian sigma applied to both images before the flow, against sensor noise; 0 disables.")
@@ -97,7 +96,7 @@ class FlowParams:
         help="Structure-adaptive smoothing: the larger Gaussian sigma applied where the flow is smooth (mostly "
              "noise), keeping the `smoothing_sigma` result across structure; for strong, smooth flows. 0 "
              "disables.",
-        see=_TUNING)
+        tuned=True)
     adaptive_threshold: float = param(
         3.0, unit="1", gt=0, le=100,
         help="Deviation between the `adaptive_sigma`- and the `smoothing_sigma`-smoothed flow, in units of "
@@ -117,7 +116,7 @@ class FlowParams:
         True,
         help="Let the run take a finer flow grid than `factor` where the voxels span few pixels: one flow "
              "cell per voxel edge is the Nyquist rate of the linear basis. False: `factor` as given.",
-        see=("benchmarks/results/realistic_factor3.md", _TUNING))
+        see="benchmarks/results/realistic_factor3.md", tuned=True)
     invalid_check: bool = param(
         True,
         help="Give pixels that cannot carry a deflection (non-finite, clipped, textureless) zero weight in the "
@@ -131,7 +130,7 @@ class FlowParams:
         help="When > 0, each camera's LK window (and its invalid-pixel check) spans this many voxel "
              "footprints in its pixels instead of `window`, so the flow resolves what the voxels can hold; 0 "
              "uses `window`.",
-        see=_TUNING)
+        tuned=True)
     ici_gamma: float = param(
         0.0, unit="1", ge=0, le=10,
         help="LK with the frame gradient: > 0 chooses each pixel's window from `ici_min_window` up to "
@@ -145,7 +144,7 @@ class FlowParams:
         help="LK (frame gradient, no ICI, `factor` > 1): solve the full-resolution level once per flow cell "
              "instead of at every pixel, at a fraction of the cost. `auto`: where the window spans at least "
              "`CELL_SOLVE_MIN_CELLS` cells; `on` / `off`: always / never.",
-        see=_TUNING)
+        tuned=True)
 
 
 #: ``FlowParams.cell_solve = "auto"`` solves per cell when the LK window spans at least this

@@ -21,7 +21,7 @@ class PoissonParams:
     alpha: float = param(
         1.0, unit="1", gt=0, le=1,
         help="Data fidelity of the Appendix's diffusion tensor; 1 is plain Poisson integration.",
-        see="docs/tuning.md")
+        tuned=True)
     sigma: float = param(
         0.5, unit="voxels", ge=0, le=20,
         help="Gaussian smoothing of the structure tensor.")

@@ -10,7 +10,6 @@ from schlieren.pipeline.params import param, parameters
 
 __all__ = ["FlashParams", "ResampleParams"]
 
-_TUNING = "docs/tuning.md"
 
 
 @parameters
@@ -43,7 +42,7 @@ class ResampleParams:
     iterations: int = param(
         2, unit="1", ge=1, le=50,
         help="Warping iterations per level of the motion estimate.",
-        see=_TUNING)
+        tuned=True)
     regularisation: float = param(
         1e-2, unit="1", ge=0, le=1e3,
         help="Tikhonov weight of the motion estimate relative to the strongest structure: pulls the motion "
@@ -53,4 +52,4 @@ class ResampleParams:
         help="Finest pyramid level the motion is estimated on (0: the flow grid itself); the levels below "
              "take it prolonged, since the motion between flow fields is smooth and a full-grid estimate "
              "mostly fits their noise.",
-        see=_TUNING)
+        tuned=True)

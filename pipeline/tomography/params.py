@@ -6,7 +6,6 @@ from schlieren.pipeline.params import param, parameters
 
 __all__ = ["TomoParams", "RefractivityParams"]
 
-_TUNING = "docs/tuning.md"
 
 
 @parameters
@@ -21,14 +20,14 @@ class TomoParams:
         0.05, unit="1", ge=0, lt=1,
         help="Projection entries below this fraction of their row's largest (nodes a ray only grazes) are "
              "dropped and the row rescaled to keep its sum, which speeds the solves; 0 keeps every entry.",
-        see=_TUNING)
+        tuned=True)
     ray_binning: int = param(
         0, unit="flow cells", ge=0, le=16,
         help="Flow cells per tomography ray along each image axis: 1 = a ray per flow cell (the paper), `b` = "
              "one ray through each `b x b` block of cells measuring its mean flow, 0 = the run chooses.",
         derived="for 0, the largest `b` that leaves at least 1.25 rays per voxel edge at the box centre (only "
                 "flow grids finer than the voxels are binned).",
-        see=("benchmarks/results/tomography_speed_auto.md", _TUNING))
+        see="benchmarks/results/tomography_speed_auto.md", tuned=True)
     hull_dilation: int = param(
         1, unit="voxels", ge=0, le=10,
         help="Basis functions kept per frame: the hull dilated by this many voxels; 1 keeps every basis "
@@ -37,7 +36,7 @@ class TomoParams:
         "second-differences", choices=("first-differences", "second-differences"),
         help="Smoothness term of the solve: the squared first differences of each gradient component (the "
              "paper's) or the squared Laplacian, a curvature penalty that lets smooth ramps through.",
-        see=("benchmarks/results/realistic_first_differences.md", _TUNING))
+        see="benchmarks/results/realistic_first_differences.md", tuned=True)
     reg_weight: float = param(
         0.1, unit="1", ge=0, le=1e6,
         help="Weight of the smoothness term relative to the mean of `diag(S^T S)` (0: plain least squares, "
@@ -53,28 +52,28 @@ class TomoParams:
         0.7, unit="1", gt=0, le=100,
         help="Safety factor of the discrepancy principle: the residual target is `reg_tau` times the measured "
              "noise, below 1 because the solution fits part of the spatially correlated flow noise.",
-        see=_TUNING)
+        tuned=True)
     curl_weight: float = param(
         3.0, unit="1", ge=0, le=1e6,
         help="Weight of the integrability term (the discrete curl of the gradient field), relative like "
              "`reg_weight`: a refractive-index gradient is curl-free, so coupling the components removes "
              "null-space parts that are not gradients. 0 solves the components independently (the paper).",
-        see=("benchmarks/results/realistic_second_differences.md", _TUNING))
+        see="benchmarks/results/realistic_second_differences.md", tuned=True)
     model_flow_window: bool = param(
         True,
         help="Model the flow's image averaging (LK window, smoothing, block mean) in the data term instead of "
              "rays through the cell centres (beyond the paper); the widths are stored as `flow_window`.",
-        see=("benchmarks/results/realistic_curl.md", _TUNING))
+        see="benchmarks/results/realistic_curl.md", tuned=True)
     flow_window_space: str = param(
         "volume", choices=("volume", "image"),
         help="Where `model_flow_window` averages: `volume`, one Gaussian over the basis coefficients (fast, "
              "exact for parallel rays), or `image`, each camera's Gaussian over its flow cells (slower).",
-        see=("benchmarks/results/realistic_flow_window.md", _TUNING))
+        see="benchmarks/results/realistic_flow_window.md", tuned=True)
     flow_window_scale: float = param(
         0.9, unit="1", gt=0, le=10,
         help="Factor on the width of the modelled flow averaging (`measurement_sigma` times this), below 1 "
              "because that formula's width exceeds the flow's real averaging.",
-        see=("benchmarks/results/realistic_window_scale_rebased.md", _TUNING))
+        see="benchmarks/results/realistic_window_scale_rebased.md", tuned=True)
     max_iter: int = param(
         25, unit="1", ge=1, le=10000,
         help="Iteration cap of the conjugate-gradient solver (CGLS-equivalent).")

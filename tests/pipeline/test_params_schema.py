@@ -53,11 +53,18 @@ def test_help_says_what_and_why_in_two_sentences_without_history():
             assert not re.search(r"\bdB\b|\(was |\bms\b| -> |\d{4}-\d\d-\d\d", text), (r.path, text)
         for path in r.spec.see:
             assert (REPO / path).is_file(), (r.path, path)
-    # the history behind a default that links docs/tuning.md is there, under its name
+
+
+def test_tuned_parameters_and_the_tuning_pages_entries_match():
+    """``tuned=True`` links the parameter's entry on the tuning page (a heading of its dotted
+    name under "Run parameters"), and every such entry belongs to a tuned parameter."""
     tuning = (REPO / "docs" / "tuning.md").read_text()
-    for r in schema(RunConfig):
-        if "docs/tuning.md" in r.spec.see:
-            assert f"### `{r.path}`" in tuning, r.path
+    entries = set(re.findall(r"^### `([\w.]+)`$", tuning.split("\n## Run parameters\n", 1)[1], re.M))
+    tuned = {r.path for r in schema(RunConfig) if r.spec.tuned}
+    assert tuned and tuned == entries, (sorted(tuned - entries), sorted(entries - tuned))
+    doc = params_markdown(RunConfig)
+    for path in tuned:  # the link's anchor is GitHub's for the heading
+        assert f"(tuning.md#{path.replace('.', '')})" in doc, path
 
 
 def test_a_field_without_metadata_or_help_fails_the_schema():
