@@ -166,3 +166,15 @@ def test_a_voxel_from_the_cameras_is_a_derived_value(tiny_session):
     assert o.record() == {"requested": None, "effective": voxel, "unit": "m", "from": o.source}
     assert re.match(rf"volume\.voxel_size \(not given\) -> {voxel:.6g} m from the cameras' pixel footprint "
                     rf"\({info['px_per_voxel']:.2f} px per voxel, limited by {info['limited_by']}\)$", o.line())
+
+
+def test_the_report_shows_the_requested_and_the_effective_values(serial_run):
+    from schlieren.workers.report.build import _parameters_html
+
+    attrs = ResultStore.open(serial_run.store, mode="r").attrs
+    page = _parameters_html(attrs["params"], attrs["derived"])
+    windows = ", ".join(str(w) for w in attrs["derived"]["flow.window"]["effective"])
+    assert f"<tr><td>flow.window</td><td>17</td><td>{windows}</td><td>px</td><td>window_per_voxel " in page
+    assert "<td>volume.voxel_size</td>" not in page  # the tiny session's manifest gives its voxel
+    assert page.count("<tr><td>") == len(attrs["derived"])
+    assert "&quot;flow&quot;: {" in page  # then every parameter, as stored
