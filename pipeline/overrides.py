@@ -57,23 +57,31 @@ class Override:
     source: str
 
     def line(self) -> str:
-        """One log line: ``flow.window 17 -> 9 px from window_per_voxel 3.8 x 2.04 px per voxel``."""
+        """One log line: ``flow.window 17 -> 9 px from window_per_voxel 3.8 x 2.04 px per voxel``
+        (numbers to 6 significant digits, more where 6 would show two different values alike)."""
         unit = f" {self.unit}" if self.unit and self.unit != "1" else ""
-        return f"{self.path} {_show(self.requested)} -> {_show(self.effective)}{unit} from {self.source}"
+        digits = 6
+        while digits < 17 and self.requested != self.effective and \
+                _show(self.requested, digits) == _show(self.effective, digits):
+            digits += 1
+        each = " per camera" if isinstance(self.effective, (list, tuple)) and len(set(self.effective)) > 1 else ""
+        return (f"{self.path} {_show(self.requested, digits)} -> {_show(self.effective, digits)}{unit}{each} "
+                f"from {self.source}")
 
     def record(self) -> dict:
         """The JSON-able entry of the store attribute ``derived``."""
         return {"requested": self.requested, "effective": self.effective, "unit": self.unit, "from": self.source}
 
 
-def _show(v: Any) -> str:
+def _show(v: Any, digits: int = 6) -> str:
     if v is None:
         return "(not given)"
     if isinstance(v, (list, tuple)):
         vals = sorted(set(v))
-        return _show(vals[0]) if len(vals) == 1 else f"{_show(vals[0])}..{_show(vals[-1])} (per camera)"
+        lo, hi = _show(vals[0], digits), _show(vals[-1], digits)
+        return lo if len(vals) == 1 else f"{lo}..{hi}"
     if isinstance(v, float):
-        return f"{v:.6g}"
+        return f"{v:.{digits}g}"
     return str(v)
 
 
