@@ -103,9 +103,10 @@ def bind_run(config: RunConfig, cameras, grid, n_ambient: float) -> tuple[RunCon
         def cells(factor: int) -> float:
             return cells_per_voxel(cameras, grid, FlowGrid(cameras[0].image_size, factor))
 
+        kept = "" if cfg.flow.factor == config.flow.factor else \
+            f"; {config.flow.factor} would leave {cells(config.flow.factor):.2f}"
         out.append(Override("flow.factor", config.flow.factor, cfg.flow.factor, "px per flow cell",
-                            f"auto_factor ({cells(cfg.flow.factor):.2f} flow cells per voxel edge; "
-                            f"{config.flow.factor} would leave {cells(config.flow.factor):.2f})"))
+                            f"auto_factor ({cells(cfg.flow.factor):.2f} flow cells per voxel edge{kept})"))
     fp = cfg.flow
     if fp.window_per_voxel > 0:
         windows = [camera_window(c, grid, window=fp.window, window_per_voxel=fp.window_per_voxel) for c in cameras]

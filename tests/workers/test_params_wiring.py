@@ -178,3 +178,17 @@ def test_the_report_shows_the_requested_and_the_effective_values(serial_run):
     assert "<td>volume.voxel_size</td>" not in page  # the tiny session's manifest gives its voxel
     assert page.count("<tr><td>") == len(attrs["derived"])
     assert "&quot;flow&quot;: {" in page  # then every parameter, as stored
+
+
+def test_a_factor_auto_factor_keeps_says_only_what_it_leaves(tiny_session):
+    from schlieren.pipeline.overrides import bind_run
+    from schlieren.pipeline.stages import RunConfig
+    from schlieren.storage.session import load_session
+
+    s = load_session(tiny_session.session, check_files=False)
+    cfg = RunConfig(flow=dataclasses.replace(RunConfig().flow, factor=2))  # the tiny run's auto factor
+    bound, overrides = bind_run(cfg, s.cameras, s.grid, s.medium.n_ambient)
+    (o,) = [o for o in overrides if o.path == "flow.factor"]
+    assert bound.flow.factor == 2 and (o.requested, o.effective) == (2, 2)
+    assert re.fullmatch(r"flow\.factor 2 -> 2 px per flow cell from auto_factor \([\d.]+ flow cells per voxel edge\)",
+                        o.line())
