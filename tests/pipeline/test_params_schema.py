@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import yaml
 
-from schlieren.pipeline.params import (ParamsError, param, parameters, params_markdown, params_yaml, schema,
-                                       validate)
+from schlieren.pipeline.params import ParamsError, param, parameters, schema, validate
+from schlieren.pipeline.params_text import params_markdown, params_yaml
 from schlieren.pipeline.stages import RunConfig, check_config, config_from_dict, config_to_dict
 
 REPO = Path(__file__).resolve().parents[2]
