@@ -85,7 +85,7 @@ def check_session(path, *, results: str | os.PathLike | None = None, params: Che
 
 HEADER = ["camera", "noise", "flow noise", "window", "focus", "clipped", "shift", "hot/dead", "flash",
           "offset", "footprint", "voxel"]
-UNITS = ["", "grey", "px", "px", "rel.", "% dark/white", "px (max)", "px", "", "ms (rel.)", "px (% image)",
+UNITS = ["", "grey", "px", "px", "(rel. best)", "% dark/white", "px (max)", "px", "", "ms (rel.)", "px (% image)",
          "mm run / implied"]
 
 
@@ -116,7 +116,7 @@ def table_rows(rig: RigCheck, params: CheckParams = CheckParams()) -> list[list[
         flash = c.flash.split(" (SNR")[0] if c.flash else "-"
         rows.append([
             c.name, f"{c.noise:.2f}", f"{c.flow_noise:.4f}", str(c.window),
-            f"{c.focus / best:.2f}" if best > 0 else "n/a",
+            f"{c.focus:.3f} ({c.focus / best:.2f})" if best > 0 else f"{c.focus:.3f}",
             f"{100 * c.clipped[0]:.2f} / {100 * c.clipped[1]:.2f}",
             "-" if s is None else f"{s.du:+.3f},{s.dv:+.3f}",
             f"{len(c.hot)}/{len(c.dead)}", flash,

@@ -182,7 +182,8 @@ def check_camera(cam: Camera, grid: Grid, reference_frames: np.ndarray, frames: 
     flow_noise = float(np.median(region))
     focus = focus_energy(reference, noise=(noise if np.isfinite(noise) else 0.0) / np.sqrt(len(refs)))
     clipped = clipped_fractions(reference, full_scale=full_scale)
-    hot, dead = hot_pixels(reference, sigmas=params.hot_sigmas, min_step=params.hot_min_step * full_scale / 255.0)
+    hot, dead = hot_pixels(reference, sigmas=params.hot_sigmas, min_step=params.hot_min_step * full_scale / 255.0,
+                           full_scale=full_scale)
     shifts = tuple(global_shift(reference, f) for f in frames) if frames is not None else ()
     flash, offset = _flash(cam, strobe_rows, strobe_first, frame_rate)
     notes = []

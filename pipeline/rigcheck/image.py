@@ -59,12 +59,16 @@ def clipped_fractions(image: np.ndarray, *, full_scale: float) -> tuple[float, f
     return float(np.mean(img <= 0)), float(np.mean(img >= full_scale))
 
 
-def hot_pixels(image: np.ndarray, *, sigmas: float = 8.0, min_step: float = 20.0) -> tuple[np.ndarray, np.ndarray]:
+def hot_pixels(image: np.ndarray, *, sigmas: float = 8.0, min_step: float = 20.0,
+               full_scale: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Hot and dead pixels of a (reference) image: single pixels brighter (darker) than
     every one of their 8 neighbours by more than ``sigmas`` robust standard deviations of
     the image's Laplacian-like residual (the pixel minus its neighbours' mean), and by
     more than ``min_step`` grey levels. A band-limited background (the optics blur it) has
-    no such isolated spikes; a sensor's hot pixel is one.
+    no such isolated spikes; a sensor's hot pixel is one. A pixel clipped at
+    ``full_scale`` (at 0) needs a third of that step only (and ``min_step``): a reference
+    averaged over frames is clipped only where every frame was, and a hot pixel on a
+    bright part of the texture stands out less.
 
     Returns
     -------
@@ -80,4 +84,10 @@ def hot_pixels(image: np.ndarray, *, sigmas: float = 8.0, min_step: float = 20.0
     r = (img - mean8)[::2, ::2]
     s = 1.4826 * float(np.median(np.abs(r - np.median(r))))
     thr = max(sigmas * s, min_step)
-    return np.argwhere(img - hi > thr), np.argwhere(lo - img > thr)
+    hot = img - hi > thr
+    dead = lo - img > thr
+    if full_scale is not None:
+        low = max(sigmas * s / 3.0, min_step)
+        hot |= (img >= full_scale) & (img - hi > low)
+        dead |= (img <= 0) & (lo - img > low)
+    return np.argwhere(hot), np.argwhere(dead)

@@ -30,11 +30,24 @@ def _stack(frames) -> np.ndarray:
     return a
 
 
+def _without_flicker(a: np.ndarray) -> np.ndarray:
+    """Each frame of ``a`` with its least-squares gain and offset against the mean frame removed."""
+    m = a.mean(axis=0)
+    mc = m - m.mean()
+    out = np.empty_like(a)
+    for k in range(len(a)):
+        ak = a[k] - a[k].mean()
+        g = float((ak * mc).sum() / max(float((mc * mc).sum()), 1e-30))
+        out[k] = ak - g * mc + mc  # the frame on the mean frame's scale
+    return out
+
+
 def sensor_noise(frames, *, full_scale: float | None = None) -> float:
     """Sensor noise (grey levels) from frames of a static scene: the temporal standard
     deviation per pixel, its variance averaged over the pixels.
 
-    Each frame's mean level is removed first (lamp flicker is not sensor noise), and
+    Each frame's gain and offset against the frames' mean are removed first (lamp flicker
+    is not sensor noise), and
     pixels clipped at 0 or ``full_scale`` in any frame are left out (their spread is not
     the sensor's).
 
@@ -47,7 +60,7 @@ def sensor_noise(frames, *, full_scale: float | None = None) -> float:
     """
     raw = np.asarray(frames)[:, ::2, ::2]  # every 4th pixel: plenty for one number, 4x faster
     a = _stack(raw)
-    a = a - a.mean(axis=(1, 2), keepdims=True)
+    a = _without_flicker(a)
     var = a.var(axis=0, ddof=1)
     ok = (raw > 0).all(axis=0)
     if full_scale is not None:
