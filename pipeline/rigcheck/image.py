@@ -35,8 +35,8 @@ def focus_energy(image: np.ndarray, *, noise: float = 0.0, fine: float = 1.0, co
 
     ``(E(I - G_fine I) - n_f) / (E(I - G_coarse I) - n_c)``: ``E`` the mean square, ``G_s``
     a Gaussian blur of sigma ``s`` pixels, ``n_f``, ``n_c`` the energy that white sensor
-    noise ``noise`` alone puts in each band. A sharp Wavelet Noise background gives about
-    0.2-0.4; a 0.7 px defocus about halves it. Comparable between cameras of one rig (the
+    noise ``noise`` alone puts in each band. Defocus lowers it (docs/check.md gives values
+    on the benchmark family's background). Comparable between cameras of one rig (the
     same background), not between backgrounds.
 
     Parameters

@@ -45,7 +45,7 @@ class GlobalShift:
 
 def _shifted(coef: np.ndarray, shape: tuple[int, int], du: float, dv: float) -> np.ndarray:
     """``img(p + d)`` by exact cubic B-spline interpolation (``coef`` its coefficients):
-    OpenCV's bicubic convolution biases a 0.3 px shift by about 0.015 px."""
+    OpenCV's bicubic convolution would bias the sub-pixel shift."""
     flow = np.empty(shape + (2,), np.float32)
     flow[..., 0], flow[..., 1] = du, dv
     return warp_coefficients(coef, flow)

@@ -21,8 +21,8 @@ class CheckParams:
     max_shift : float
         A camera whose frames moved more than this against the reference is flagged.
     max_flow_noise : float
-        A camera whose predicted flow noise exceeds this is flagged (the realistic
-        family's deflections are 0.25-0.4 px; its flow noise about 0.01 px).
+        A camera whose predicted flow noise exceeds this is flagged (a tenth of the
+        weakest deflections worth reconstructing, 0.3 px).
     min_focus_ratio : float
         A camera whose finest-scale texture energy is below this fraction of the rig's
         best camera is flagged (out of focus, or a coarser view of the background).
