@@ -5,7 +5,7 @@ against the lab renderer's truth (issue 33 item 6).
 
 For each session: runs ``schlieren check SESSION --no-html`` in a fresh process (the
 wall time includes Python's start and the imports, as a user sees it) and records its
-output, the wall time and the machine's load (``os.getloadavg``). For a session with a
+output, the wall time, its CPU seconds and the machine's load (``os.getloadavg``). For a session with a
 ``lab.json`` beside its manifest (the realistic family's lab variants: the motion, hot
 pixels and noise each camera was rendered with), compares check's numbers with it: the
 frames' shift against the reference (the renderer's ``shift`` moves the image content, so
@@ -22,6 +22,7 @@ import argparse
 import json
 import os
 import platform
+import resource
 import subprocess
 import sys
 import time
@@ -36,11 +37,14 @@ RESULTS = HERE / "results"
 def run_check(session: str) -> dict:
     exe = Path(sys.executable).with_name("schlieren")
     load = os.getloadavg()
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     out = subprocess.run([str(exe), "check", session, "--no-html"], capture_output=True, text=True)
     wall = time.perf_counter() - t0
-    return {"session": session, "wall_seconds": wall, "load_before": load, "load_after": os.getloadavg(),
-            "exit": out.returncode, "output": out.stdout + out.stderr}
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return {"session": session, "wall_seconds": wall, "cpu_seconds": cpu, "load_before": load,
+            "load_after": os.getloadavg(), "exit": out.returncode, "output": out.stdout + out.stderr}
 
 
 def against_truth(session: str) -> dict | None:
@@ -78,12 +82,16 @@ def against_truth(session: str) -> dict | None:
 def markdown(res: dict) -> str:
     lines = ["# `schlieren check` on realistic sessions", "",
              "Command: `python benchmarks/check.py SESSION ...` (see its docstring). Wall time of "
-             "`schlieren check SESSION --no-html` in a fresh process, with the machine's load average "
-             f"(1 min) before and after; {res['machine']}. Loaded machine: re-measure the times quiet.", ""]
+             "`schlieren check SESSION --no-html` in a fresh process, its CPU seconds (user + system: "
+             "what it costs whatever the load), and the machine's load average (1 min) before and after; "
+             f"{res['machine']}. Loaded machine (2 cores shared by several sessions): re-measure the wall "
+             "times quiet. The `checked in` line is the command's own time, without Python's start and "
+             "imports.", ""]
     for r in res["sessions"]:
         lines += [f"## {r['session']}", "",
-                  f"Wall time {r['wall_seconds']:.1f} s, load {r['load_before'][0]:.1f} -> {r['load_after'][0]:.1f} "
-                  f"(exit {r['exit']}).", "", "```", r["output"].rstrip(), "```", ""]
+                  f"Wall time {r['wall_seconds']:.1f} s ({r['cpu_seconds']:.1f} CPU seconds), load "
+                  f"{r['load_before'][0]:.1f} -> {r['load_after'][0]:.1f} (exit {r['exit']}).", "", "```",
+                  r["output"].rstrip(), "```", ""]
         t = r.get("truth")
         if t:
             lines += ["Against the lab renderer's truth (`lab.json`):", "",
@@ -101,7 +109,12 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
     ap.add_argument("sessions", nargs="+")
     ap.add_argument("--results", default=str(RESULTS))
+    ap.add_argument("--markdown-only", action="store_true", help="rewrite check.md from check.json")
     args = ap.parse_args(argv)
+    if args.markdown_only:
+        res = json.loads((Path(args.results) / "check.json").read_text())
+        (Path(args.results) / "check.md").write_text(markdown(res))
+        return 0
     res = {"machine": f"{platform.node()}, {os.cpu_count()} cores", "sessions": []}
     for s in args.sessions:
         r = run_check(s)

@@ -149,3 +149,22 @@ def _move_camera(folder: Path, name: str) -> None:
     for p in sorted((folder / name / "frames").glob("*.png")):
         img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
         cv2.imwrite(str(p), np.roll(img, 1, axis=1))  # one pixel to the right
+
+
+@pytest.mark.slow
+def test_predicted_flow_noise_against_a_serial_run_without_flow(tmp_path):
+    """A run of a session without flow: the noise of each camera's stored raw flow is within
+    a factor 1.5 of what check predicted for it."""
+    import zarr
+
+    from schlieren.pipeline.masks import flow_noise
+    from schlieren.workers.api import run
+
+    root = write_session(tmp_path / "still", noise=2.0)
+    rig = check_session(root, results=tmp_path)
+    run(root, tmp_path / "store.zarr", progress=False)
+    raw = zarr.open_group(str(tmp_path / "store.zarr"), mode="r")["flow_raw"][:]
+    for c, cam in enumerate(rig.checked):
+        measured = float(np.median([flow_noise(raw[c, k]) for k in range(raw.shape[1])
+                                    if np.isfinite(raw[c, k]).any()]))
+        assert 1 / 1.5 < cam.flow_noise / measured < 1.5, (cam.name, cam.flow_noise, measured)
