@@ -59,8 +59,8 @@ def _one_camera(session, c: int, flow: FlowParams, params: CheckParams):
         return check_camera(cam, session.grid, inp.reference_frames, inp.frames, strobe_rows=inp.strobe_rows,
                             strobe_first=first, frame_rate=session.frame_rate, full_scale=inp.full_scale,
                             flow=flow, params=params)
-    except (SchlierenInputError, ValueError, OSError) as exc:
-        return cam.name, str(exc)
+    except Exception as exc:  # a file still being written, a decoder's error: this camera's row says it
+        return cam.name, str(exc).splitlines()[0] if str(exc) else type(exc).__name__
 
 
 def check_session(path, *, results: str | os.PathLike | None = None, params: CheckParams = CheckParams(),
