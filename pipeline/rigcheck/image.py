@@ -66,7 +66,7 @@ def hot_pixels(image: np.ndarray, *, sigmas: float = 8.0, min_step: float = 20.0
     the image's Laplacian-like residual (the pixel minus its neighbours' mean), and by
     more than ``min_step`` grey levels. A band-limited background (the optics blur it) has
     no such isolated spikes; a sensor's hot pixel is one. A pixel clipped at
-    ``full_scale`` (at 0) needs a third of that step only (and ``min_step``): a reference
+    ``full_scale`` (at 0) needs half that step only (and ``min_step``): a reference
     averaged over frames is clipped only where every frame was, and a hot pixel on a
     bright part of the texture stands out less.
 
@@ -87,7 +87,7 @@ def hot_pixels(image: np.ndarray, *, sigmas: float = 8.0, min_step: float = 20.0
     hot = img - hi > thr
     dead = lo - img > thr
     if full_scale is not None:
-        low = max(sigmas * s / 3.0, min_step)
+        low = max(sigmas * s / 2.0, min_step)
         hot |= (img >= full_scale) & (img - hi > low)
         dead |= (img <= 0) & (lo - img > low)
     return np.argwhere(hot), np.argwhere(dead)
