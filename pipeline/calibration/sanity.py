@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from schlieren.pipeline.geometry import Camera
-from schlieren.pipeline.params import param
+from schlieren.pipeline.params import param, parameters
 
 __all__ = ["RigSanityParams", "RigProblem", "rig_problems", "centre_inside", "sees_box",
            "visible_fraction", "MM_HINT"]
@@ -31,36 +31,32 @@ __all__ = ["RigSanityParams", "RigProblem", "rig_problems", "centre_inside", "se
 MM_HINT = "calibration in millimetres? (t, background and volume must all be in metres)"
 
 
-@dataclass(frozen=True)
+@parameters
 class RigSanityParams:
-    """Thresholds of :func:`rig_problems` (field names = its keyword names).
+    """Thresholds of :func:`rig_problems` (field names = its keyword names)."""
 
-    Attributes
-    ----------
-    max_distance_ratio : float
-        A camera farther from the volume centre than this many times the volume's
-        diagonal is refused (a BOS rig puts its cameras 5-50 diagonals away).
-    min_footprint_px : float
-        A camera in which the volume's diagonal spans fewer pixels is refused.
-    max_footprint_ratio : float
-        A camera in which the volume's diagonal spans more than this many image diagonals
-        is refused (it would see a sliver of the box).
-    touch_fraction : float
-        A camera centre closer to the box than this fraction of the volume's diagonal
-        touches it, and is refused.
-    min_visible_fraction : float
-        A camera that sees less than this fraction of the volume (sampled on a 9^3
-        lattice) gets a warning.
-    max_volume_size : float
-        A volume whose diagonal exceeds this many metres is refused.
-    """
-
-    max_distance_ratio: float = param(200.0, unit="1", gt=1, le=1e6)
-    min_footprint_px: float = param(1.0, unit="px", ge=0, le=1e4)
-    max_footprint_ratio: float = param(20.0, unit="1", gt=1, le=1e6)
-    touch_fraction: float = param(0.02, unit="1", ge=0, le=10)
-    min_visible_fraction: float = param(0.5, unit="1", ge=0, le=1)
-    max_volume_size: float = param(100.0, unit="m", gt=0, le=1e6)
+    max_distance_ratio: float = param(
+        200.0, unit="1", gt=1, le=1e6,
+        help="A camera farther from the volume centre than this many times the volume's diagonal is "
+             "refused (a BOS rig puts its cameras 5-50 diagonals away).")
+    min_footprint_px: float = param(
+        1.0, unit="px", ge=0, le=1e4,
+        help="A camera in which the volume's diagonal spans fewer pixels is refused.")
+    max_footprint_ratio: float = param(
+        20.0, unit="1", gt=1, le=1e6,
+        help="A camera in which the volume's diagonal spans more than this many image diagonals is "
+             "refused (it would see a sliver of the box).")
+    touch_fraction: float = param(
+        0.02, unit="1", ge=0, le=10,
+        help="A camera centre closer to the box than this fraction of the volume's diagonal touches "
+             "it, and is refused.")
+    min_visible_fraction: float = param(
+        0.5, unit="1", ge=0, le=1,
+        help="A camera that sees less than this fraction of the volume (sampled on a 9^3 lattice) gets"
+             " a warning.")
+    max_volume_size: float = param(
+        100.0, unit="m", gt=0, le=1e6,
+        help="A volume whose diagonal exceeds this many metres is refused.")
 
 
 @dataclass(frozen=True)
