@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # A real single-node SLURM on this machine, from Debian's packages, for the system tests
-# (tests/system/) and CI: no systemd, no site configuration touched.
+# (tests/e2e/test_slurm.py), CI (.ci/run) and trying `schlieren submit` (deploy/GUIDE.md
+# section 3): no systemd, no site configuration touched.
 #
 #   deploy/slurm/local/slurm.sh start    # install if missing (root + apt-get), start, wait until the node is idle
 #   deploy/slurm/local/slurm.sh env      # print the `export SLURM_CONF=...` line for clients
@@ -18,13 +19,14 @@ CONF=$DIR/slurm.conf
 PACKAGES="slurmctld slurmd slurm-client munge"
 # seconds to wait for the node to come up after the daemons start
 WAIT=${SCHLIEREN_SLURM_WAIT:-30}
+CTLD_PORT=${SCHLIEREN_SLURMCTLD_PORT:-6817}
+D_PORT=${SCHLIEREN_SLURMD_PORT:-6818}
 
 die() { echo "slurm.sh: $*" >&2; exit 3; }
 
 install_packages() {
     command -v slurmctld >/dev/null && command -v slurmd >/dev/null && command -v munged >/dev/null \
         && command -v sbatch >/dev/null && return 0
-    [[ $(id -u) == 0 ]] || die "SLURM is not installed and installing it needs root (apt-get install $PACKAGES)"
     command -v apt-get >/dev/null || die "SLURM is not installed and this machine has no apt-get"
     echo "slurm.sh: installing $PACKAGES (Debian packages)" >&2
     { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $PACKAGES; } \
@@ -76,8 +78,8 @@ SlurmctldLogFile=$DIR/log/slurmctld.log
 SlurmdLogFile=$DIR/log/slurmd.log
 SlurmctldPidFile=$DIR/run/slurmctld.pid
 SlurmdPidFile=$DIR/run/slurmd.pid
-SlurmctldPort=${SCHLIEREN_SLURMCTLD_PORT:-6817}
-SlurmdPort=${SCHLIEREN_SLURMD_PORT:-6818}
+SlurmctldPort=$CTLD_PORT
+SlurmdPort=$D_PORT
 SlurmctldTimeout=30
 SlurmdTimeout=30
 InactiveLimit=0
@@ -90,18 +92,28 @@ CONF
 
 node_state() { SLURM_CONF=$CONF sinfo -h -N -o '%t' 2>/dev/null | head -1; }
 
+# our controller runs (its pid file names a live process): another SLURM on the same port
+# must not pass for ours
+own_controller() { [[ -f $DIR/run/slurmctld.pid ]] && kill -0 "$(cat "$DIR/run/slurmctld.pid")" 2>/dev/null; }
+
+port_taken() { (exec 3<>"/dev/tcp/127.0.0.1/$1") 2>/dev/null; }
+
 status() {
-    [[ -f $CONF ]] || return 1
+    [[ -f $CONF ]] && own_controller || return 1
     local s
     s=$(node_state)
     [[ -n $s && $s != down* && $s != drain* && $s != unk* ]]
 }
 
 start() {
+    if command -v sinfo >/dev/null && status; then echo "slurm.sh: already running ($CONF)" >&2; return 0; fi
+    [[ $(id -u) == 0 ]] || die "starting SLURM needs root (its node daemon runs as root; run: sudo $0 start)"
     install_packages
-    if status; then echo "slurm.sh: already running ($CONF)" >&2; return 0; fi
     start_munge
     stop_daemons
+    for port in "$CTLD_PORT" "$D_PORT"; do
+        ! port_taken "$port" || die "port $port is taken (another SLURM?); choose free ports with SCHLIEREN_SLURMCTLD_PORT and SCHLIEREN_SLURMD_PORT"
+    done
     write_conf
     local t0=$SECONDS
     SLURM_CONF=$CONF setsid slurmctld -D -i -f "$CONF" </dev/null >>"$DIR/log/slurmctld.out" 2>&1 &
