@@ -242,3 +242,44 @@ def test_distributeds_failed_cancel_after_a_ctrl_c_is_not_printed(monkeypatch):
         signal.signal(signal.SIGINT, before)
         log.removeHandler(handler)
     assert len(got) == 2 and "sync.<locals>.cancel" in got[0] and "something else" in got[1], got
+
+
+_SCRIPT = '''import schlieren
+
+{body}
+'''
+
+
+def _run_script(tmp_path, name, body):
+    import subprocess
+    import sys
+
+    script = tmp_path / name
+    script.write_text(_SCRIPT.format(body=body))
+    return subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+
+
+def test_a_script_without_the_main_guard_stops_with_one_line(tiny_session, tmp_path):
+    """schlieren.run(..., workers=2) at the top level of a plain script: the spawned workers
+    import the script again and start clusters of their own (before: ~500 lines of worker
+    tracebacks ending in "Nanny failed to start"). It stops at once with one line naming the
+    guard, before any worker starts or anything is written."""
+    out = tmp_path / "unguarded.zarr"
+    p = _run_script(tmp_path, "plain.py", f"ds = schlieren.run({str(tiny_session.session)!r}, {str(out)!r}, "
+                                          "workers=2, progress=False)\nprint(ds)")
+    lines = p.stderr.strip().splitlines()
+    assert p.returncode == 1, p.stderr[-3000:]
+    assert len(lines) == 1 and "Traceback" not in p.stderr, p.stderr[-3000:]
+    assert 'if __name__ == "__main__":' in lines[0] and "plain.py, line 3" in lines[0], lines[0]
+    assert not out.exists()
+
+
+def test_a_script_with_the_main_guard_runs(tiny_session, serial_store, tmp_path):
+    from store_compare import assert_same_store
+
+    out = tmp_path / "guarded.zarr"
+    body = (f"def main():\n    schlieren.run({str(tiny_session.session)!r}, {str(out)!r}, workers=2, progress=False)\n\n\n"
+            "if __name__ == \"__main__\":\n    main()")
+    p = _run_script(tmp_path, "guarded.py", body)
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert_same_store(serial_store, out)
