@@ -22,6 +22,7 @@ from __future__ import annotations
 import os
 import re
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -48,6 +49,25 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
+#: Seconds `slurm.sh start` may take, installing the packages included (6 s here, a few
+#: seconds more on a slow mirror); the script bounds each of its own waits too.
+START_TIMEOUT = 300
+
+
+def _start(env: dict) -> tuple[int | None, str]:
+    """Run ``slurm.sh start``; its exit code (None if it overran) and its stderr."""
+    proc = subprocess.Popen([str(SCRIPT), "start"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=env, start_new_session=True)
+    try:
+        _, err = proc.communicate(timeout=START_TIMEOUT)
+        return proc.returncode, err
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)  # the script and the client calls it waits on
+        _, err = proc.communicate(timeout=30)
+        subprocess.run([str(SCRIPT), "stop"], capture_output=True, text=True, timeout=60, env=env)
+        return None, err
+
+
 @pytest.fixture(scope="module")
 def slurm():
     """A running one-node SLURM; yields the environment its clients need.
@@ -58,8 +78,10 @@ def slurm():
     """
     if os.name != "posix" or not shutil.which("bash"):
         pytest.skip("SLURM: needs a POSIX shell")
+    if os.environ.get("SCHLIEREN_SLURM_FAILED"):  # .ci/run tried and says why
+        pytest.fail(f"SLURM: {os.environ['SCHLIEREN_SLURM_FAILED']}", pytrace=False)
     given = os.environ.get("SCHLIEREN_SLURM_DIR")
-    # under /tmp, not pytest's 0700 folder: slurmctld runs as the slurm user
+    # under /tmp, never pytest's tmp folders: they are 0700 and slurmctld runs as the slurm user
     folder = Path(given) if given else Path(tempfile.mkdtemp(prefix="schlieren-slurm-", dir="/tmp"))
     if not given:
         folder.chmod(0o755)
@@ -67,11 +89,14 @@ def slurm():
     if not given:
         env.update(SCHLIEREN_SLURMCTLD_PORT=str(_free_port()), SCHLIEREN_SLURMD_PORT=str(_free_port()))
     t0 = time.monotonic()
-    p = subprocess.run([str(SCRIPT), "start"], capture_output=True, text=True, timeout=900, env=env)
-    if p.returncode == 3:
-        pytest.skip((p.stderr.strip().splitlines() or ["SLURM unavailable"])[-1])
-    assert p.returncode == 0, p.stderr
-    print(f"\nSLURM up in {time.monotonic() - t0:.1f} s: {p.stderr.strip().splitlines()[-1]}")
+    code, err = _start(env)
+    said = " / ".join(err.strip().splitlines()[-3:]) or "(nothing on stderr)"
+    if code is None:
+        pytest.fail(f"SLURM: slurm.sh start did not end within {START_TIMEOUT} s: {said}", pytrace=False)
+    if code == 3:
+        pytest.skip(f"SLURM: {said}")
+    assert code == 0, f"slurm.sh start exited {code}: {err}"
+    print(f"\nSLURM up in {time.monotonic() - t0:.1f} s: {err.strip().splitlines()[-1]}")
     env["SLURM_CONF"] = str(folder / "slurm.conf")
     yield env
     if not given:
