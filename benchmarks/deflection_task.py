@@ -11,8 +11,8 @@
    tree ("new") and with ``pipeline/flow.py``, ``pipeline/frame_quality.py``,
    ``storage/frames.py`` and ``workers/tasks.py`` of ``--baseline`` ("base", loaded from
    git under other module names; everything else is shared).
-3. Per camera-frame, CPU time (``time.process_time``) of the pieces of
-   ``workers/tasks._deflection``: the frame's decode (``FrameSource.read``),
+3. Per camera-frame, CPU time (``time.process_time``) of the pieces of the deflection
+   task (``workers/tasks/deflection.py``): the frame's decode (``FrameSource.read``),
    ``deflection_stage`` (with the camera's cached ``PreparedReference``), the frame-quality
    vector (``_frame_quality``, previous frame already read), and the two store writes
    (``flow_raw``, ``frame_quality``, flushed); then the whole task (``_GLUE["deflection"]``
@@ -82,6 +82,19 @@ def load_baseline(rev: str, into: Path) -> dict:
     t.flowmod, t.fq = mods["flow"], mods["frame_quality"]
     t.open_frames, t.read_reference = mods["frames"].open_frames, mods["frames"].read_reference
     return mods
+
+
+def package_api():
+    """The working tree's task package under the names of the baseline's single module
+    (``workers/tasks.py`` became the package ``workers/tasks/``)."""
+    from types import SimpleNamespace
+
+    from schlieren.pipeline import flow
+    from schlieren.workers import tasks
+    from schlieren.workers.tasks.deflection import quality_vector
+
+    return SimpleNamespace(context=tasks.context, flowmod=flow, flow_params=tasks.flow_params,
+                           _frame_quality=quality_vector, _GLUE=tasks.STAGE_TASKS)
 
 
 def make_store(session_dir: Path, out: Path) -> str:
@@ -249,7 +262,7 @@ def main(argv=None):
     sys.path.insert(0, str(HERE))
     from session import ensure_session
 
-    from schlieren.workers import tasks as new_tasks
+    new_tasks = package_api()
 
     session_dir = CACHE / f"deflection_{args.cameras}cam_{args.frames}f"
     ensure_session(session_dir, cameras=args.cameras, frames=args.frames, size=(1440, 1080))
@@ -286,8 +299,8 @@ def main(argv=None):
         head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
                               text=True).stdout.strip()
         dirty = bool(subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--"]
-                                    + ["pipeline/flow", "pipeline/frame_quality.py", "storage/frames.py",
-                                       "workers/tasks.py"], capture_output=True, text=True).stdout.strip())
+                                    + ["pipeline/flow", "pipeline/frame_quality.py", "storage/frames.py", "storage/readers",
+                                       "workers/tasks"], capture_output=True, text=True).stdout.strip())
         params = new_tasks.flow_params(ctx, 0)
         result = {"machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
                   "load_start": load_start, "load_end": load_average(), "baseline": args.baseline,

@@ -26,7 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from schlieren.pipeline.geometry import Grid
-from schlieren.pipeline.poisson import PoissonParams, _solve, assemble, integrate
+from schlieren.pipeline.poisson import PoissonParams, assemble, integrate
+from schlieren.pipeline.poisson.integration import _solve
 
 RESULTS = Path(__file__).resolve().parent / "results"
 R_AMB = 2.9e-4

@@ -60,9 +60,10 @@ def load_case(case_dir: Path, frame: int):
     from schlieren.storage import synthetic_io as sio
     from schlieren.workers import tasks
     from schlieren.workers.evaluate import _r_ambient, _truth_at
+    from schlieren.workers.tasks.geometry import cached_geometry, geometry_key
 
     ctx = tasks.context(str(case_dir / "store.zarr"))
-    geom = tasks._geometry(ctx.store_path, tasks._geometry_key(ctx))
+    geom = cached_geometry(ctx.store_path, geometry_key(ctx))
     truth = sio.read_truth(case_dir / "truth.zarr")
     tgrid = metrics.grid_from_attrs(truth.grid_origin, truth.voxel_size, tuple(truth.refractivity.shape[1:]))
     tv, _ = _truth_at(truth, float(ctx.times()[int(frame)]))
@@ -85,7 +86,7 @@ def bounds(case_dir: Path, frame: int) -> dict:
     from scipy import ndimage
 
     from schlieren.pipeline import metrics, tomography
-    from schlieren.pipeline.tomography.solve import VolumeBlur
+    from schlieren.pipeline.tomography.blur import VolumeBlur
     from schlieren.workers import tasks
 
     k = int(frame)

@@ -49,6 +49,7 @@ def scale_scan(case_dir: Path, frame: int, scales) -> dict:
 
     from schlieren.pipeline import tomography
     from schlieren.workers import tasks
+    from schlieren.workers.tasks.regularisation import window_model
 
     ctx, geom, t_on, r_amb = load_case(case_dir, frame)
     params = tasks.tomo_params(ctx)
@@ -63,7 +64,7 @@ def scale_scan(case_dir: Path, frame: int, scales) -> dict:
     snr = tomography.rhs_snr(rhs, ~quiet, noise)
     rows = []
     for s in scales:
-        blur = tasks._window_model(ctx, window * s)
+        blur = window_model(ctx, window * s)
         g, info = tomography.solve_gradient(geom, flows, hull, params=params, **blur)
         whole, plume = integrate_and_score(ctx, g, hull, t_on, r_amb)
         rows.append({"scale": s, "whole_db": whole, "plume_db": plume, "iterations": info.iterations})
@@ -158,6 +159,7 @@ def oracle(case_dir: Path, frame: int, scales=(1.0, 1.15, 1.3)) -> list[dict]:
     from schlieren.pipeline import flow as fm
     from schlieren.pipeline import tomography
     from schlieren.workers import tasks
+    from schlieren.workers.tasks.regularisation import window_model
 
     ctx, geom, t_on, r_amb = load_case(case_dir, frame)
     truth = zarr.open_group(str(case_dir / "truth.zarr"), mode="r")
@@ -178,7 +180,7 @@ def oracle(case_dir: Path, frame: int, scales=(1.0, 1.15, 1.3)) -> list[dict]:
     params = tasks.tomo_params(ctx)
 
     def score(fl, s):
-        g, _ = tomography.solve_gradient(geom, fl, hull, params=params, **tasks._window_model(ctx, window * s))
+        g, _ = tomography.solve_gradient(geom, fl, hull, params=params, **window_model(ctx, window * s))
         return list(integrate_and_score(ctx, g, hull, t_on, r_amb))
 
     return [{"scale": s, "run": score(flows, s), "minus_deterministic_error": score(flows - corr, s)} for s in scales]

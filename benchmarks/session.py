@@ -348,8 +348,8 @@ def profile_tomography(store: str, frame: int, out_json: str) -> None:
     out = {"frame": frame, "warm_started": x0 is not None, "geometry_load_seconds": t_load}
     raw_j = ctx.first_frame + frame - ctx.raw_first
     calls = (
-        ("deflection (camera 0, one frame)", lambda: tasks._GLUE["deflection"](ctx, 0, raw_j)),
-        ("resample (camera 0, one frame)", lambda: tasks._GLUE["resample"](ctx, 0, frame)),
+        ("deflection (camera 0, one frame)", lambda: tasks.STAGE_TASKS["deflection"](ctx, 0, raw_j)),
+        ("resample (camera 0, one frame)", lambda: tasks.STAGE_TASKS["resample"](ctx, 0, frame)),
         ("tomography", lambda: tomography.solve_gradient(geom, flows, hull, params=cfg.tomography, x0=x0)[1]),
         ("integrate", lambda: poisson.integrate(grad, hull, ctx.session.grid,
                                                 r_ambient=ctx.session.medium.refractivity_ambient,

@@ -331,7 +331,7 @@ def speed(args):
     t_data = time.perf_counter() - t0 - t_geom
     # warm-start blocks as the pipeline runs them (RunConfig.warm_start_block): the first
     # frame of a block starts cold, the others from the previous frame; each frame's system
-    # is selected inside the block's shared restriction (workers.tasks._tomography)
+    # is selected inside the block's shared restriction (workers.tasks.tomography.tomography_task)
     B = RunConfig().warm_start_block
     results = []
     x0 = None

@@ -17,7 +17,7 @@ here; a test keeps them equal to the recorded results. The model:
   under-estimate of a measurement;
 * every worker process carries ``PROCESS_BYTES`` of code and libraries;
 * a worker that runs tomography tasks keeps one more block restriction of the projection
-  than its running task holds (``pipeline.tomography.operator.SHARED_RESTRICTIONS``):
+  than its running task holds (``pipeline.tomography.restriction.SHARED_RESTRICTIONS``):
   :data:`HELD_BYTES_PER_CROSSING` per ray-voxel crossing, a bound rather than a fit (half
   the session matrix's bytes, i.e. a hull over half the box, plus the buffers' 25 %
   headroom; the paper-scale benchmark's hull covers 31 % of its box, the realistic

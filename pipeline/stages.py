@@ -4,7 +4,7 @@ Each :class:`Stage` names its pure kernel (in ``pipeline/``), the :class:`RunCon
 holding its frozen params dataclass, the store arrays it reads and writes, the dims it
 maps over (one task per index of those dims) and the stages it waits for. The executors
 in ``workers/`` (a plain loop in ``workers/serial.py``, a Dask graph in
-``workers/graph.py``) compile this same table; ``workers/tasks.py`` holds the per-stage
+``workers/graph.py``) compile this same table; ``workers/tasks/`` holds the per-stage
 glue that reads the inputs of one index, calls the kernel and writes whole chunks.
 
 Dependencies are declared per index:

@@ -20,6 +20,13 @@ world position of voxel ``[0, 0, 0]``'s centre and ``Spacing`` the voxel size, m
   left at the fill value.
 
 ``hull`` (bool) is written as UInt8; ``gradient`` as a 3-component vector.
+
+The VTK, MetaImage and NRRD files are written here, a few lines of header each, not
+through a library: meshio writes neither VTK ImageData nor MetaImage; pyevtk writes
+ImageData only with raw appended data (not well-formed XML); SimpleITK/ITK and VTK are
+large compiled packages for a short text header; pynrrd cannot write the ``units:=``
+key/value pair (it takes ``units`` for NRRD's per-axis field) and stamps every file with
+the time it was written. The tests read the NRRD files back with pynrrd.
 """
 
 from __future__ import annotations
@@ -30,12 +37,13 @@ import logging
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
 from schlieren.storage.errors import StoreError
-from schlieren.storage.report import first_frame, frame_range, open_result, volume_grid
+from schlieren.storage.report.reader import first_frame, frame_range, open_result, volume_grid
 
 __all__ = ["export", "ExportResult", "FORMATS", "QUANTITIES"]
 
@@ -110,6 +118,53 @@ def export(store_path: str | os.PathLike, out_path: str | os.PathLike, *, format
         Unknown format or quantity, the quantity is not in the store, bad frame range, or no
         frame of the range is complete.
     """
+    src = _open_source(store_path, format, quantity, frames)
+    out = Path(out_path)
+    out.mkdir(parents=True, exist_ok=True)
+    if format == "ome-zarr":
+        return _export_ome_zarr(out, src.arr, quantity, src.sel, src.done, src.first, src.times, src.origin, src.h,
+                                src.ncomp, src.name)
+    result, records, dtype_name = _export_frames(out, src, format)
+    first, sel = src.first, src.sel
+    if not records:
+        raise StoreError(f"no frame of {quantity!r} in {first + sel.start}:{first + sel.stop} is complete yet", file=src.name,
+                         field=quantity)
+    if result.skipped:
+        log.warning("%s: frames %s are not complete yet and were not exported", quantity,
+                    ", ".join(map(str, result.skipped)))
+    if format == "vti":
+        pvd = out / f"{quantity}.pvd"
+        _write_pvd(pvd, records)
+        result.files.append(pvd)
+        result.entry_points.insert(0, pvd)
+    if format == "raw":
+        side = out / f"{quantity}.json"
+        _write_sidecar(side, src, dtype_name, records)
+        result.files.append(side)
+    log.info("exported %d frame(s) of %s as %s to %s", len(sel), quantity, format, out)
+    return result
+
+
+@dataclass(frozen=True)
+class _Source:
+    """The quantity to export: its array, where its samples lie, and the frames asked for."""
+
+    name: str  # the store, as messages name it
+    arr: Any
+    quantity: str
+    first: int  # capture index of the store's first frame
+    sel: range  # store frames asked for
+    times: np.ndarray | None
+    done: np.ndarray  # store frames whose stage is complete
+    origin: list[float]  # world x, y, z of the centre of voxel [0, 0, 0], metres
+    h: float  # voxel size, metres
+    shape: tuple[int, int, int]  # (nz, ny, nx)
+    units: str
+    ncomp: int
+
+
+def _open_source(store_path, format: str, quantity: str, frames) -> _Source:
+    """Check the request and open the quantity's array (one-line StoreErrors)."""
     if format not in FORMATS:
         raise StoreError(f"unknown export format {format!r} (choose from {', '.join(FORMATS)})", field="format")
     if quantity not in QUANTITIES:
@@ -123,23 +178,25 @@ def export(store_path: str | os.PathLike, out_path: str | os.PathLike, *, format
     first = first_frame(group)
     sel = frame_range(frames, int(arr.shape[0]), first)
     times = np.asarray(group["time"][:], dtype=np.float64) if "time" in group else None
-    out = Path(out_path)
-    out.mkdir(parents=True, exist_ok=True)
     units, ncomp = QUANTITIES[quantity]
-    origin = [float(v) for v in grid.origin]
-    h = float(grid.voxel_size)
-    nz, ny, nx = grid.shape
-    result = ExportResult()
     try:
         done = np.asarray(group[f"status/{STAGE_OF[quantity]}"][...]).reshape(-1) == 1
     except KeyError:  # a store without completion markers: take every frame
         done = np.ones(int(arr.shape[0]), bool)
-    if format == "ome-zarr":
-        return _export_ome_zarr(out, arr, quantity, sel, done, first, times, origin, h, ncomp, str(store_path))
+    return _Source(str(store_path), arr, quantity, first, sel, times, done, [float(v) for v in grid.origin],
+                   float(grid.voxel_size), tuple(grid.shape), units, ncomp)
+
+
+def _export_frames(out: Path, src: _Source, format: str) -> tuple[ExportResult, list[dict], str]:
+    """One file set per complete frame (vti, raw + mhd, or nrrd): the result, a record per
+    frame written (capture index, time, file) and the samples' dtype name."""
+    arr, quantity, first, times = src.arr, src.quantity, src.first, src.times
+    origin, h, ncomp, units = src.origin, src.h, src.ncomp, src.units
+    result = ExportResult()
     records = []
     dtype_name = ""
-    for f in sel:
-        if not done[f]:
+    for f in src.sel:
+        if not src.done[f]:
             result.skipped.append(first + f)
             continue
         data = _frame_values(arr, f, quantity)
@@ -163,30 +220,21 @@ def export(store_path: str | os.PathLike, out_path: str | os.PathLike, *, format
             result.files.append(path)
             result.entry_points.append(path)
         records.append({"frame": first + f, "time": t, "file": result.files[-1].name if format != "raw" else f"{stem}.raw"})
-    if not records:
-        raise StoreError(f"no frame of {quantity!r} in {first + sel.start}:{first + sel.stop} is complete yet", file=str(store_path),
-                         field=quantity)
-    if result.skipped:
-        log.warning("%s: frames %s are not complete yet and were not exported", quantity,
-                    ", ".join(map(str, result.skipped)))
-    if format == "vti":
-        pvd = out / f"{quantity}.pvd"
-        _write_pvd(pvd, records)
-        result.files.append(pvd)
-        result.entry_points.insert(0, pvd)
-    if format == "raw":
-        side = out / f"{quantity}.json"
-        side.write_text(json.dumps({
-            "quantity": quantity, "units": units, "dtype": dtype_name,
-            "byte_order": "little", "order": "x fastest, then y, then z" + (", components fastest" if ncomp > 1 else ""),
-            "shape_zyx": [nz, ny, nx], "components": ncomp,
-            "origin_xyz_m": origin, "spacing_xyz_m": [h, h, h],
-            "origin_is": "centre of voxel [0, 0, 0]",
-            "frames": records,
-        }, indent=2), encoding="utf-8")
-        result.files.append(side)
-    log.info("exported %d frame(s) of %s as %s to %s", len(sel), quantity, format, out)
-    return result
+    return result, records, dtype_name
+
+
+def _write_sidecar(path: Path, src: _Source, dtype_name: str, records: list[dict]) -> None:
+    """The raw export's JSON description of every frame written."""
+    nz, ny, nx = src.shape
+    quantity, units, ncomp, origin, h = src.quantity, src.units, src.ncomp, src.origin, src.h
+    path.write_text(json.dumps({
+        "quantity": quantity, "units": units, "dtype": dtype_name,
+        "byte_order": "little", "order": "x fastest, then y, then z" + (", components fastest" if ncomp > 1 else ""),
+        "shape_zyx": [nz, ny, nx], "components": ncomp,
+        "origin_xyz_m": origin, "spacing_xyz_m": [h, h, h],
+        "origin_is": "centre of voxel [0, 0, 0]",
+        "frames": records,
+    }, indent=2), encoding="utf-8")
 
 
 def _write_vti(path: Path, data: np.ndarray, name: str, origin, h: float, ncomp: int) -> None:

@@ -1,6 +1,6 @@
 """Chunk integrity of the result store: checksums, completion coverage and scans.
 
-The design (docs/design.md, "Integrity"):
+The design (docs/design.md, "Integrity, resume and preflight"):
 
 * **Checksums in the codec chain.** Every array the store creates ends its codecs with
   zarr's ``crc32c`` codec (``bytes``, ``zstd``, ``crc32c``), so zarr itself computes and
@@ -24,7 +24,7 @@ The design (docs/design.md, "Integrity"):
   store, the array and the chunk.
 * **Older stores** (no ``integrity`` attribute: written before checksums) are read as
   before, without checks (a missing chunk reads as the fill value, as their writer meant);
-  a run refuses to resume them (``store.py``).
+  a run refuses to resume them (``store/template.py``).
 
 :func:`scan_store` lists (cheap) or reads (``full``) every chunk and reports what is
 missing or corrupt; ``workers/verify.py`` turns that into recomputation.
@@ -37,25 +37,22 @@ import json
 import logging
 import os
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 from zarr.storage import WrapperStore
 
 from schlieren.storage.chunkio import CorruptChunk, strip_checksum
 from schlieren.storage.errors import ChunkError
-
-if TYPE_CHECKING:  # pragma: no cover
-    from schlieren.storage.store import ResultStore
+from schlieren.storage.layout import MARKER_GROUP
 
 __all__ = ["INTEGRITY_VERSION", "CheckedStore", "Problem", "ScanResult", "scan_store", "chunk_error",
-           "marker_index", "open_dataset", "format_chunk"]
+           "marker_index", "open_dataset", "format_chunk", "not_kept_error", "dropped_of"]
 
 log = logging.getLogger(__name__)
 
 #: Version of the ``integrity`` root attribute (crc32c on every chunk, empty chunks stored).
 INTEGRITY_VERSION = 1
-MARKER_GROUP = "status"
 
 
 def format_chunk(coords) -> str:
@@ -67,6 +64,33 @@ def chunk_error(location: str, array: str, coords, what: str) -> ChunkError:
     return ChunkError(f"chunk {format_chunk(coords)} {what}; `schlieren verify {location} --repair` "
                       "and a rerun recompute it (or `schlieren run ... --verify`)",
                       file=location, array=array, chunk=tuple(int(c) for c in coords), reason=what)
+
+
+def not_kept_error(location: str, array: str, coords, keep: str | None = None) -> ChunkError:
+    """The one-line error of a chunk the run's retention dropped (``schlieren run --keep``)."""
+    policy = f"--keep {keep}" if keep else "--keep"
+    return ChunkError(f"chunk {format_chunk(coords)} was not kept: the run's retention ({policy}) drops {array} "
+                      f"once the stages reading it are done; a run with --keep all (or --keep {array}) stores "
+                      "it again", file=location, array=array, chunk=tuple(int(c) for c in coords), reason="not kept")
+
+
+def _json_attr(attrs, name: str) -> dict | None:
+    """Root attribute ``name`` (stored as JSON text, netCDF-safe) as a dict, or None."""
+    info = attrs.get(name) if hasattr(attrs, "get") else None
+    if isinstance(info, str):
+        try:
+            info = json.loads(info)
+        except ValueError:
+            info = None
+    return info if isinstance(info, dict) else None
+
+
+def dropped_of(attrs) -> frozenset[str]:
+    """The arrays whose chunks the run's retention may have dropped (root attribute
+    ``retention``, :mod:`schlieren.storage.store.retention`): a missing chunk of theirs
+    under a set marker is "not kept", not lost."""
+    info = _json_attr(attrs, "retention") or {}
+    return frozenset(str(n) for n in info.get("dropped") or ())
 
 
 def marker_index(array_dims, array_chunks, marker_dims, coords) -> tuple[int, ...]:
@@ -143,13 +167,7 @@ def _meta_from_dict(m: dict) -> _Meta | None:
 
 def _integrity_attr(attrs) -> dict | None:
     """The ``integrity`` root attribute (stored as JSON text, netCDF-safe), or None."""
-    info = attrs.get("integrity") if hasattr(attrs, "get") else None
-    if isinstance(info, str):
-        try:
-            info = json.loads(info)
-        except ValueError:
-            info = None
-    return info if isinstance(info, dict) else None
+    return _json_attr(attrs, "integrity")
 
 
 def _chunk_key(key: str) -> tuple[str, tuple[int, ...]] | None:
@@ -194,6 +212,9 @@ class CheckedStore(WrapperStore):
         self._meta: dict[str, _Meta | None] = {}
         self._integrity: dict | None = None
         self._integrity_read = False
+        self._consolidated: dict = {}  # array -> its metadata in the root's consolidated copy
+        self._retention: dict = {}  # the root attribute ``retention``
+        self._gone: set[str] = set()  # arrays whose own zarr.json is missing (the array was deleted)
         # metadata fetches in flight, by key: zarr requests the chunks of a read together,
         # and each would otherwise fetch the array's zarr.json again before the first
         # answer is cached (one fetch per chunk of a multi-chunk read from an object store)
@@ -216,6 +237,7 @@ class CheckedStore(WrapperStore):
                     self._meta[name] = meta
         if root_attrs is not None and not self._integrity_read:
             self._integrity = _integrity_attr(root_attrs)
+            self._retention = _json_attr(root_attrs, "retention") or {}
             self._integrity_read = True
 
     async def _fetch_once(self, key: str, prototype):
@@ -234,6 +256,13 @@ class CheckedStore(WrapperStore):
         if name not in self._meta:
             buf = await self._fetch_once(f"{name}/zarr.json", prototype)
             meta = _parse_meta(buf.to_bytes() if buf is not None else None)
+            if meta is None and buf is None:
+                # no zarr.json: an array deleted from the store (``rm -rf STORE/temperature``)
+                # is still listed in the root's consolidated metadata, which readers use
+                await self._get_integrity(prototype)
+                meta = _meta_from_dict(self._consolidated.get(name) or {})
+                if meta is not None:
+                    self._gone.add(name)
             if meta is None:
                 return None  # not cached: the array may be created later
             self._meta[name] = meta
@@ -243,10 +272,13 @@ class CheckedStore(WrapperStore):
         if not self._integrity_read:
             buf = await self._fetch_once("zarr.json", prototype)
             try:
-                attrs = json.loads(buf.to_bytes()).get("attributes") or {} if buf is not None else {}
+                root = json.loads(buf.to_bytes()) if buf is not None else {}
             except ValueError:
-                attrs = {}
+                root = {}
+            attrs = root.get("attributes") or {}
             self._integrity = _integrity_attr(attrs)
+            self._retention = _json_attr(attrs, "retention") or {}
+            self._consolidated = dict(((root.get("consolidated_metadata") or {}).get("metadata")) or {})
             self._integrity_read = buf is not None
         return self._integrity
 
@@ -268,7 +300,9 @@ class CheckedStore(WrapperStore):
             done = _decode_marker(buf.to_bytes(), mmeta)
         except CorruptChunk as exc:
             raise chunk_error(self.location, mname, idx, exc.reason) from None
-        return missing_reason(stage) if done else None
+        if not done:
+            return None
+        return missing_reason(stage) + (" (the whole array is gone: its zarr.json too)" if name in self._gone else "")
 
     async def get(self, key, prototype, byte_range=None):
         buf = await self._store.get(key, prototype, byte_range)
@@ -284,6 +318,8 @@ class CheckedStore(WrapperStore):
         if buf is None:
             why = await self._required(name, meta, coords, prototype)
             if why is not None:
+                if name in dropped_of({"retention": self._retention}):
+                    raise not_kept_error(self.location, name, coords, self._retention.get("keep"))
                 raise chunk_error(self.location, name, coords, why)
             return None
         if meta.checksum:
@@ -366,7 +402,28 @@ class ScanResult:
         return not self.problems
 
 
-def scan_store(store: "ResultStore", *, full: bool = False) -> ScanResult:
+class ScannedStore(Protocol):
+    """What :func:`scan_store` asks of a store (:class:`~schlieren.storage.store.ResultStore`
+    has it; this module does not import the store, which reads through :class:`CheckedStore`)."""
+
+    @property
+    def integrity(self) -> dict | None: ...
+    @property
+    def remote(self) -> bool: ...
+    @property
+    def dropped_arrays(self) -> frozenset[str]: ...
+    def check_metadata(self) -> list[tuple[str, str]]: ...
+    def list_all_chunks(self) -> dict[str, set[tuple[int, ...]]] | None: ...
+    def list_chunks(self, name: str) -> tuple[set[tuple[int, ...]], list[str]]: ...
+    def stages(self) -> list[str]: ...
+    def marker_chunk_set(self, stage: str, coords) -> bool: ...
+    def marker_dims(self, stage: str) -> tuple[str, ...]: ...
+    def all_array_names(self) -> list[str]: ...
+    def chunk_grid(self, name: str) -> tuple[tuple[str, ...], tuple[int, ...], tuple[int, ...]]: ...
+    def check_chunk(self, name: str, coords) -> str | None: ...
+
+
+def scan_store(store: ScannedStore, *, full: bool = False) -> ScanResult:
     """Check a result store's chunks against its completion markers.
 
     Parameters
@@ -386,31 +443,55 @@ def scan_store(store: "ResultStore", *, full: bool = False) -> ScanResult:
     res = ScanResult()
     info = store.integrity
     res.legacy = info is None
-    producers = dict((info or {}).get("producers") or {})
-    static = set((info or {}).get("static") or ())
-    listed: dict[str, set] = {}
     # metadata: every array's and group's zarr.json against the root's consolidated copy
     # (a few small reads; on object storage only with ``full``)
     if full or not store.remote:
         for name, why in store.check_metadata():
             res.problems.append(Problem(name, (), "corrupt-metadata", why))
-    everything = store.list_all_chunks()  # object stores: one listing, not one per array
+    listing = _Listing(store, res)
+    _scan_markers(store, listing, res)
+    # data arrays: a set marker needs every chunk of its producer's outputs
+    producers = dict((info or {}).get("producers") or {})
+    static = set((info or {}).get("static") or ())
+    dropped = store.dropped_arrays  # the run's retention deletes their chunks: missing is "not kept"
+    for name in store.all_array_names():
+        if name.startswith(f"{MARKER_GROUP}/"):
+            continue
+        have = listing(name)
+        grid = store.chunk_grid(name)
+        if name not in dropped:
+            _scan_missing(store, name, grid, have, producers.get(name), name in static, res)
+        if full:
+            _scan_stored(store, name, grid, have, producers.get(name), name in static, res)
+    return res
 
-    def listing(name: str) -> set:
-        if everything is not None:
-            keys = everything.get(name, set())
-            if name not in listed:
-                listed[name] = keys
-                res.chunks_listed += len(keys)
+
+class _Listing:
+    """The stored chunks of each array, listed once (an object store lists them all in one
+    pass, not one request per array); counts them and the orphaned ``*.partial`` files."""
+
+    def __init__(self, store: ScannedStore, res: ScanResult):
+        self.store, self.res = store, res
+        self.everything = store.list_all_chunks()  # object stores: one listing, not one per array
+        self.listed: dict[str, set] = {}
+
+    def __call__(self, name: str) -> set:
+        if self.everything is not None:
+            keys = self.everything.get(name, set())
+            if name not in self.listed:
+                self.listed[name] = keys
+                self.res.chunks_listed += len(keys)
             return keys
-        if name not in listed:
-            keys, partial = store.list_chunks(name)
-            listed[name] = keys
-            res.partial_files += partial
-            res.chunks_listed += len(keys)
-        return listed[name]
+        if name not in self.listed:
+            keys, partial = self.store.list_chunks(name)
+            self.listed[name] = keys
+            self.res.partial_files += partial
+            self.res.chunks_listed += len(keys)
+        return self.listed[name]
 
-    # markers: read every stored marker chunk
+
+def _scan_markers(store: ScannedStore, listing: _Listing, res: ScanResult) -> None:
+    """Read every stored marker chunk: ``res.done`` gets the set ones, corrupt ones are problems."""
     for stage in store.stages():
         mname = f"{MARKER_GROUP}/{stage}"
         done = set()
@@ -424,42 +505,47 @@ def scan_store(store: "ResultStore", *, full: bool = False) -> ScanResult:
             if ok:
                 done.add(tuple(coords))
         res.done[stage] = done
-    # data arrays: a set marker needs every chunk of its producer's outputs
-    for name in store.all_array_names():
-        if name.startswith(f"{MARKER_GROUP}/"):
+
+
+def _scan_missing(store: ScannedStore, name: str, grid, have: set, stage: str | None, static: bool,
+                  res: ScanResult) -> None:
+    """Chunks of array ``name`` (``grid``: its :meth:`chunk_grid`) without a file: any in a
+    template array, or under a set marker."""
+    dims, chunks, counts = grid
+    if static:
+        for coords in np.ndindex(*counts):
+            if coords not in have:
+                res.problems.append(Problem(name, coords, "missing", "no chunk file in a template array"))
+    elif stage is not None and stage in res.done:
+        mdims = store.marker_dims(stage)
+        for coords in np.ndindex(*counts):
+            idx = marker_index(dims, chunks, mdims, coords)
+            if idx in res.done[stage] and coords not in have:
+                res.problems.append(Problem(name, coords, "missing",
+                                            f"no chunk file although stage {stage} is marked complete",
+                                            stage, idx))
+
+
+def _scan_stored(store: ScannedStore, name: str, grid, have: set, stage: str | None, static: bool,
+                 res: ScanResult) -> None:
+    """Read every stored chunk of array ``name`` (``grid``: its :meth:`chunk_grid`): a damaged
+    one under a set marker (or in a template array) is ``corrupt``, its task recomputed; any
+    other is ``stray``."""
+    dims, chunks, _ = grid
+    for coords in sorted(have):
+        res.chunks_read += 1
+        reason = store.check_chunk(name, coords)
+        if reason is None:
             continue
-        have = listing(name)
-        stage = producers.get(name)
-        dims, chunks, counts = store.chunk_grid(name)
-        if name in static:
-            for coords in np.ndindex(*counts):
-                if coords not in have:
-                    res.problems.append(Problem(name, coords, "missing", "no chunk file in a template array"))
-        elif stage is not None and stage in res.done:
-            mdims = store.marker_dims(stage)
-            for coords in np.ndindex(*counts):
-                idx = marker_index(dims, chunks, mdims, coords)
-                if idx in res.done[stage] and coords not in have:
-                    res.problems.append(Problem(name, coords, "missing",
-                                                f"no chunk file although stage {stage} is marked complete",
-                                                stage, idx))
-        if not full:
-            continue
-        for coords in sorted(have):
-            res.chunks_read += 1
-            reason = store.check_chunk(name, coords)
-            if reason is None:
-                continue
-            idx = None
-            if stage is not None and stage in res.done:
-                idx = marker_index(dims, chunks, store.marker_dims(stage), coords)
-                if idx not in res.done[stage]:
-                    idx = None
-            if name in static or idx is not None:
-                res.problems.append(Problem(name, coords, "corrupt", reason, stage if idx is not None else None, idx))
-            else:
-                res.problems.append(Problem(name, coords, "stray", reason))
-    return res
+        idx = None
+        if stage is not None and stage in res.done:
+            idx = marker_index(dims, chunks, store.marker_dims(stage), coords)
+            if idx not in res.done[stage]:
+                idx = None
+        if static or idx is not None:
+            res.problems.append(Problem(name, coords, "corrupt", reason, stage if idx is not None else None, idx))
+        else:
+            res.problems.append(Problem(name, coords, "stray", reason))
 
 
 def _reason(exc: ChunkError) -> str:

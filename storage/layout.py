@@ -30,6 +30,8 @@ __all__ = [
     "AlignmentError",
     "result_layout",
     "stage_markers",
+    "marker_spec",
+    "MARKER_GROUP",
     "normalize_region",
     "assert_aligned",
     "is_aligned",
@@ -37,6 +39,9 @@ __all__ = [
 ]
 
 STORE_FORMAT = "schlieren-store/1"
+
+#: The group holding the completion markers ``status/<stage>``.
+MARKER_GROUP = "status"
 
 
 class AlignmentError(ValueError):
@@ -94,10 +99,10 @@ class ArraySpec:
 
 
 #: zstd level of the per camera-frame float fields (``flow_raw``, ``flow``, ``potential``: most
-#: of a run's bytes, written once and read several times). Level 3 shrinks them by only 7 %
-#: (noisy float32 mantissas) for about 1.4 ms per 1.4 MB chunk written and 0.9 ms per read at
-#: paper scale; zstd's fastest level stores them as they are (0.4 ms and 0.1 ms), still
-#: framed and checksummed like every other chunk.
+#: of a run's bytes, written once and read several times). Noisy float32 mantissas barely
+#: compress, so the default level's time buys almost nothing; zstd's fastest level stores
+#: them as they are, still framed and checksummed like every other chunk (docs/tuning.md,
+#: "Chunk I/O and object storage").
 FAST_ZSTD = -1
 
 
@@ -150,10 +155,17 @@ def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tup
     if raw_first is None and R == F:
         raw_first = first_frame
     h, w = (int(s) for s in flow_shape)
+    return (_coordinates(camera_names, F, R, first_frame, raw_first, grid, (h, w), flow_factor)
+            + _camera_arrays(C, F, R, (h, w), n_summary) + _volumes(F, grid))
+
+
+def _coordinates(camera_names: Sequence[str], F: int, R: int, first_frame: int, raw_first: int | None, grid: Grid,
+                 flow_shape: tuple[int, int], flow_factor: int | None) -> list[ArraySpec]:
+    """The coordinate arrays that label the axes (written with the template), and ``time``."""
+    C = len(camera_names)
+    h, w = flow_shape
     nz, ny, nx = grid.shape
-    vol_attrs = grid.to_attrs()
     x, y, z = grid.axes()
-    t = {"coordinates": "time"}  # xarray attaches the time coordinate to frame arrays
     uv = []
     if flow_factor is not None:
         f = int(flow_factor)  # cell j averages pixels [f j, f j + f): centre f j + (f - 1) / 2
@@ -162,10 +174,7 @@ def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tup
                                 {"long_name": f"image {what} of the flow-cell centres", "units": "pixel",
                                  "flow_factor": f},
                                 data=f * np.arange(n, dtype=np.float64) + (f - 1) / 2.0))
-    cam: dict = {}  # camera names: the `camera` coordinate (a list attribute would not survive netCDF)
-
-    specs = [
-        # ---- coordinates -----------------------------------------------------------
+    return [
         ArraySpec("frame", ("frame",), (F,), (F,), "int64", -1,
                   {"long_name": "capture frame index (frame number in the cameras' recordings)", "units": "1"},
                   data=np.arange(first_frame, first_frame + F, dtype=np.int64)),
@@ -194,7 +203,16 @@ def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tup
         ArraySpec("time", ("frame",), (F,), (F,), "float64", np.nan,
                   {"long_name": "session-clock time of each reconstructed frame", "units": "s",
                    "stage": "resample"}),
-        # ---- per camera ----------------------------------------------------------------
+    ]
+
+
+def _camera_arrays(C: int, F: int, R: int, flow_shape: tuple[int, int], n_summary: int) -> list[ArraySpec]:
+    """The per-camera arrays: sync results, flow fields and their quality, potentials, masks,
+    and the tomography's regularisation inputs."""
+    h, w = flow_shape
+    t = {"coordinates": "time"}  # xarray attaches the time coordinate to frame arrays
+    cam: dict = {}  # camera names: the `camera` coordinate (a list attribute would not survive netCDF)
+    return [
         _f32("time_offset", ("camera",), (C,), (1,),
              {"long_name": "session-clock time at which row 0 of frame 0 starts", "units": "s",
               "stage": "sync", **cam}, dtype="float64"),
@@ -234,7 +252,15 @@ def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tup
              {"long_name": "width of the flow's image averaging modelled by the tomography per camera "
                            "(0 = cell-centre rays)", "units": "flow cell", "stage": "regularisation", **cam},
              dtype="float64"),
-        # ---- volumes -----------------------------------------------------------------
+    ]
+
+
+def _volumes(F: int, grid: Grid) -> list[ArraySpec]:
+    """The volume arrays, one frame per chunk, with the grid's ``origin`` and ``voxel_size``."""
+    nz, ny, nx = grid.shape
+    vol_attrs = grid.to_attrs()
+    t = {"coordinates": "time"}  # xarray attaches the time coordinate to frame arrays
+    return [
         ArraySpec("hull", ("frame", "z", "y", "x"), (F, nz, ny, nx), (1, nz, ny, nx), "bool", False,
                   {"long_name": "visual hull", "units": "1", "stage": "hull", **vol_attrs, **t}),
         _f32("gradient", ("frame", "z", "y", "x", "axis"), (F, nz, ny, nx, 3), (1, nz, ny, nx, 3),
@@ -252,7 +278,6 @@ def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tup
               "stage": "integrate",
               **vol_attrs, **t}),
     ]
-    return specs
 
 
 def stage_markers() -> dict[str, tuple[str, ...]]:
@@ -275,6 +300,25 @@ def stage_markers() -> dict[str, tuple[str, ...]]:
         "tomography": ("frame",),
         "integrate": ("frame",),
     }
+
+
+def marker_spec(stage: str, dims_or_shape, sizes: dict[str, int]) -> ArraySpec:
+    """The completion marker ``status/<stage>`` (uint8, one chunk per index) of a stage whose
+    marker has the dims ``dims_or_shape`` (sizes from ``sizes``, the layout's) or that shape."""
+    entries = tuple(dims_or_shape)
+    if entries and all(isinstance(d, str) for d in entries):
+        missing = [d for d in entries if d not in sizes]
+        if missing:
+            raise ValueError(f"marker {stage}: unknown dimension(s) {missing}; the layout has {sorted(sizes)}")
+        dims = entries
+        shape = tuple(sizes[d] for d in entries)
+    elif not all(isinstance(d, (int, np.integer)) and not isinstance(d, bool) for d in entries):
+        raise ValueError(f"marker {stage}: give dimension names or a shape of ints, got {entries!r}")
+    else:
+        shape = tuple(int(s) for s in entries)
+        dims = tuple(f"{stage}_{k}" for k in range(len(shape)))
+    return ArraySpec(f"{MARKER_GROUP}/{stage}", dims, shape, (1,) * len(shape), "uint8", 0,
+                     {"long_name": f"completion of stage {stage} (1 = done)", "stage": stage})
 
 
 # --------------------------------------------------------------------------------------
@@ -376,3 +420,4 @@ def chunk_grid_regions(spec) -> list[tuple[slice, ...]]:
     for idx in np.ndindex(*counts):
         out.append(tuple(slice(i * c, min((i + 1) * c, s)) for i, c, s in zip(idx, chunks, shape)))
     return out
+

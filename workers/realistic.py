@@ -11,7 +11,8 @@ look like a lab's capture instead:
   cubic-spline upsampled twice (:func:`~schlieren.pipeline.synthetic.cfd.upsample_cfd`)
   and that one field is both traced and scored, so the rendered data carry the structure
   the score asks for (the tracer's central differences on the 2.5 mm grid itself removed
-  1-2.5 dB of it: ``benchmarks/realistic_forward_model.py``);
+  part of it: benchmarks/results/realistic_forward_model.md, docs/tuning.md "Synthetic
+  truth");
 * weak deflections: the excess temperature is scaled so that the 99.9th percentile of
   the deflection magnitude is :attr:`RealisticCase.peak_px` pixels (0.25 px at 640x480,
   0.375 px at 960x720 for the same flow);
@@ -135,7 +136,8 @@ class RealisticCase:
     upsample : int
         The CFD knots are cubic-spline upsampled this many times before rendering, and the
         truth is that field (:func:`~schlieren.pipeline.synthetic.cfd.upsample_cfd`); 1
-        traces the CFD grid itself (the family before 2026-11-27).
+        traces the CFD grid itself (the family's first renders: docs/realistic.md, "What a
+        case is").
     manifest_voxel : bool
         Write ``voxel`` into the manifest; by default the manifest leaves it out, as a
         user would, and the pipeline chooses it from the cameras' pixel footprint.
@@ -388,7 +390,6 @@ def ensure_session(case: RealisticCase, work: Path, *, progress: Callable[[str],
     say = progress or (lambda m: log.info("%s", m))
     d = Path(work) / case.name
     stamp = d / "case.json"
-    voxel = case.voxel
     key = case.key()
     if stamp.exists():
         info = json.loads(stamp.read_text())
@@ -396,14 +397,30 @@ def ensure_session(case: RealisticCase, work: Path, *, progress: Callable[[str],
             return info
     bench_io.remove_tree(d)
     t0 = time.perf_counter()
+    syn, scale, peak = _render_at_peak(case, d, _flow_knots(case, work, say), say)
+    info = {"key": key, "case": dataclasses.asdict(case), "session": str(syn.session), "truth": str(syn.truth),
+            "scale": scale, "peak_px": peak, "render_seconds": time.perf_counter() - t0}
+    bench_io.write_json(stamp, info)
+    say(f"{case.name}: rendered ({info['render_seconds']:.0f} s, peak deflection {peak:.3f} px)")
+    return info
+
+
+def _flow_knots(case: RealisticCase, work: Path, say: Callable[[str], None]):
+    """The case's flow (the CFD knots, or the quick cases' analytic stand-in), upsampled
+    ``case.upsample`` times."""
     from schlieren.pipeline.synthetic.cfd import upsample_cfd
 
     if case.name.startswith("quick"):
-        knots = _quick_flow(_grid(voxel))
+        knots = _quick_flow(_grid(case.voxel))
     else:
-        knots = cfd_flow(FLOWS[case.flow], Path(work) / "_cfd", voxel=voxel, progress=say)
-    base = upsample_cfd(knots, case.upsample)
+        knots = cfd_flow(FLOWS[case.flow], Path(work) / "_cfd", voxel=case.voxel, progress=say)
+    return upsample_cfd(knots, case.upsample)
 
+
+def _render_at_peak(case: RealisticCase, d: Path, base, say: Callable[[str], None]):
+    """Render ``case`` into ``d`` with the flow ``base`` scaled to the requested peak
+    deflection (re-rendered once if the truth misses it, see :func:`ensure_session`):
+    ``(SynthResult, scale, truth's peak)``."""
     def probe(scale: float) -> float:
         return _probe_peak(case, _scaled(base, scale))
 
@@ -417,7 +434,7 @@ def ensure_session(case: RealisticCase, work: Path, *, progress: Callable[[str],
         warn_unconverged(case.peak_px, probed)
     say(f"{case.name}: unscaled peak deflection {probes[0][1]:.3f} px -> excess temperature x {scale:.3f} "
         f"({len(probes)} probes)")
-    syn = _render(case, d, _scaled(base, scale), voxel=voxel)
+    syn = _render(case, d, _scaled(base, scale), voxel=case.voxel)
     peak = _peak_deflection(syn.truth)
     if peak > 0 and probed > 0 and abs(peak / case.peak_px - 1.0) > RENDER_TOL:
         # calibrate the probe against the truth: their ratio hardly depends on the scale
@@ -432,13 +449,9 @@ def ensure_session(case: RealisticCase, work: Path, *, progress: Callable[[str],
             warn_unconverged(target, probed)
         say(f"{case.name}: excess temperature x {scale:.3f} ({len(probes) - n0} more probes)")
         bench_io.remove_tree(d)
-        syn = _render(case, d, _scaled(base, scale), voxel=voxel)
+        syn = _render(case, d, _scaled(base, scale), voxel=case.voxel)
         peak = _peak_deflection(syn.truth)
-    info = {"key": key, "case": dataclasses.asdict(case), "session": str(syn.session), "truth": str(syn.truth),
-            "scale": scale, "peak_px": peak, "render_seconds": time.perf_counter() - t0}
-    bench_io.write_json(stamp, info)
-    say(f"{case.name}: rendered ({info['render_seconds']:.0f} s, peak deflection {peak:.3f} px)")
-    return info
+    return syn, scale, peak
 
 
 def _rows_from(ev: dict) -> dict:

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from schlieren.pipeline.geometry import FlowGrid, Grid, Medium
+from schlieren.pipeline.geometry import Camera, FlowGrid, Grid, Medium
 from schlieren.pipeline.synthetic import render as R
 from schlieren.pipeline.synthetic.background import make_background, wavelet_noise_tile
 from schlieren.pipeline.synthetic.phantoms import make_phantom
@@ -88,6 +88,7 @@ class _KnotFields:
         return np.stack([self._cache[int(k)] for k in idx]), self.phantom.knot_times[idx]
 
 
+# over 80 lines only by its numpydoc parameters: the steps are the functions below it
 def synthesize(out_dir, *, cameras: int = 16, ring: str = "half", phantom: str = "plume", frames: int = 8,
                size: tuple[int, int] = (1440, 1080), flow_factor: int = 3, seed: int = 0, noise: float = 1.5,
                bit_depth: int = 8, video: bool = False, strobe: bool = True, distortion: bool = False,
@@ -165,130 +166,233 @@ def synthesize(out_dir, *, cameras: int = 16, ring: str = "half", phantom: str =
         raise ValueError("video output is 8-bit only")
     if H * line_time > 1.0 / frame_rate:
         raise ValueError("H * line_time exceeds the frame period")
+    opt = _Options(cameras=cameras, ring=ring, frames=frames, W=W, H=H, flow_factor=flow_factor, seed=seed,
+                   noise=noise, bit_depth=bit_depth, video=video, video_codec=video_codec,
+                   video_bits_per_pixel=video_bits_per_pixel, reference_frames=reference_frames, strobe=strobe,
+                   supersample=supersample, exposure=exposure, frame_rate=frame_rate, line_time=line_time,
+                   step=step, medium=medium,
+                   knot_dt=knot_dt if knot_dt is not None else 1.0 / (4.0 * frame_rate))
     rng = np.random.default_rng(seed)
     grid = Grid(box[0], box[1], recon_voxel)
     fine = Grid(box[0], box[1], voxel_size if voxel_size is not None else recon_voxel / 2.0)
-    dist = list(DISTORTION) if distortion else None
-    rig = make_rig(cameras, ring=ring, grid=grid, radius=radius, image_size=(W, H),
-                   background_distance=background_distance, height_jitter=height_jitter, distortion=dist,
-                   line_time=line_time, seed=seed)
-    # hidden offsets: the flash (t = 0) lights rows ending near r_edge in frame FLASH_FRAME
-    r_edge = rng.uniform(0.25 * H, 0.75 * H, cameras)
-    offsets = -FLASH_FRAME / frame_rate - r_edge * line_time - rng.uniform(0.0, line_time, cameras)
-    rig = [c.with_time_offset(o) for c, o in zip(rig, offsets)]
+    rig, offsets = _rig(opt, grid, rng, radius=radius, background_distance=background_distance,
+                        height_jitter=height_jitter, distortion=distortion)
     A = FIRST_FRAME
-    n_raw = A + frames + TAIL_FRAMES
     times = (A + np.arange(frames)) / frame_rate + offsets.mean() + 0.5 * H * line_time
-    kdt = knot_dt if knot_dt is not None else 1.0 / (4.0 * frame_rate)
-    t_lo = offsets.min() - kdt
-    t_hi = offsets.max() + (n_raw - 1) / frame_rate + H * line_time + kdt
     t0 = _time.perf_counter()
+    ph, fine, phantom = _phantom(phantom, fine, opt, offsets)
+    timings["phantom"] = _time.perf_counter() - t0
+    tw = _write_truth_volumes(out / "truth.zarr", opt, ph, fine, grid, times, offsets, phantom)
+    t0 = _time.perf_counter()
+    cams = _backgrounds_and_references(out, opt, rig, rng)
+    timings["references"] = _time.perf_counter() - t0
+    timings["frames_total"], timings["truth_traces"] = _render_frames(out, opt, cams, ph, fine, offsets, times,
+                                                                      tw, rng)
+    files = {c.camera.name: c.files for c in cams}
+    session = sio.write_manifest(out, name=name or f"synthetic-{phantom}-{cameras}{ring}", frame_rate=frame_rate,
+                                 frames=(A, A + frames), grid=grid, medium=medium, cameras=rig, camera_files=files,
+                                 strobe_search=(0, A) if strobe else None, voxel_size=manifest_voxel)
+    timings["total"] = _time.perf_counter() - t_all
+    return SynthResult(session=session, truth=out / "truth.zarr", time_offsets=offsets, times=times,
+                       frames=(A, A + frames), timings=timings)
+
+
+@dataclass(frozen=True)
+class _Options:
+    """The settings of one :func:`synthesize` call that its steps share (its arguments;
+    ``W, H`` the image size, ``knot_dt`` with its default applied)."""
+
+    cameras: int
+    ring: str
+    frames: int
+    W: int
+    H: int
+    flow_factor: int
+    seed: int
+    noise: float
+    bit_depth: int
+    video: bool
+    video_codec: str
+    video_bits_per_pixel: float
+    reference_frames: int
+    strobe: bool
+    supersample: int
+    exposure: float
+    frame_rate: float
+    line_time: float
+    step: float | None
+    medium: Medium
+    knot_dt: float
+
+    @property
+    def n_raw(self) -> int:
+        """Raw frames rendered: the flash and resampling margin, the processed ones, the tail."""
+        return FIRST_FRAME + self.frames + TAIL_FRAMES
+
+
+def _rig(opt: _Options, grid: Grid, rng, *, radius, background_distance, height_jitter, distortion):
+    """The cameras (:func:`~schlieren.pipeline.synthetic.rig.make_rig`) with their hidden
+    time offsets, and the offsets: the flash (t = 0) lights rows ending near a random row
+    ``r_edge`` in frame :data:`FLASH_FRAME`."""
+    W, H = opt.W, opt.H
+    dist = list(DISTORTION) if distortion else None
+    rig = make_rig(opt.cameras, ring=opt.ring, grid=grid, radius=radius, image_size=(W, H),
+                   background_distance=background_distance, height_jitter=height_jitter, distortion=dist,
+                   line_time=opt.line_time, seed=opt.seed)
+    r_edge = rng.uniform(0.25 * H, 0.75 * H, opt.cameras)
+    offsets = -FLASH_FRAME / opt.frame_rate - r_edge * opt.line_time - rng.uniform(0.0, opt.line_time, opt.cameras)
+    return [c.with_time_offset(o) for c, o in zip(rig, offsets)], offsets
+
+
+def _phantom(phantom, fine: Grid, opt: _Options, offsets: np.ndarray):
+    """``(phantom, truth grid, phantom name)``: the phantom by name or from its factory, with
+    knots covering every row of every rendered frame (a knot spacing of slack each side)."""
+    kdt = opt.knot_dt
+    t_lo = offsets.min() - kdt
+    t_hi = offsets.max() + (opt.n_raw - 1) / opt.frame_rate + opt.H * opt.line_time + kdt
     if callable(phantom):
-        ph = phantom(fine, t_start=t_lo, duration=t_hi - t_lo, seed=seed, medium=medium, knot_dt=kdt)
-        fine = ph.grid
+        ph = phantom(fine, t_start=t_lo, duration=t_hi - t_lo, seed=opt.seed, medium=opt.medium, knot_dt=kdt)
         if ph.knot_times[0] > t_lo + 1e-9 or ph.knot_times[-1] < t_hi - 1e-9:
             raise ValueError(f"the phantom's knots [{ph.knot_times[0]:.4f}, {ph.knot_times[-1]:.4f}] s do not "
                              f"cover the capture [{t_lo:.4f}, {t_hi:.4f}] s")
-        phantom = ph.name
-    else:
-        ph = make_phantom(phantom, fine, t_start=t_lo, duration=t_hi - t_lo, seed=seed, medium=medium,
-                          knot_dt=kdt)
-    timings["phantom"] = _time.perf_counter() - t0
-    fg = FlowGrid((W, H), flow_factor)
-    lattice = R.make_lattice((W, H), flow_factor)
-    sl = (slice(R.MARGIN, R.MARGIN + fg.shape[0]), slice(R.MARGIN, R.MARGIN + fg.shape[1]))
+        return ph, ph.grid, ph.name
+    ph = make_phantom(phantom, fine, t_start=t_lo, duration=t_hi - t_lo, seed=opt.seed, medium=opt.medium,
+                      knot_dt=kdt)
+    return ph, fine, phantom
 
-    # truth: knots spanning the processed instants (one frame period of slack each side)
-    store_knots = ph.knots_covering(times[0] - 1.0 / frame_rate, times[-1] + 1.0 / frame_rate)
-    truth_path = out / "truth.zarr"
-    attrs = {"phantom": phantom, "cameras": cameras, "ring": ring, "frames": [A, A + frames],
-             "frame_rate": frame_rate, "line_time": line_time, "image_size": [W, H], "flow_factor": flow_factor,
-             "seed": seed, "noise": noise, "bit_depth": bit_depth, "strobe": strobe, "supersample": supersample,
-             "exposure": exposure, "knot_dt": kdt, "voxel_size": fine.voxel_size,
-             "video": (video_codec if video else None), "reference_frames": reference_frames,
-             "r_ambient": medium.refractivity_ambient,
+
+def _write_truth_volumes(truth_path: Path, opt: _Options, ph, fine: Grid, grid: Grid, times: np.ndarray,
+                         offsets: np.ndarray, phantom_name: str) -> sio.TruthWriter:
+    """Create ``truth.zarr`` and write its times, the knots spanning the processed instants
+    (one frame period of slack each side) and the refractivity at each output instant; the
+    per-camera truth is written while the frames are rendered."""
+    A, frames = FIRST_FRAME, opt.frames
+    store_knots = ph.knots_covering(times[0] - 1.0 / opt.frame_rate, times[-1] + 1.0 / opt.frame_rate)
+    attrs = {"phantom": phantom_name, "cameras": opt.cameras, "ring": opt.ring, "frames": [A, A + frames],
+             "frame_rate": opt.frame_rate, "line_time": opt.line_time, "image_size": [opt.W, opt.H],
+             "flow_factor": opt.flow_factor, "seed": opt.seed, "noise": opt.noise, "bit_depth": opt.bit_depth,
+             "strobe": opt.strobe, "supersample": opt.supersample, "exposure": opt.exposure,
+             "knot_dt": opt.knot_dt, "voxel_size": fine.voxel_size,
+             "video": (opt.video_codec if opt.video else None), "reference_frames": opt.reference_frames,
+             "r_ambient": opt.medium.refractivity_ambient,
              "volume": {"min": list(grid.vmin), "max": list(grid.vmax), "voxel_size": grid.voxel_size},
              "time_note": "time[k] = (A + k)/frame_rate + mean(time_offset) + 0.5*H*line_time; "
                           "the phantom is linear in time between knot_time samples"}
-    tw = sio.TruthWriter(truth_path, grid=fine, n_frames=frames, n_knots=len(store_knots), n_cameras=cameras,
-                         flow_shape=fg.shape, attrs=attrs)
+    tw = sio.TruthWriter(truth_path, grid=fine, n_frames=frames, n_knots=len(store_knots), n_cameras=opt.cameras,
+                         flow_shape=FlowGrid((opt.W, opt.H), opt.flow_factor).shape, attrs=attrs)
     tw.write_times(times, ph.knot_times[store_knots], offsets)
     for j, k in enumerate(store_knots):
         tw.write_knot(j, ph.knot_refractivity(int(k)))
     for k, t in enumerate(times):
         tw.write_refractivity(k, ph.refractivity(float(t)))
+    return tw
 
-    # backgrounds and references
-    tile = wavelet_noise_tile(256, seed=seed)
-    t0 = _time.perf_counter()
-    bgs, refs, files, sinks = [], [], {}, {}
+
+@dataclass
+class _CameraOutput:
+    """One camera's background, noise-free reference image and capture output."""
+
+    camera: Camera
+    background: object  # the background pattern (make_background)
+    reference: np.ndarray
+    files: tuple  # the manifest's (frames, reference) entries
+    sink: sio.VideoSink | None = None  # the capture video (video mode)
+
+
+def _backgrounds_and_references(out: Path, opt: _Options, rig, rng) -> list[_CameraOutput]:
+    """Every camera's background pattern and reference image, the reference written (one
+    noise-free image, or ``reference_frames`` noisy frames or a video of them), and in video
+    mode the capture video opened."""
+    W, H = opt.W, opt.H
+    tile = wavelet_noise_tile(256, seed=opt.seed)
+    cams = []
     for i, cam in enumerate(rig):
         zbg = float(np.linalg.norm(cam.center - cam.bg_point))
         bg = make_background(cam.bg_point, cam.bg_normal, spacing=1.5 * zbg / cam.K[0, 0], tile=tile,
-                             seed=seed * 1000 + i + 1)
-        ref = R.reference_image(cam, bg, supersample=supersample, stride=flow_factor)
-        if reference_frames <= 0:
-            rel_ref = sio.write_reference(out, cam.name, R.sensor(ref, noise=0.0, bit_depth=bit_depth, rng=rng))
-        elif video:
-            sink = sio.VideoSink(out, cam.name, frame_rate, (W, H), codec=video_codec,
-                                 bits_per_pixel=video_bits_per_pixel, name="reference")
-            for _ in range(reference_frames):
-                sink.write(R.sensor(ref, noise=noise, bit_depth=bit_depth, rng=rng))
-            sink.close()
-            rel_ref = sink.rel
+                             seed=opt.seed * 1000 + i + 1)
+        ref = R.reference_image(cam, bg, supersample=opt.supersample, stride=opt.flow_factor)
+        rel_ref = _write_reference(out, opt, cam.name, ref, rng)
+        if opt.video:
+            sink = sio.VideoSink(out, cam.name, opt.frame_rate, (W, H), codec=opt.video_codec,
+                                 bits_per_pixel=opt.video_bits_per_pixel)
+            cams.append(_CameraOutput(cam, bg, ref, (sink.rel, rel_ref), sink))
         else:
-            rel_ref = sio.write_reference_frames(out, cam.name, (R.sensor(ref, noise=noise, bit_depth=bit_depth,
-                                                                          rng=rng) for _ in range(reference_frames)))
-        bgs.append(bg)
-        refs.append(ref)
-        if video:
-            sinks[cam.name] = sio.VideoSink(out, cam.name, frame_rate, (W, H), codec=video_codec,
-                                            bits_per_pixel=video_bits_per_pixel)
-            files[cam.name] = (sinks[cam.name].rel, rel_ref)
-        else:
-            files[cam.name] = (sio.frame_pattern(cam.name), rel_ref)
-    timings["references"] = _time.perf_counter() - t0
+            cams.append(_CameraOutput(cam, bg, ref, (sio.frame_pattern(cam.name), rel_ref)))
+    return cams
 
+
+def _write_reference(out: Path, opt: _Options, name: str, ref: np.ndarray, rng) -> str:
+    """Write camera ``name``'s reference recording; its path relative to ``out``."""
+    if opt.reference_frames <= 0:
+        return sio.write_reference(out, name, R.sensor(ref, noise=0.0, bit_depth=opt.bit_depth, rng=rng))
+    if opt.video:
+        sink = sio.VideoSink(out, name, opt.frame_rate, (opt.W, opt.H), codec=opt.video_codec,
+                             bits_per_pixel=opt.video_bits_per_pixel, name="reference")
+        for _ in range(opt.reference_frames):
+            sink.write(R.sensor(ref, noise=opt.noise, bit_depth=opt.bit_depth, rng=rng))
+        sink.close()
+        return sink.rel
+    return sio.write_reference_frames(out, name, (R.sensor(ref, noise=opt.noise, bit_depth=opt.bit_depth, rng=rng)
+                                                  for _ in range(opt.reference_frames)))
+
+
+def _render_frames(out: Path, opt: _Options, cams: list[_CameraOutput], ph, fine: Grid, offsets: np.ndarray,
+                   times: np.ndarray, tw: sio.TruthWriter, rng) -> tuple[float, float]:
+    """Render every raw frame of every camera and, at the processed instants, the truth
+    traces; returns the seconds spent in all and in the truth traces."""
+    fg = FlowGrid((opt.W, opt.H), opt.flow_factor)
+    lattice = R.make_lattice((opt.W, opt.H), opt.flow_factor)
     knots = _KnotFields(ph, fine)
-    n_amb = medium.n_ambient
     t_render = 0.0
     t_truth = 0.0
-    for f in range(n_raw):
+    for f in range(opt.n_raw):
         t0 = _time.perf_counter()
-        fields, kt = knots.get(offsets.min() + f / frame_rate, offsets.max() + f / frame_rate + H * line_time)
-        box_f = active_box(fields, fine, tol=1e-5)
-        k = f - A
-        for i, cam in enumerate(rig):
-            tr = R.trace_lattice(cam, lattice, fields, kt, fine, frame=f, frame_rate=frame_rate, step=step,
-                                 n_ambient=n_amb, clip_box=box_f)
-            img, dpx = R.render_image(cam, bgs[i], tr, lattice, refs[i], supersample=supersample)
-            if strobe:
-                lit = R.flash_rows(cam, f, frame_rate=frame_rate, exposure=exposure)
-                if lit.any():
-                    img = R.apply_flash(img, lit, R.RenderParams().flash_gain)
-            frame_img = R.sensor(img, noise=noise, bit_depth=bit_depth, rng=rng)
-            if video:
-                sinks[cam.name].write(frame_img)
-            else:
-                sio.write_frame(out, cam.name, f, frame_img)
-            if 0 <= k < frames:
+        fields, kt = knots.get(offsets.min() + f / opt.frame_rate,
+                               offsets.max() + f / opt.frame_rate + opt.H * opt.line_time)
+        trace = dict(fields=fields, knot_times=kt, fine=fine, lattice=lattice,
+                     clip_box=active_box(fields, fine, tol=1e-5))
+        k = f - FIRST_FRAME
+        for i, cam in enumerate(cams):
+            dpx = _capture_frame(out, opt, cam, f, rng, **trace)
+            if 0 <= k < opt.frames:
                 ts = _time.perf_counter()
-                gs = R.trace_lattice(cam, lattice, fields, kt, fine, frame=None, time=float(times[k]),
-                                     frame_rate=frame_rate, step=step, n_ambient=n_amb, clip_box=box_f)
-                _, dgs = R.render_image(cam, bgs[i], gs, lattice, refs[i], supersample=supersample)
-                tw.write_camera_frame(i, k, d_in=gs.d_in[sl], d_out=gs.d_out[sl],
-                                      deflection=R.cell_average(dgs, fg),
-                                      deflection_rs=R.cell_average(dpx, fg))
+                _truth_frame(opt, cam, i, k, float(times[k]), dpx, fg, tw, **trace)
                 t_truth += _time.perf_counter() - ts
         t_render += _time.perf_counter() - t0
-        log.info("synth: raw frame %d/%d done", f + 1, n_raw)
-    for s in sinks.values():
-        s.close()
-    timings["frames_total"] = t_render
-    timings["truth_traces"] = t_truth
-    session = sio.write_manifest(out, name=name or f"synthetic-{phantom}-{cameras}{ring}", frame_rate=frame_rate,
-                                 frames=(A, A + frames), grid=grid, medium=medium, cameras=rig, camera_files=files,
-                                 strobe_search=(0, A) if strobe else None, voxel_size=manifest_voxel)
-    timings["total"] = _time.perf_counter() - t_all
-    return SynthResult(session=session, truth=truth_path, time_offsets=offsets, times=times, frames=(A, A + frames),
-                       timings=timings)
+        log.info("synth: raw frame %d/%d done", f + 1, opt.n_raw)
+    for c in cams:
+        if c.sink is not None:
+            c.sink.close()
+    return t_render, t_truth
+
+
+def _capture_frame(out: Path, opt: _Options, cam: _CameraOutput, f: int, rng, *, fields, knot_times, fine,
+                   lattice, clip_box) -> np.ndarray:
+    """Render, flash, digitise and write raw frame ``f`` of one camera (rolling shutter:
+    each row at its own time); returns its image-plane deflections (pixels)."""
+    tr = R.trace_lattice(cam.camera, lattice, fields, knot_times, fine, frame=f, frame_rate=opt.frame_rate,
+                         step=opt.step, n_ambient=opt.medium.n_ambient, clip_box=clip_box)
+    img, dpx = R.render_image(cam.camera, cam.background, tr, lattice, cam.reference, supersample=opt.supersample)
+    if opt.strobe:
+        lit = R.flash_rows(cam.camera, f, frame_rate=opt.frame_rate, exposure=opt.exposure)
+        if lit.any():
+            img = R.apply_flash(img, lit, R.RenderParams().flash_gain)
+    frame_img = R.sensor(img, noise=opt.noise, bit_depth=opt.bit_depth, rng=rng)
+    if cam.sink is not None:
+        cam.sink.write(frame_img)
+    else:
+        sio.write_frame(out, cam.camera.name, f, frame_img)
+    return dpx
+
+
+def _truth_frame(opt: _Options, cam: _CameraOutput, i: int, k: int, t: float, dpx: np.ndarray, fg: FlowGrid,
+                 tw: sio.TruthWriter, *, fields, knot_times, fine, lattice, clip_box) -> None:
+    """Camera ``i``'s truth at output instant ``k`` (time ``t``, every row at once): ray
+    directions in and out, the image-plane deflection, and the rolling-shutter frame's
+    deflection ``dpx``, on the flow grid."""
+    sl = (slice(R.MARGIN, R.MARGIN + fg.shape[0]), slice(R.MARGIN, R.MARGIN + fg.shape[1]))
+    gs = R.trace_lattice(cam.camera, lattice, fields, knot_times, fine, frame=None, time=t,
+                         frame_rate=opt.frame_rate, step=opt.step, n_ambient=opt.medium.n_ambient, clip_box=clip_box)
+    _, dgs = R.render_image(cam.camera, cam.background, gs, lattice, cam.reference, supersample=opt.supersample)
+    tw.write_camera_frame(i, k, d_in=gs.d_in[sl], d_out=gs.d_out[sl], deflection=R.cell_average(dgs, fg),
+                          deflection_rs=R.cell_average(dpx, fg))

@@ -106,9 +106,10 @@ def _geometry_cache(store: ResultStore, scan: ScanResult, *, full: bool) -> tupl
     """``(problems, unusable)`` of the geometry cache (checked whether or not its marker is
     set: a set of files that exists is trusted by the stage that would build it)."""
     try:
-        from schlieren.workers.tasks import _geometry_key, context
+        from schlieren.workers.tasks import context
+        from schlieren.workers.tasks.geometry import geometry_key
 
-        path = arrays_cache.cache_dir(store.path, "geometry", _geometry_key(context(store.path)))
+        path = arrays_cache.cache_dir(store.path, "geometry", geometry_key(context(store.path)))
     except Exception as exc:  # noqa: BLE001 - e.g. the session manifest moved: cannot tell
         log.warning("cannot locate the geometry cache of %s (%s); not checked", store.path, exc)
         return [], False

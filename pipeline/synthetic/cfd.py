@@ -210,16 +210,35 @@ def simulate_cfd(grid: Grid, params: CFDParams = CFDParams(), *, n_knots: int, t
     except ImportError as exc:  # pragma: no cover - depends on the optional extra
         raise ImportError("the realistic benchmark needs PhiFlow: pip install 'schlieren[bench]'") from exc
     _patch_phiml_int64()
-    math = pf.math
     nz, ny, nx = grid.shape
     h = float(grid.voxel_size)
-    bounds = pf.Box(x=nx * h, y=ny * h, z=nz * h)
-    res = dict(x=nx, y=ny, z=nz)
-    vel_bc = {"x": 0, "y": 0, "z-": 0, "z+": pf.ZERO_GRADIENT}
-    temp = pf.CenteredGrid(0, pf.ZERO_GRADIENT, bounds=bounds, **res)
-    vel = pf.StaggeredGrid(0, vel_bc, bounds=bounds, **res)
+    src, profile = _source_shape(grid, params)
+    flow = _Boussinesq(pf, grid, params, src, g_over_T=G / medium.T_ambient)
+    rng = np.random.default_rng(seed)
+    noise = _DriftingNoise((ny, nx), params.perturbation_scale / h, params.perturbation_time, params.dt, rng,
+                           channels=3)
+    n_spin = int(round(params.spinup / params.dt))
+    total = n_spin + n_knots
+    knots = np.empty((n_knots, nz, ny, nx), np.float32)
+    for step in range(total):
+        nse = noise.step()
+        target = params.excess_temperature * profile * np.clip(1.0 + params.perturbation * nse[0], 0.0, None)
+        flow.step(target, nse)
+        if step >= n_spin:
+            knots[step - n_spin] = np.maximum(flow.temp.values.numpy("z,y,x"), 0.0)
+        if progress is not None:
+            progress(step + 1, total)
+    kt = t_first + params.dt * np.arange(n_knots)
+    meta = asdict(params)
+    meta["seed"] = int(seed)
+    return CFDResult(grid=grid, knot_times=kt, excess=knots, params=meta)
 
-    # source geometry on the (z, y, x) cell centres, relative to the floor's centre
+
+def _source_shape(grid: Grid, params: CFDParams) -> tuple[np.ndarray, np.ndarray]:
+    """The source's occupancy (nz, ny, nx), a soft disk of cells, and its radial temperature
+    profile (ny, nx), hotter in the core; on the cell centres, relative to the floor's centre."""
+    nz, ny, nx = grid.shape
+    h = float(grid.voxel_size)
     zc = (np.arange(nz) + 0.5) * h
     yc = (np.arange(ny) + 0.5) * h - 0.5 * ny * h
     xc = (np.arange(nx) + 0.5) * h - 0.5 * nx * h
@@ -229,50 +248,58 @@ def simulate_cfd(grid: Grid, params: CFDParams = CFDParams(), *, n_knots: int, t
     vertical = np.clip((depth - np.abs(zc - params.source_height)) / h + 0.5, 0.0, 1.0)  # (nz,)
     src = vertical[:, None, None] * radial[None]                                 # (nz, ny, nx)
     profile = np.exp(-(rr / max(params.source_radius, h)) ** 2)                    # core hotter
-    rng = np.random.default_rng(seed)
-    noise = _DriftingNoise((ny, nx), params.perturbation_scale / h, params.perturbation_time, params.dt, rng,
-                           channels=3)
-    swirl_speed = params.swirl * (params.inflow_velocity if params.inflow_velocity > 0 else 0.2)
+    return src, profile
 
-    def as_grid(a: np.ndarray):
+
+class _Boussinesq:
+    """The PhiFlow state (temperature, staggered velocity, pressure) on the grid's box and its
+    time step: steps 1-4 of the module notes. Walls at the sides and the floor, open top."""
+
+    def __init__(self, pf, grid: Grid, params: CFDParams, src: np.ndarray, *, g_over_T: float):
+        self.pf, self.params, self.src, self.g_over_T = pf, params, src, g_over_T
+        nz, ny, nx = grid.shape
+        h = float(grid.voxel_size)
+        self.shape = (nz, ny, nx)
+        self.bounds = pf.Box(x=nx * h, y=ny * h, z=nz * h)
+        self.res = dict(x=nx, y=ny, z=nz)
+        vel_bc = {"x": 0, "y": 0, "z-": 0, "z+": pf.ZERO_GRADIENT}
+        self.temp = pf.CenteredGrid(0, pf.ZERO_GRADIENT, bounds=self.bounds, **self.res)
+        self.vel = pf.StaggeredGrid(0, vel_bc, bounds=self.bounds, **self.res)
+        self.src_grid = self.as_grid(src)
+        self.pressure = None
+        self.swirl_speed = params.swirl * (params.inflow_velocity if params.inflow_velocity > 0 else 0.2)
+
+    def as_grid(self, a: np.ndarray):
         # PhiFlow's spatial dims are ordered x, y, z; our arrays are (z, y, x)
+        pf, math = self.pf, self.pf.math
         return pf.CenteredGrid(math.tensor(np.ascontiguousarray(np.transpose(a, (2, 1, 0)), dtype=np.float32),
-                                           math.spatial("x,y,z")), pf.ZERO_GRADIENT, bounds=bounds, **res)
+                                           math.spatial("x,y,z")), pf.ZERO_GRADIENT, bounds=self.bounds, **self.res)
 
-    src_grid = as_grid(src)
-    n_spin = int(round(params.spinup / params.dt))
-    total = n_spin + n_knots
-    knots = np.empty((n_knots, nz, ny, nx), np.float32)
-    pressure = None
-    g_over_T = G / medium.T_ambient
-    for step in range(total):
-        nse = noise.step()
-        target = params.excess_temperature * profile * np.clip(1.0 + params.perturbation * nse[0], 0.0, None)
+    def step(self, target: np.ndarray, nse: np.ndarray) -> None:
+        """Advance one ``params.dt``: the source relaxes towards ``target`` (ny, nx) kelvin, and its
+        inflow is modulated by the noise channels ``nse`` (3, ny, nx)."""
+        pf, math, params = self.pf, self.pf.math, self.params
+        nz, ny, nx = self.shape
+        src, src_grid, swirl_speed = self.src, self.src_grid, self.swirl_speed
+        temp, vel = self.temp, self.vel
         temp = pf.advect.mac_cormack(temp, vel, params.dt)
         # relax the source region towards its (fluctuating) target temperature
-        temp = temp + src_grid * (as_grid(np.broadcast_to(target, (nz, ny, nx))) - temp) * 0.5
+        temp = temp + src_grid * (self.as_grid(np.broadcast_to(target, (nz, ny, nx))) - temp) * 0.5
         w = params.inflow_velocity * (1.0 + params.perturbation * nse[0])
         inflow = np.stack([swirl_speed * nse[1], swirl_speed * nse[2], np.broadcast_to(w, (ny, nx))], axis=0)
-        forcing = temp * pf.vec(x=0.0, y=0.0, z=g_over_T)
+        forcing = temp * pf.vec(x=0.0, y=0.0, z=self.g_over_T)
         vel = pf.advect.semi_lagrangian(vel, vel, params.dt) + pf.resample(forcing, to=vel) * params.dt
         if params.inflow_velocity > 0 or params.swirl > 0:
             # impose the inflow inside the source: v <- v + s (v_in - v)
             vin = pf.CenteredGrid(math.tensor(np.ascontiguousarray(
                 (src[None] * inflow[:, None]).transpose(3, 2, 1, 0), dtype=np.float32),
-                math.spatial("x,y,z"), math.channel(vector="x,y,z")), 0, bounds=bounds, **res)
+                math.spatial("x,y,z"), math.channel(vector="x,y,z")), 0, bounds=self.bounds, **self.res)
             s_vel = pf.resample(src_grid, to=vel)
             vel = vel + s_vel * (pf.resample(vin, to=vel) - vel)
-        vel, pressure = pf.fluid.make_incompressible(
-            vel, (), pf.Solve("CG", params.cg_tolerance, params.cg_tolerance, max_iterations=500, x0=pressure,
+        vel, self.pressure = pf.fluid.make_incompressible(
+            vel, (), pf.Solve("CG", params.cg_tolerance, params.cg_tolerance, max_iterations=500, x0=self.pressure,
                               rank_deficiency=0))
-        if step >= n_spin:
-            knots[step - n_spin] = np.maximum(temp.values.numpy("z,y,x"), 0.0)
-        if progress is not None:
-            progress(step + 1, total)
-    kt = t_first + params.dt * np.arange(n_knots)
-    meta = asdict(params)
-    meta["seed"] = int(seed)
-    return CFDResult(grid=grid, knot_times=kt, excess=knots, params=meta)
+        self.temp, self.vel = temp, vel
 
 
 def upsample_cfd(result: CFDResult, factor: int) -> CFDResult:
@@ -292,9 +319,8 @@ def upsample_cfd(result: CFDResult, factor: int) -> CFDResult:
     (``scipy.ndimage.zoom`` with ``grid_mode=True``); the faces extend the field as
     constant (``mode="nearest"``). The excess is not clipped at 0 again: the spline under-
     and overshoots a little near sharp edges, and clipping would add a kink, structure finer
-    than the simulation's grid holds, which the rendered data would then have to carry (on
-    the family's plume seen by 16 cameras the pipeline scores 0.8 dB lower, 44.42 / 29.44
-    against 45.23 / 30.25 dB whole box / in plume, against a clipped truth).
+    than the simulation's grid holds, which the rendered data would then have to carry
+    (the pipeline scores lower against a clipped truth: docs/tuning.md, "Synthetic truth").
     """
     from scipy import ndimage
 

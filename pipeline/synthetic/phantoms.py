@@ -22,8 +22,8 @@ Three families:
 
 from __future__ import annotations
 
+import functools
 import logging
-from collections import OrderedDict
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -89,8 +89,10 @@ class Phantom:
         self._knot_volume = knot_volume
         self.medium = medium
         self.name = name
-        self._cache: OrderedDict[int, np.ndarray] = OrderedDict()
-        self._cache_size = int(cache_size)
+        # the cache_size knots used last, per phantom (a shape error is raised, never cached); the
+        # loader holds no reference to the phantom, so dropping it frees the volumes at once
+        self._cached_knot = functools.lru_cache(maxsize=max(int(cache_size), 0))(
+            functools.partial(_load_knot, knot_volume, grid.shape))
 
     @property
     def r_ambient(self) -> float:
@@ -102,18 +104,7 @@ class Phantom:
 
     def knot_refractivity(self, i: int) -> np.ndarray:
         """Refractivity at knot ``i``, shape (nz, ny, nx) float64 (read-only view)."""
-        i = int(i)
-        if i in self._cache:
-            self._cache.move_to_end(i)
-            return self._cache[i]
-        vol = np.asarray(self._knot_volume(i), dtype=np.float64)
-        if vol.shape != self.grid.shape:
-            raise ValueError(f"knot volume shape {vol.shape} != grid shape {self.grid.shape}")
-        vol.setflags(write=False)
-        self._cache[i] = vol
-        while len(self._cache) > self._cache_size:
-            self._cache.popitem(last=False)
-        return vol
+        return self._cached_knot(int(i))
 
     def bracket(self, t: float) -> tuple[int, int, float]:
         """Knots ``(i0, i1)`` around ``t`` and the weight ``w`` of ``i1`` (``r = (1-w) r0 + w r1``)."""
@@ -146,6 +137,14 @@ class Phantom:
     def temperature(self, t: float) -> np.ndarray:
         """Temperature (kelvin) at time ``t``, shape (nz, ny, nx)."""
         return temperature_from_refractivity(self.refractivity(t), self.medium)
+
+
+def _load_knot(knot_volume: Callable[[int], np.ndarray], shape: tuple, i: int) -> np.ndarray:
+    vol = np.asarray(knot_volume(i), dtype=np.float64)
+    if vol.shape != shape:
+        raise ValueError(f"knot volume shape {vol.shape} != grid shape {shape}")
+    vol.setflags(write=False)
+    return vol
 
 
 # --------------------------------------------------------------------------------------

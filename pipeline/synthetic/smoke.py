@@ -172,57 +172,11 @@ def simulate(grid: Grid, params: SmokeParams, *, medium: Medium = Medium(), t_fi
     rng = np.random.default_rng(seed)
     h = params.cell
     dt = params.dt
-    lo = np.asarray(grid.vmin, dtype=np.float64) - np.array([params.margin, params.margin, 2 * h])
-    hi = np.asarray(grid.vmax, dtype=np.float64) + np.array([params.margin, params.margin, params.sponge])
-    n = np.maximum(np.ceil((hi - lo) / h).astype(int), 8)
-    n += n % 2
-    nx, ny, nz = (int(v) for v in n)
-    origin = lo + 0.5 * h
-    x = origin[0] + h * np.arange(nx)
-    y = origin[1] + h * np.arange(ny)
-    z = origin[2] + h * np.arange(nz)
-    Z, Y, X = np.meshgrid(z, y, x, indexing="ij")
-
-    # source region: a disk at the grid centre, a few cells thick
-    cx, cy = 0.5 * (grid.vmin[0] + grid.vmax[0]), 0.5 * (grid.vmin[1] + grid.vmax[1])
-    zs = grid.vmin[2] + params.source_height
-    rad = np.hypot(X - cx, Y - cy)
-    phi = np.arctan2(Y - cy, X - cx)
-    src_z = np.exp(-((Z - zs) / (1.0 * h)) ** 2)
-    src_mask = (src_z > 0.05) & (rad < 1.5 * params.source_radius)
-    kz = np.nonzero(src_mask.any(axis=(1, 2)))[0]
-    zsl = slice(int(kz.min()), int(kz.max()) + 1)
-
-    # sponge: damping rate (1/s) rising smoothly in the top layer and the lateral margins
-    top = np.clip((Z - grid.vmax[2]) / params.sponge, 0.0, 1.0)
-    side_x = np.clip((np.abs(X - cx) - (0.5 * (grid.vmax[0] - grid.vmin[0]) + 0.3 * params.margin))
-                     / (0.6 * params.margin), 0.0, 1.0)
-    side_y = np.clip((np.abs(Y - cy) - (0.5 * (grid.vmax[1] - grid.vmin[1]) + 0.3 * params.margin))
-                     / (0.6 * params.margin), 0.0, 1.0)
-    damp = np.exp(-dt * 60.0 * np.maximum(top, np.maximum(side_x, side_y)) ** 2)
-
-    # spectral projection
-    kx = 2 * np.pi * np.fft.fftfreq(nx, d=h)
-    ky = 2 * np.pi * np.fft.fftfreq(ny, d=h)
-    kz = 2 * np.pi * np.fft.rfftfreq(nz, d=h)
-    KZ = kz[None, None, :]
-    KY = ky[None, :, None]
-    KX = kx[:, None, None]
-    K2 = KX**2 + KY**2 + KZ**2
-    K2[0, 0, 0] = 1.0
-
-    def project(u, v, w):
-        # FFT over (x, y, z) with arrays transposed to (x, y, z)
-        uh = np.fft.rfftn(u.transpose(2, 1, 0))
-        vh = np.fft.rfftn(v.transpose(2, 1, 0))
-        wh = np.fft.rfftn(w.transpose(2, 1, 0))
-        div = KX * uh + KY * vh + KZ * wh
-        uh -= KX * div / K2
-        vh -= KY * div / K2
-        wh -= KZ * div / K2
-        shp = (nx, ny, nz)
-        return (np.fft.irfftn(uh, s=shp, axes=(0, 1, 2)).transpose(2, 1, 0), np.fft.irfftn(vh, s=shp, axes=(0, 1, 2)).transpose(2, 1, 0),
-                np.fft.irfftn(wh, s=shp, axes=(0, 1, 2)).transpose(2, 1, 0))
+    origin, (X, Y, Z) = _domain(grid, params)
+    nz, ny, nx = X.shape
+    src = _Source.at_floor(grid, params, X, Y, Z)
+    damp = _sponge(grid, params, X, Y, Z)
+    project = _spectral_projection(nx, ny, nz, h)
 
     u = np.zeros((nz, ny, nx))
     v = np.zeros_like(u)
@@ -245,28 +199,12 @@ def simulate(grid: Grid, params: SmokeParams, *, medium: Medium = Medium(), t_fi
         # 2. source: puffing, perturbed hot disk with inflow
         amp = 0.9 * amp + np.sqrt(1 - 0.81) * rng.normal(0.0, 1.0, n_modes)
         pha = pha + rng.normal(0.0, 0.3, n_modes)
-        ph_s, rad_s, srcz_s, m_s = phi[zsl], rad[zsl], src_z[zsl], src_mask[zsl]
-        az = 1.0 + params.perturbation * sum(amp[m] * np.cos((m + 1) * ph_s + pha[m]) for m in range(n_modes)) / np.sqrt(n_modes)
-        puff = 1.0 + params.puff_depth * np.sin(2 * np.pi * params.puff_frequency * t)
-        prof = np.exp(-(rad_s / params.source_radius) ** 4) * srcz_s * np.clip(az, 0.3, 1.3) / 1.3
-        th[zsl] = np.where(m_s, np.maximum(th[zsl], dT0 * puff / (1 + params.puff_depth) * prof), th[zsl])
-        w[zsl] = np.where(m_s, np.maximum(w[zsl], params.source_velocity * puff * prof), w[zsl])
+        src.heat(th, w, params, amp, pha, t, dT0)
         # 3. buoyancy
         w = w + dt * G * th / (medium.T_ambient + th)
         # 4. vorticity confinement
         if params.vorticity > 0:
-            dwdy, dwdx = np.gradient(w, h, axis=(1, 2))
-            dvdz, dvdx = np.gradient(v, h, axis=(0, 2))
-            dudz, dudy = np.gradient(u, h, axis=(0, 1))
-            ox, oy, oz = dwdy - dvdz, dudz - dwdx, dvdx - dudy
-            mag = np.sqrt(ox**2 + oy**2 + oz**2)
-            gz_, gy_, gx_ = np.gradient(mag, h)
-            gn = np.sqrt(gx_**2 + gy_**2 + gz_**2) + 1e-12
-            Nx_, Ny_, Nz_ = gx_ / gn, gy_ / gn, gz_ / gn
-            eps = params.vorticity * h * dt
-            u = u + eps * (Ny_ * oz - Nz_ * oy)
-            v = v + eps * (Nz_ * ox - Nx_ * oz)
-            w = w + eps * (Nx_ * oy - Ny_ * ox)
+            u, v, w = _confine_vorticity(u, v, w, params.vorticity * h * dt, h)
         # 5. sponge
         u, v, w, th = u * damp, v * damp, w * damp, th * damp
         # 6. projection
@@ -275,6 +213,115 @@ def simulate(grid: Grid, params: SmokeParams, *, medium: Medium = Medium(), t_fi
         if step >= n_spin:
             out[step - n_spin] = th
     return SmokeResult(excess=out, times=times, origin=origin, cell=h)
+
+
+def _domain(grid: Grid, params: SmokeParams):
+    """World (x, y, z) of the centre of cell [0, 0, 0] and the cell centres' coordinates, each
+    shape (Nz, Ny, Nx): the grid with a lateral margin, two cells below and the sponge above,
+    an even number (at least 8) of cells along each axis."""
+    h = params.cell
+    lo = np.asarray(grid.vmin, dtype=np.float64) - np.array([params.margin, params.margin, 2 * h])
+    hi = np.asarray(grid.vmax, dtype=np.float64) + np.array([params.margin, params.margin, params.sponge])
+    n = np.maximum(np.ceil((hi - lo) / h).astype(int), 8)
+    n += n % 2
+    nx, ny, nz = (int(v) for v in n)
+    origin = lo + 0.5 * h
+    x = origin[0] + h * np.arange(nx)
+    y = origin[1] + h * np.arange(ny)
+    z = origin[2] + h * np.arange(nz)
+    Z, Y, X = np.meshgrid(z, y, x, indexing="ij")
+    return origin, (X, Y, Z)
+
+
+@dataclass(frozen=True)
+class _Source:
+    """The hot source: a disk at the grid centre, a few cells thick (the slab ``zsl`` of
+    cells it covers, with each cell's azimuth, radius, vertical profile and mask)."""
+
+    zsl: slice
+    phi: np.ndarray
+    rad: np.ndarray
+    src_z: np.ndarray
+    mask: np.ndarray
+
+    @classmethod
+    def at_floor(cls, grid: Grid, params: SmokeParams, X, Y, Z) -> "_Source":
+        h = params.cell
+        cx, cy = 0.5 * (grid.vmin[0] + grid.vmax[0]), 0.5 * (grid.vmin[1] + grid.vmax[1])
+        zs = grid.vmin[2] + params.source_height
+        rad = np.hypot(X - cx, Y - cy)
+        phi = np.arctan2(Y - cy, X - cx)
+        src_z = np.exp(-((Z - zs) / (1.0 * h)) ** 2)
+        src_mask = (src_z > 0.05) & (rad < 1.5 * params.source_radius)
+        kz = np.nonzero(src_mask.any(axis=(1, 2)))[0]
+        zsl = slice(int(kz.min()), int(kz.max()) + 1)
+        return cls(zsl, phi[zsl], rad[zsl], src_z[zsl], src_mask[zsl])
+
+    def heat(self, th, w, params: SmokeParams, amp, pha, t: float, dT0: float) -> None:
+        """Raise ``th`` and ``w`` (in place) to the puffing, perturbed source profile at time ``t``
+        (azimuthal modes of amplitudes ``amp`` and phases ``pha``)."""
+        zsl, ph_s, rad_s, srcz_s, m_s = self.zsl, self.phi, self.rad, self.src_z, self.mask
+        n_modes = len(amp)
+        az = 1.0 + params.perturbation * sum(amp[m] * np.cos((m + 1) * ph_s + pha[m]) for m in range(n_modes)) / np.sqrt(n_modes)
+        puff = 1.0 + params.puff_depth * np.sin(2 * np.pi * params.puff_frequency * t)
+        prof = np.exp(-(rad_s / params.source_radius) ** 4) * srcz_s * np.clip(az, 0.3, 1.3) / 1.3
+        th[zsl] = np.where(m_s, np.maximum(th[zsl], dT0 * puff / (1 + params.puff_depth) * prof), th[zsl])
+        w[zsl] = np.where(m_s, np.maximum(w[zsl], params.source_velocity * puff * prof), w[zsl])
+
+
+def _sponge(grid: Grid, params: SmokeParams, X, Y, Z) -> np.ndarray:
+    """Per-step damping factor: a rate (1/s) rising smoothly in the top layer and the lateral margins."""
+    dt = params.dt
+    cx, cy = 0.5 * (grid.vmin[0] + grid.vmax[0]), 0.5 * (grid.vmin[1] + grid.vmax[1])
+    top = np.clip((Z - grid.vmax[2]) / params.sponge, 0.0, 1.0)
+    side_x = np.clip((np.abs(X - cx) - (0.5 * (grid.vmax[0] - grid.vmin[0]) + 0.3 * params.margin))
+                     / (0.6 * params.margin), 0.0, 1.0)
+    side_y = np.clip((np.abs(Y - cy) - (0.5 * (grid.vmax[1] - grid.vmin[1]) + 0.3 * params.margin))
+                     / (0.6 * params.margin), 0.0, 1.0)
+    return np.exp(-dt * 60.0 * np.maximum(top, np.maximum(side_x, side_y)) ** 2)
+
+
+def _spectral_projection(nx: int, ny: int, nz: int, h: float):
+    """``project(u, v, w)``: the divergence-free part of a periodic velocity field (Fourier space)."""
+    kx = 2 * np.pi * np.fft.fftfreq(nx, d=h)
+    ky = 2 * np.pi * np.fft.fftfreq(ny, d=h)
+    kz = 2 * np.pi * np.fft.rfftfreq(nz, d=h)
+    KZ = kz[None, None, :]
+    KY = ky[None, :, None]
+    KX = kx[:, None, None]
+    K2 = KX**2 + KY**2 + KZ**2
+    K2[0, 0, 0] = 1.0
+
+    def project(u, v, w):
+        # FFT over (x, y, z) with arrays transposed to (x, y, z)
+        uh = np.fft.rfftn(u.transpose(2, 1, 0))
+        vh = np.fft.rfftn(v.transpose(2, 1, 0))
+        wh = np.fft.rfftn(w.transpose(2, 1, 0))
+        div = KX * uh + KY * vh + KZ * wh
+        uh -= KX * div / K2
+        vh -= KY * div / K2
+        wh -= KZ * div / K2
+        shp = (nx, ny, nz)
+        return (np.fft.irfftn(uh, s=shp, axes=(0, 1, 2)).transpose(2, 1, 0), np.fft.irfftn(vh, s=shp, axes=(0, 1, 2)).transpose(2, 1, 0),
+                np.fft.irfftn(wh, s=shp, axes=(0, 1, 2)).transpose(2, 1, 0))
+
+    return project
+
+
+def _confine_vorticity(u, v, w, eps: float, h: float):
+    """Vorticity confinement (Fedkiw et al. 2001): ``u += eps (N x omega)``, N the unit gradient of |omega|."""
+    dwdy, dwdx = np.gradient(w, h, axis=(1, 2))
+    dvdz, dvdx = np.gradient(v, h, axis=(0, 2))
+    dudz, dudy = np.gradient(u, h, axis=(0, 1))
+    ox, oy, oz = dwdy - dvdz, dudz - dwdx, dvdx - dudy
+    mag = np.sqrt(ox**2 + oy**2 + oz**2)
+    gz_, gy_, gx_ = np.gradient(mag, h)
+    gn = np.sqrt(gx_**2 + gy_**2 + gz_**2) + 1e-12
+    Nx_, Ny_, Nz_ = gx_ / gn, gy_ / gn, gz_ / gn
+    u = u + eps * (Ny_ * oz - Nz_ * oy)
+    v = v + eps * (Nz_ * ox - Nx_ * oz)
+    w = w + eps * (Nx_ * oy - Ny_ * ox)
+    return u, v, w
 
 
 def upsample_matrices(sim: SmokeResult, grid: Grid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

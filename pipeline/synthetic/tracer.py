@@ -177,6 +177,7 @@ def _sample(fields, k0, k1, w, x, y, z, org, inv_h):
     return r, gx, gy, gz
 
 
+# 134 lines: one ray's RK4 march (slab clip, straight legs, knot blend) stays in one prange body for numba
 @njit(cache=True, parallel=True)
 def _march(fields, knot_times, origins, dirs, times, box_lo, box_hi, clip_lo, clip_hi, org, h,
            step, n_amb, exit_pt, d_out, hit):

@@ -7,6 +7,7 @@ directions) or :func:`solve_refractivity` (direct ``n - 1`` reconstruction).
 """
 
 from schlieren.pipeline.tomography.binning import bin_cells, bin_quiet, binned_sigma, ray_binning, ray_grid
+from schlieren.pipeline.tomography.blur import MeasurementBlur, VolumeBlur, volume_sigma
 from schlieren.pipeline.tomography.direct import RefractivityInfo, solve_refractivity
 from schlieren.pipeline.tomography.geometry import (
     TomoGeometry,
@@ -17,19 +18,8 @@ from schlieren.pipeline.tomography.geometry import (
 )
 from schlieren.pipeline.tomography.params import RefractivityParams, TomoParams
 from schlieren.pipeline.tomography.rays import approximate_d_out, rhs_from_d_out, rhs_from_flows
-from schlieren.pipeline.tomography.solve import (
-    MeasurementBlur,
-    RegularisationChoice,
-    SolveInfo,
-    VolumeBlur,
-    block_support,
-    choose_reg_weight,
-    rhs_noise,
-    rhs_snr,
-    solve_gradient,
-    solve_gradient_d_out,
-    volume_sigma,
-)
+from schlieren.pipeline.tomography.reg_choice import RegularisationChoice, choose_reg_weight, rhs_noise, rhs_snr
+from schlieren.pipeline.tomography.solve import SolveInfo, block_support, solve_gradient, solve_gradient_d_out
 
 __all__ = [
     "TomoParams", "RefractivityParams", "TomoGeometry", "build_geometry", "content_hash",

@@ -24,10 +24,10 @@ cells one cell apart has the variance ``sigma^2 + (b^2 - 1) / 12`` cells^2
 
 from __future__ import annotations
 
-import numba as nb
 import numpy as np
 
 from schlieren.pipeline.geometry import FlowGrid, Grid, pixel_footprint
+from schlieren.pipeline.tomography._binning_kernels import _bin_kernel
 
 __all__ = ["MIN_RAYS_PER_VOXEL", "MIN_CELLS_PER_VOXEL", "auto_flow_factor", "cells_per_voxel", "ray_binning",
            "ray_grid", "bin_cells", "bin_quiet", "binned_sigma"]
@@ -128,34 +128,9 @@ def bin_cells(a: np.ndarray, b: int, *, min_valid: float = 0.5) -> np.ndarray:
     flat = np.ascontiguousarray(a.reshape(C, h, w, -1))
     out = np.empty((C, h // b, w // b, flat.shape[-1]), np.float64)
     # one pass in a compiled kernel (the numpy version made four float64 temporaries of
-    # the whole stack: 0.19 s of a paper-scale tomography task's 1.2 s; the kernel 0.02 s)
+    # the whole stack; docs/tuning.md, "Speed")
     _bin_kernel(flat, b, float(min_valid) * b * b, out)
     return out.reshape((C, h // b, w // b) + a.shape[3:])
-
-
-@nb.njit(cache=True, nogil=True)
-def _bin_kernel(a, b, need, out):
-    # out[c, i, j] = mean of the cells of block (i, j) whose components are all finite;
-    # NaN when fewer than ``need`` cells are
-    C, hb, wb, k = out.shape
-    acc = np.empty(k, np.float64)
-    for c in range(C):
-        for i in range(hb):
-            for j in range(wb):
-                acc[:] = 0.0
-                n = 0
-                for di in range(b):
-                    for dj in range(b):
-                        ok = True
-                        for q in range(k):
-                            if not np.isfinite(a[c, i * b + di, j * b + dj, q]):
-                                ok = False
-                        if ok:
-                            n += 1
-                            for q in range(k):
-                                acc[q] += a[c, i * b + di, j * b + dj, q]
-                for q in range(k):
-                    out[c, i, j, q] = acc[q] / n if n >= need and n > 0 else np.nan
 
 
 def bin_quiet(quiet: np.ndarray, b: int) -> np.ndarray:

@@ -26,8 +26,9 @@ import scipy.sparse as sp
 from schlieren.pipeline.geometry import Grid
 from schlieren.pipeline.tomography.geometry import TomoGeometry
 from schlieren.pipeline.tomography.params import RefractivityParams
-from schlieren.pipeline.tomography.rays import rhs_from_flows
-from schlieren.pipeline.tomography.solve import finite_rhs, cgls, difference_operator, prepare_frame, valid_rays
+from schlieren.pipeline.linalg.cgls import cgls
+from schlieren.pipeline.tomography.regularisers import difference_operator
+from schlieren.pipeline.tomography.solve import frame_rhs, prepare_frame, valid_rays
 
 __all__ = ["RefractivityInfo", "solve_refractivity", "central_gradient_operators"]
 
@@ -116,11 +117,7 @@ def solve_refractivity(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.nd
     n_h = int(hull.sum())
     if n_h == 0 or op.m == 0:
         return out, RefractivityInfo(0, 0.0, n_h, op.m, "empty", time.perf_counter() - t0)
-    if data.shape[-1] == 2:
-        b = rhs_from_flows(geom, data, n_ambient=params.n_ambient, rays=op.rows)
-    else:
-        b = np.asarray(data, dtype=np.float64).reshape(-1, 3)[op.rows]
-    b = finite_rhs(b)
+    b = frame_rhs(geom, data, op.rows, n_ambient=params.n_ambient)
     G = central_gradient_operators(hull, sys_.inset, grid.voxel_size)
     GT = [g.T.tocsr() for g in G]
     L = difference_operator(hull)

@@ -17,7 +17,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from schlieren.pipeline.geometry import Camera, FlowGrid, Grid
-from schlieren.pipeline.tomography.operator import build_projection, prune_rows
+from schlieren.pipeline.tomography.projection import build_projection, prune_rows
 from schlieren.pipeline.tomography.params import TomoParams
 
 __all__ = ["TomoGeometry", "build_geometry", "content_hash", "save_geometry", "load_geometry",

@@ -21,7 +21,7 @@ class TomoParams:
     prune : float
         Entries of a projection row below this fraction of the row's largest are dropped
         and the rest scaled so the row's sum (the ray's length through the basis) is
-        kept (:func:`schlieren.pipeline.tomography.operator.prune_rows`): the nodes a ray
+        kept (:func:`schlieren.pipeline.tomography.projection.prune_rows`): the nodes a ray
         only grazes. Part of the geometry content hash; 0 keeps every entry. At 0.05 the
         paper-scale session loses 17 % of its entries (1 % of the row sums) and its warm
         solves take 13-15 % less time (1.87 / 1.99 / 2.21 -> 1.63 / 1.70 / 1.88 s,
@@ -62,7 +62,7 @@ class TomoParams:
         How the pipeline sets the weight: ``discrepancy`` measures the noise of the
         right-hand side on the rays outside every flow mask and picks, on the middle
         frame, the weight whose data residual matches it (Morozov's discrepancy
-        principle, :func:`~schlieren.pipeline.tomography.solve.choose_reg_weight`); the
+        principle, :func:`~schlieren.pipeline.tomography.reg_choice.choose_reg_weight`); the
         chosen weight is stored (``reg_weight`` array) and used for every frame.
         ``fixed`` uses ``reg_weight``.
     reg_tau : float
@@ -73,7 +73,7 @@ class TomoParams:
         measured level, and 1 chose weights 5-10x too large (1.7 where 0.2 was best).
     curl_weight : float
         Weight of the integrability term ``||C x||^2`` (:func:`~schlieren.pipeline.
-        tomography.solve.curl_normal`, the discrete curl of the gradient field), relative to
+        tomography.regularisers.curl_normal`, the discrete curl of the gradient field), relative to
         the mean of ``diag(S^T S)`` like ``reg_weight``. A refractive-index gradient is
         curl-free; the limited views leave each component a large null space, and the
         coupling removes the part of it that is not a gradient. 0 solves the three
@@ -86,7 +86,7 @@ class TomoParams:
         a measured deflection is the LK window's mean of the per-pixel deflections, smoothed
         and block-averaged to the flow grid, not the deflection of the ray through the cell
         centre; the solve fits ``W S x`` with ``W`` that averaging over neighbouring cells
-        (:class:`~schlieren.pipeline.tomography.solve.MeasurementBlur`, its width from
+        (:class:`~schlieren.pipeline.tomography.blur.MeasurementBlur`, its width from
         :func:`~schlieren.pipeline.flow.measurement_sigma`). Beyond the paper. On the
         realistic family: 16 cameras +1.4 to +1.6 dB whole box, +2.1 to +2.3 in plume;
         8-camera PNG +0.3 to +0.5 / +0.7 to +1.0; H.264 -0.05 to +0.03 / +0.1 to +0.2. On the
@@ -98,8 +98,8 @@ class TomoParams:
         camera's Gaussian over its flow cells (exact for the cell grid, but one more pass over
         ``S`` and two image filters per iteration). ``volume`` (default): ``S G x`` with ``G``
         one Gaussian over the basis coefficients of the width the cameras' averaging has at
-        the volume (:class:`~schlieren.pipeline.tomography.solve.VolumeBlur`,
-        :func:`~schlieren.pipeline.tomography.solve.volume_sigma`; exact for parallel rays):
+        the volume (:class:`~schlieren.pipeline.tomography.blur.VolumeBlur`,
+        :func:`~schlieren.pipeline.tomography.blur.volume_sigma`; exact for parallel rays):
         the point-ray model's single fused pass plus two small volume filters. The
         smoothness weight is chosen with the image model either way (``reg_choice``: its
         misfit reaches the noise, the volume model's stays above it on 16 cameras). On the

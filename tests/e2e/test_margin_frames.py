@@ -1,5 +1,5 @@
 """Raw frames of the rolling-shutter margins that no output instant reads are not processed
-(`workers/tasks.py:raw_frame_needed`): the result is bit for bit the run that processes
+(`workers/tasks/deflection.py:raw_frame_needed`): the result is bit for bit the run that processes
 them all, and a flagged frame at the end of a range makes its outer neighbour needed."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import yaml
 
 from schlieren.pipeline import frame_quality as fq
 from schlieren.storage.store import ResultStore
-from schlieren.workers import tasks
+from schlieren.workers.tasks import deflection
 from schlieren.workers.run import run_session
 
 
@@ -41,7 +41,7 @@ def test_unused_margin_frames_are_skipped_without_changing_the_result(tiny_sessi
     skipped = run_session(sess, tmp_path / "skip.zarr", serial=True)
     assert skipped.ok and skipped.bad_frames == []  # unused frames are not "excluded" frames
     with monkeypatch.context() as m:
-        m.setattr(tasks, "raw_frame_needed", lambda *a: True)
+        m.setattr(deflection, "raw_frame_needed", lambda *a: True)
         every = run_session(sess, tmp_path / "all.zarr", serial=True)
     assert every.ok
     a, b = ResultStore.open(tmp_path / "skip.zarr"), ResultStore.open(tmp_path / "all.zarr")

@@ -89,7 +89,7 @@ def test_dask_workers_read_the_session_and_write_the_store_in_the_bucket(s3_serv
 
 
 class _Counting:
-    """``storage.location`` as seen by storage/frames.py, recording the listings and reads."""
+    """``storage.location`` as seen by the frame readers (storage/readers/), recording the listings and reads."""
 
     def __init__(self, real):
         self._real = real
@@ -115,10 +115,16 @@ class _Counting:
 def test_a_serial_run_lists_and_fetches_each_frame_once(s3_server, s3_session, serial_store, monkeypatch, tmp_path):
     """The run's tasks read through the readers that checked the session (Session.opened):
     no second listing of a camera's frames, no second fetch of a frame (each a request)."""
-    from schlieren.storage import frames
+    import importlib
+    import pkgutil
+
+    from schlieren.storage import readers
 
     counting = _Counting(location)
-    monkeypatch.setattr(frames, "location", counting)
+    for info in pkgutil.iter_modules(readers.__path__):  # every reader module's view of storage.location
+        mod = importlib.import_module(f"{readers.__name__}.{info.name}")
+        if hasattr(mod, "location"):
+            monkeypatch.setattr(mod, "location", counting)
     monkeypatch.setenv(location.CACHE_ENV, str(tmp_path / "cache"))
     out = s3_server.bucket("store") + "/once.zarr"
     summary = run_session(s3_session, out, serial=True)
@@ -137,7 +143,7 @@ def test_sigkill_then_rerun_resumes_from_the_bucket_and_matches(s3_server, s3_se
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert f"store: {out}" in proc.stderr and "already complete" in proc.stderr
-    skipped = int(proc.stderr.split(" tasks run, ")[1].split(" already complete")[0])
+    skipped = int(proc.stderr.split(" already complete")[0].rsplit(", ", 1)[1])
     assert skipped >= before
     assert_same_store(serial_store, out)
     assert_same_chunk_bytes(serial_store, out)

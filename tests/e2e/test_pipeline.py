@@ -80,6 +80,7 @@ def test_threshold_pools_the_summaries_the_potential_tasks_wrote(serial_store, t
         run_task(str(old), "threshold", (), run_token="old-store")
 
 
+@pytest.mark.system
 def test_dask_executor_gives_the_identical_store(serial_store, tiny_session, tmp_path):
     from schlieren.workers.cluster import ClusterOptions, open_client
 
@@ -236,7 +237,7 @@ def test_deflection_tasks_in_frame_order_decode_each_frame_once(serial_store, tm
     g = zarr.open_group(str(serial_store), mode="r")
     n_raw = g["flow_raw"].shape[1]
     for j in range(n_raw):
-        tasks._GLUE["deflection"](ctx, 0, j)
+        tasks.STAGE_TASKS["deflection"](ctx, 0, j)
     ctx.store.flush()
     first = ctx.raw_first
     assert sorted(reads) == sorted(set(reads)), reads
@@ -259,8 +260,9 @@ def test_the_serial_loop_reuses_the_session_the_run_loaded(tiny_session, tmp_pat
 
     from schlieren.workers import tasks
     from schlieren.workers.run import run_session
+    from schlieren.workers.tasks import run_context
 
     tasks.context.cache_clear()
-    monkeypatch.setattr(tasks, "load_session", refuse)
+    monkeypatch.setattr(run_context, "load_session", refuse)
     summary = run_session(tiny_session.session, tmp_path / "once.zarr", serial=True)
     assert summary.ok, summary.root_failures()

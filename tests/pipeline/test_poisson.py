@@ -114,7 +114,7 @@ def test_diffusion_tensor_eigenvalues():
 
 def test_diffusion_tensor_inert_shortcut_matches_eigendecomposition():
     """Voxels skipped by the trace bound get exactly alpha I; the rest follow the Appendix."""
-    from schlieren.pipeline.poisson import _range_estimate
+    from schlieren.pipeline.poisson.tensor import _range_estimate
     import scipy.ndimage as ndi
 
     rng = np.random.default_rng(5)

@@ -9,7 +9,8 @@ import pytest
 
 from schlieren.pipeline.geometry import FlowGrid, Grid
 from schlieren.pipeline.tomography import MeasurementBlur, TomoParams, build_geometry
-from schlieren.pipeline.tomography.solve import _solve_restricted, choose_reg_weight, prepare_frame, rhs_noise
+from schlieren.pipeline.tomography.reg_choice import choose_reg_weight, rhs_noise
+from schlieren.pipeline.tomography.solve import _solve_restricted, prepare_frame
 
 from test_tomography import blob_field, ring_cameras
 

@@ -23,8 +23,10 @@ from schlieren.pipeline.tomography import (
     solve_gradient_d_out,
     solve_refractivity,
 )
-from schlieren.pipeline.tomography.operator import basis_weights, clip_rays_to_box
-from schlieren.pipeline.tomography.solve import cgls, difference_normal, difference_operator, prepare_frame
+from schlieren.pipeline.linalg import cgls
+from schlieren.pipeline.tomography.projection import basis_weights, clip_rays_to_box
+from schlieren.pipeline.tomography.regularisers import difference_normal, difference_operator
+from schlieren.pipeline.tomography.solve import prepare_frame
 
 R_AMB = 2.9e-4
 
@@ -138,7 +140,7 @@ def test_dot_test_restricted_operator(setup):
 
 def test_fused_restriction_matches_prepared_system(setup):
     """solve_gradient's fused restrict+setup pass equals prepare_frame + setup_products."""
-    from schlieren.pipeline.tomography.operator import restrict_with_setup
+    from schlieren.pipeline.tomography.restriction import restrict_with_setup
 
     grid, cams, fg, geom = setup
     hull = np.zeros(grid.shape, bool)
@@ -223,7 +225,7 @@ def test_difference_normal_equals_product(seed):
 def test_second_difference_prior_is_the_squared_laplacian_and_passes_ramps():
     """prior "second-differences" = (L^T L)^2: zero on constants over the whole grid and on a
     linear ramp two voxels from the grid's faces, where first differences still penalise it."""
-    from schlieren.pipeline.tomography.solve import regulariser_normal
+    from schlieren.pipeline.tomography.regularisers import regulariser_normal
 
     full = np.ones((8, 9, 10), bool)
     M = regulariser_normal(full, "first-differences")
@@ -231,7 +233,7 @@ def test_second_difference_prior_is_the_squared_laplacian_and_passes_ramps():
     np.testing.assert_array_equal(B.toarray(), (M @ M).toarray())
     assert B.has_sorted_indices
     # the solver's form (never formed) has the same diagonal
-    from schlieren.pipeline.tomography.solve import regulariser
+    from schlieren.pipeline.tomography.regularisers import regulariser
     np.testing.assert_array_equal(regulariser(full, "second-differences").diagonal(), B.diagonal())
     np.testing.assert_allclose(B @ np.ones(full.sum()), 0, atol=1e-12)
     k, j, i = np.meshgrid(*(np.arange(n) for n in full.shape), indexing="ij")
@@ -350,7 +352,7 @@ def test_projection_row_bound_and_the_two_pass_guard(monkeypatch):
     """The one-pass build sizes its buffers by a bound on each row's entries: no row of
     random, axis-parallel, diagonal or grazing rays exceeds it, and a bound forced too
     small (the guard's two-pass build) gives the same matrix bit for bit."""
-    from schlieren.pipeline.tomography import operator as op
+    from schlieren.pipeline.tomography import projection as op
 
     shape, h, origin = (9, 11, 13), 0.5, np.array([0.3, -0.2, 0.1])
     nz, ny, nx = shape
@@ -383,7 +385,7 @@ def test_prune_rows_drops_small_entries_and_keeps_each_rays_length(setup, unprun
     """Pruning keeps the entries >= fraction x the row's largest, scaled to the row's sum,
     so a constant field keeps its exact line integrals; the default geometry is the pruned
     one, under its own cache key."""
-    from schlieren.pipeline.tomography.operator import prune_rows
+    from schlieren.pipeline.tomography.projection import prune_rows
 
     grid, cams, fg, geom = setup
     S = unpruned.S
@@ -408,7 +410,7 @@ def test_pruned_matrix_keeps_the_built_buffers():
     """Pruning compacts in place and keeps the arrays (scipy's constructor would copy
     data and indices once they view less than half their buffer); csr_view refuses
     arrays that do not make a CSR matrix of the shape."""
-    from schlieren.pipeline.tomography.operator import csr_view, prune_rows
+    from schlieren.pipeline.tomography.projection import csr_view, prune_rows
 
     rng = np.random.default_rng(7)
     buf_d = rng.random(1000).astype(np.float32)
@@ -586,7 +588,7 @@ def test_invalid_rays_are_dropped_not_read_as_zero(setup):
 def test_noise_estimate_and_discrepancy_weight_near_the_oracle(setup, rel_noise):
     """Known noise: the quiet-ray estimate recovers it within 20 %, and the discrepancy
     principle picks a regularisation weight within 2x of the error-minimising one."""
-    from schlieren.pipeline.tomography.solve import choose_reg_weight, rhs_noise
+    from schlieren.pipeline.tomography.reg_choice import choose_reg_weight, rhs_noise
 
     grid, cams, fg, geom = setup
     centre, sigma, amp = np.array([0.001, -0.002, 0.04]), 0.007, -8e-5
@@ -617,7 +619,7 @@ def test_discrepancy_search_stops_where_the_residual_levels_off(setup):
     below it: the target is out of reach, so the search stops at the first step that lowers
     the residual by less than ``plateau`` and takes that step's larger weight, whose
     reconstruction is better than the smallest weight's; plateau 0 searches to the end."""
-    from schlieren.pipeline.tomography.solve import choose_reg_weight
+    from schlieren.pipeline.tomography.reg_choice import choose_reg_weight
 
     grid, cams, fg, geom = setup
     centre, sigma, amp = np.array([0.001, -0.002, 0.04]), 0.007, -8e-5
@@ -634,7 +636,7 @@ def test_discrepancy_search_stops_where_the_residual_levels_off(setup):
     full = choose_reg_weight(geom, rhs, hull, noise, params=params, plateau=0.0)
     assert full.path[-1][0] < 2e-4 and len(full.path) > len(choice.path), full.path
     # the run's floor (RUN_SMALLEST_WEIGHT) ends the same search on its grid weight
-    from schlieren.pipeline.tomography.solve import RUN_SMALLEST_WEIGHT
+    from schlieren.pipeline.tomography.reg_choice import RUN_SMALLEST_WEIGHT
 
     capped = choose_reg_weight(geom, rhs, hull, noise, params=params, plateau=0.0, smallest=RUN_SMALLEST_WEIGHT)
     assert capped.reg_weight == RUN_SMALLEST_WEIGHT == capped.path[-1][0], capped.path
@@ -652,7 +654,7 @@ def test_discrepancy_search_stops_where_the_residual_levels_off(setup):
 def test_curl_normal_is_the_explicit_product_and_vanishes_on_gradients():
     """The matrix-free C^T C equals the product of the explicit curl matrix (dot test,
     diagonal); the circulation of an exact gradient is zero, of a rotation is not."""
-    from schlieren.pipeline.tomography.solve import curl_normal
+    from schlieren.pipeline.tomography.regularisers import curl_normal
 
     rng = np.random.default_rng(3)
     inset = rng.random((6, 7, 8)) > 0.4
@@ -883,7 +885,7 @@ def test_block_support_gives_the_frames_own_system(setup, caplog):
     on products against scipy, on cold and warm solves with invalid rays, and the shared
     restriction is built once per support and rebuilt after another restriction."""
     from schlieren.pipeline.tomography import block_support
-    from schlieren.pipeline.tomography import operator as opmod
+    from schlieren.pipeline.tomography import restriction as opmod
     from schlieren.pipeline.tomography.solve import _subset_system, basis_set, valid_rays
 
     grid, cams, fg, geom = setup

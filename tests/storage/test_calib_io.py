@@ -1,4 +1,4 @@
-"""Calibration file round trip and validation; reading board views (storage/calibration_io.py)."""
+"""Calibration file round trip and validation; reading board views (storage/calibration_io/)."""
 
 from __future__ import annotations
 

@@ -15,7 +15,7 @@ import pytest
 import zarr
 
 from schlieren.pipeline.geometry import Grid
-from schlieren.storage import store as store_mod
+from schlieren.storage.store import template as store_template
 from schlieren.storage.errors import ChunkError, StoreError
 from schlieren.storage.integrity import open_dataset, scan_store
 from schlieren.storage.layout import result_layout, stage_markers
@@ -205,7 +205,7 @@ def legacy(tmp_path, monkeypatch):
 
     path = tmp_path / "old.zarr"
     with monkeypatch.context() as m:
-        m.setattr(store_mod, "_COMPRESSORS", (ZstdCodec(level=3),))
+        m.setattr(store_template, "_COMPRESSORS", (ZstdCodec(level=3),))
         s = _make(path, producers={})
         g = zarr.open_group(path, mode="r+")
         attrs = dict(g.attrs)

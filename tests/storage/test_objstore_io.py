@@ -129,12 +129,10 @@ def test_truncated_frames_and_references_at_urls_are_refused(s3_server, session_
     """As in a folder (test_session_manifest): a frame or a reference cut short anywhere is
     refused before work, naming it. Small files come whole in the header batch; with a
     header window shorter than the files their ends are fetched by ranged requests."""
-    from schlieren.storage import frames as frames_mod
-    from schlieren.storage import session as session_mod
+    from schlieren.storage.readers import decoding  # the one HEADER_BYTES every header read uses
 
     if head_bytes is not None:
-        monkeypatch.setattr(frames_mod, "HEADER_BYTES", head_bytes)
-        monkeypatch.setattr(session_mod, "HEADER_BYTES", head_bytes)
+        monkeypatch.setattr(decoding, "HEADER_BYTES", head_bytes)
     b = session_builder
     bucket = s3_server.bucket()
     frame = b.root / "cam02" / "frames" / "00003.png"

@@ -84,17 +84,35 @@ def make_store(root: Path, *, partial: str | None = None, seed: int = 0) -> Path
     rng = np.random.default_rng(seed)
     session_dir = root / "session"
     store_path = root / "run.zarr"
-    for cam in CAMERAS:
-        d = session_dir / cam.name / "frames"
-        d.mkdir(parents=True, exist_ok=True)
-        for k in range(N_FRAMES + 2):
-            iio.imwrite(d / f"{k:05d}.png", rng.integers(0, 256, (IMAGE[1], IMAGE[0]), dtype=np.uint8))
+    _write_frames(session_dir, rng)
     refr, grads = zip(*(blob(f) for f in range(N_FRAMES)))
     fg = FlowGrid(IMAGE, FACTOR)
     geom = build_geometry(CAMERAS, GRID, fg)
     flows = [predict_flows(geom, CAMERAS, g, n_ambient=MEDIUM.n_ambient) for g in grads]
     flows = [f + rng.normal(0.0, NOISE_PX, f.shape) for f in flows]
+    layout = result_layout(camera_names=[c.name for c in CAMERAS], n_frames=N_FRAMES, flow_shape=fg.shape,
+                           grid=GRID, first_frame=1)
+    st = ResultStore.create(str(store_path), layout, attrs=_store_attrs(session_dir, fg, partial),
+                            markers=stage_markers())
+    _fill_store(st, flows, refr, grads, partial)
+    if partial == "missing":
+        g = zarr.open_group(str(store_path), mode="r+")
+        del g["gradient"]
+        del g["temperature"]
+    return store_path
 
+
+def _write_frames(session_dir: Path, rng) -> None:
+    """Noise PNG frames for every camera (the report shows them beside the deflections)."""
+    for cam in CAMERAS:
+        d = session_dir / cam.name / "frames"
+        d.mkdir(parents=True, exist_ok=True)
+        for k in range(N_FRAMES + 2):
+            iio.imwrite(d / f"{k:05d}.png", rng.integers(0, 256, (IMAGE[1], IMAGE[0]), dtype=np.uint8))
+
+
+def _store_attrs(session_dir: Path, fg: FlowGrid, partial: str | None) -> dict:
+    """The store's attributes as a run writes them: session, params, run, stage_times."""
     session = {
         "format": "schlieren-session/1", "name": "synthetic-blob", "frame_rate": FRAME_RATE, "frames": [1, 4],
         "volume": {"min": list(GRID.vmin), "max": list(GRID.vmax), "voxel_size": GRID.voxel_size},
@@ -123,9 +141,11 @@ def make_store(root: Path, *, partial: str | None = None, seed: int = 0) -> Path
                      "flow_shape": list(fg.shape)}}
     if partial != "missing":
         attrs["stage_times"] = stage_times
-    layout = result_layout(camera_names=[c.name for c in CAMERAS], n_frames=N_FRAMES, flow_shape=fg.shape,
-                           grid=GRID, first_frame=1)
-    st = ResultStore.create(str(store_path), layout, attrs=attrs, markers=stage_markers())
+    return attrs
+
+
+def _fill_store(st, flows, refr, grads, partial: str | None) -> None:
+    """Every array chunk by chunk with its completion marker, as a run leaves them."""
     st.write("time", slice(None), (1 + np.arange(N_FRAMES)) / FRAME_RATE)
     st.write("time_offset", slice(None), np.zeros(len(CAMERAS)))
     finished = N_FRAMES - 1 if partial == "unfinished" else N_FRAMES
@@ -156,16 +176,13 @@ def make_store(root: Path, *, partial: str | None = None, seed: int = 0) -> Path
             st.write("temperature", f, MEDIUM.T_ambient * R_AMB / r)
             st.write("density", f, r / MEDIUM.gladstone_dale)
             st.mark_done("integrate", f)
-    if partial == "missing":
-        g = zarr.open_group(str(store_path), mode="r+")
-        del g["gradient"]
-        del g["temperature"]
-    return store_path
 
 
 
-STORAGE_REPORT = Path(__file__).resolve().parents[2] / "storage" / "report.py"
-COMPUTING_MODULES = ("schlieren.pipeline.viz", "schlieren.pipeline.residuals", "schlieren.pipeline.tomography")
+STORAGE_REPORT = Path(__file__).resolve().parents[2] / "storage" / "report"  # the package: reader, writer
+COMPUTING_MODULES = ("schlieren.workers.report.figures", "schlieren.workers.report.volume_figures",
+                     "schlieren.workers.report.volume_render", "schlieren.pipeline.residuals",
+                     "schlieren.pipeline.tomography")
 
 
 @pytest.fixture(scope="module")
@@ -319,7 +336,7 @@ def _imported_modules(path: Path) -> set[str]:
 def test_ast_import_check_sees_computing_imports(tmp_path):
     """The checker below is not vacuous: it finds each way of importing a kernel module."""
     src = tmp_path / "m.py"
-    for line in ("from schlieren.pipeline import viz", "import schlieren.pipeline.residuals as r",
+    for line in ("from schlieren.workers.report import figures", "import schlieren.pipeline.residuals as r",
                  "from schlieren.pipeline.tomography import build_geometry",
                  "def f():\n    from schlieren.pipeline import tomography\n"):
         src.write_text(line + "\n")
@@ -327,10 +344,12 @@ def test_ast_import_check_sees_computing_imports(tmp_path):
 
 
 def test_storage_report_does_not_import_computing_modules():
-    """storage/report.py only reads and writes (STYLE.md): the figures and residuals are
-    made in workers/report_build.py, so no pipeline kernel module is imported here, not
+    """storage/report/ only reads and writes (STYLE.md): the figures and residuals are
+    made in workers/report/, so no drawing or pipeline kernel module is imported here, not
     even inside a function, and importing it loads none of them (nor matplotlib)."""
-    found = _imported_modules(STORAGE_REPORT)
+    modules = sorted(STORAGE_REPORT.glob("*.py"))
+    assert {p.name for p in modules} >= {"__init__.py", "reader.py", "writer.py"}
+    found = set().union(*(_imported_modules(p) for p in modules))
     assert "schlieren.pipeline.geometry" in found  # the plain types are allowed (and parsed)
     assert not found & set(COMPUTING_MODULES), found & set(COMPUTING_MODULES)
     assert not {m for m in found if m.startswith("schlieren.workers")}

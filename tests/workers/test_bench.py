@@ -115,3 +115,32 @@ def test_quick_table1(tmp_path):
     # Every row was scored by evaluate() on its estimate store; re-scoring gives the same figure.
     again = evaluate(tmp_path / "work" / "half03" / "est_exact.zarr", rig["paths"]["truth"])
     assert again["overall"]["rms"] == pytest.approx(rows["exact"]["rms"])
+
+
+def test_table1_markdown_puts_each_rig_beside_the_papers_figures():
+    """bench/markdown.py: one table per ring, ours beside the paper's, a missing or
+    non-finite row as dashes, the per-frame table one column per frame."""
+    def row(psnr, rms):
+        return {"psnr": psnr, "rms": rms, "psnr_plume": psnr - 10, "rms_plume": 3 * rms,
+                "frames": [{"frame": 0, "psnr": psnr - 0.5}, {"frame": 1, "psnr": psnr + 0.5}]}
+
+    cfg = bench.Table1Config(frames=2)
+    result = {"config": {**cfg.__dict__, "rigs": []}, "seconds": 5.0,
+              "rigs": [{"ring": "half", "cameras": 8, "seconds": {"synth": 1.0}, "grid_shape": [4, 5, 6],
+                        "rows": {"exact": row(41.0, 0.0089), "optical_flow": row(38.0, 0.0126)}},
+                       {"ring": "full", "cameras": 7, "seconds": {},
+                        "rows": {"approximate": {"psnr": float("nan"), "rms": float("nan"), "frames": []}}}],
+              "poisson_bound": {"support": {**row(44.0, 0.0063), "hull": "dilated", "scheme": "fine"}}}
+    md = bench.table1_markdown(result, executor="serial", machine="test")
+    lines = md.splitlines()
+    half = lines.index("## Half ring setup")
+    assert lines[half + 2] == "| Direction estimate | 8 cams ours PSNR | ours RMS | paper PSNR | paper RMS |"
+    assert "| Ground truth (d_out) | 41.00 | 0.89 % | 40.55 | 0.94 % |" in lines
+    assert "| Approximate (d^_out) | — | — | 40.43 | 0.97 % |" in lines  # not computed: dashes
+    full = lines.index("## Full ring setup")
+    assert lines[full + 4] == "| Ground truth (d_out) | — | — | — | — |"  # the paper has no full-ring exact row
+    assert lines[full + 5] == "| Approximate (d^_out) | — | — | 40.03 | 1.00 % |"  # NaN: dashes
+    assert "| fine | dilated | 44.00 | 0.63 % | 42.15 | 0.78 % |" in lines
+    assert "| half 8 | exact | 40.50 | 41.50 |" in lines
+    assert "grid (nz, ny, nx) = 4x5x6" in md and "Machine: test" in md
+    assert md.count("## ") == 7  # both rings, in plume, bound, per frame, setup, differences

@@ -75,7 +75,7 @@ def test_masks_wait_for_the_threshold_and_the_potentials_they_read(ext):
 @settings(max_examples=30, deadline=None)
 @given(extents)
 def test_regularisation_waits_for_the_middle_frames_masks_only(ext):
-    """It chooses the weight on the middle frame (tasks._regularisation reads those masks):
+    """It chooses the weight on the middle frame (tasks.regularisation reads those masks):
     every camera's mask of that frame and the geometry, no other mask."""
     plan = make_plan(ext, "tok")
     (t,) = plan.by_stage()["regularisation"]

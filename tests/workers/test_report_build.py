@@ -1,4 +1,4 @@
-"""The HTML report as built by ``workers.report_build``: read via storage, computed via pipeline.
+"""The HTML report as built by ``workers.report``: read via storage, computed via pipeline.
 
 Uses the synthetic store of tests/storage/test_report.py (a hot Gaussian blob rising over
 3 frames, 2 cameras whose flow is the blob's exact re-projection plus Gaussian noise of
@@ -19,7 +19,7 @@ import pytest
 import zarr
 
 from schlieren.storage.errors import StoreError
-from schlieren.workers.report_build import build_report
+from schlieren.workers.report import build_report
 
 
 def _fixture_module():
@@ -182,7 +182,7 @@ def test_bad_store_is_a_one_line_error(tmp_path):
 def test_report_command_prints_index_path(report, tmp_path, capsys, monkeypatch):
     """The CLI glue: arguments reach build_report, the default folder sits beside the store,
     the path of index.html is printed; a missing store is a one-line error (exit 2)."""
-    import schlieren.workers.report as glue
+    import schlieren.workers.report.make as glue
     from schlieren.workers.cli import main
 
     store, index = report
@@ -203,10 +203,10 @@ def test_report_command_prints_index_path(report, tmp_path, capsys, monkeypatch)
 
 
 def test_figures_are_the_pipelines_images_written_unchanged(report):
-    """The orchestration hands pipeline.viz's pixels to storage as they are: the hull figure
+    """The orchestration hands the figure modules' pixels to storage as they are: the hull figure
     and the shown frame's four-view rendering, redrawn from the stored data, match the files."""
-    from schlieren.pipeline import viz
     from schlieren.storage.report import ReportReader
+    from schlieren.workers.report import figures, volume_figures, volume_render
 
     store, index = report
     summary = json.loads((index.parent / "summary.json").read_text())
@@ -215,13 +215,13 @@ def test_figures_are_the_pipelines_images_written_unchanged(report):
     rd = ReportReader(store)
     grid = rd.grid()
     hull = rd.volume("hull", shown).astype(bool)
-    want = viz.figure_to_rgb(viz.hull_figure(hull, grid, title="visual hull, frame 2"))
+    want = figures.figure_to_rgb(volume_figures.hull_figure(hull, grid, title="visual hull, frame 2"))
     np.testing.assert_array_equal(iio.imread(index.parent / "figures" / "hull.png"), want)
     r_amb = rd.medium().refractivity_ambient
     deficit = max(float(np.nanmax(r_amb - rd.volume("refractivity", f))) for f in range(N_FRAMES))
-    tf = viz.TransferFunction(r_ambient=r_amb, scale=deficit)
-    size = viz.fit_image_size(grid, azimuth_deg=30.0, elevation_deg=15.0, long_side=360)
-    first = viz.render_volume(rd.volume("refractivity", shown), grid, azimuth_deg=30.0, elevation_deg=15.0,
-                              transfer=tf, image_size=size)
+    tf = volume_render.TransferFunction(r_ambient=r_amb, scale=deficit)
+    size = volume_render.fit_image_size(grid, azimuth_deg=30.0, elevation_deg=15.0, long_side=360)
+    first = volume_render.render_volume(rd.volume("refractivity", shown), grid, azimuth_deg=30.0,
+                                       elevation_deg=15.0, transfer=tf, image_size=size)
     views = iio.imread(index.parent / "figures" / "render_views.png")
     np.testing.assert_array_equal(views[:, :first.shape[1]], first)

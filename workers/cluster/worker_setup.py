@@ -31,7 +31,7 @@ from distributed.diagnostics.plugin import WorkerPlugin
 
 from schlieren.workers.cluster.options import ClusterOptions
 from schlieren.workers.cluster.settings import THREAD_ENV, TOMO
-from schlieren.workers.monitoring import configure_json_logging
+from schlieren.workers.monitoring import configure_worker_logging
 
 
 class SchlierenWorkerSetup(WorkerPlugin):
@@ -46,7 +46,8 @@ class SchlierenWorkerSetup(WorkerPlugin):
     * zarr's ``async.concurrency`` and ``threading.max_workers`` (per process, so
       ``workers x concurrency`` stays bounded);
     * the ``schlieren`` logger writes JSON lines (:class:`~schlieren.workers.monitoring.JsonFormatter`)
-      to stderr or to ``log_dir/<worker name>.jsonl``;
+      to ``log_dir/<worker name>.jsonl``, or plain lines to stderr (a local cluster's
+      stderr is the user's console: one format there, the CLI's);
     * ``worker.close`` runs once (:func:`close_once`); when the worker closes, a process of
       its own ends at once (:func:`exit_without_teardown`).
 
@@ -94,9 +95,9 @@ class SchlierenWorkerSetup(WorkerPlugin):
         if self.log_dir:
             name = str(getattr(worker, "name", None) or getattr(worker, "address", "worker"))
             safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
-            configure_json_logging("schlieren", level=self.log_level, path=Path(self.log_dir) / f"{safe}.jsonl")
+            configure_worker_logging("schlieren", level=self.log_level, path=Path(self.log_dir) / f"{safe}.jsonl")
         else:
-            configure_json_logging("schlieren", level=self.log_level)
+            configure_worker_logging("schlieren", level=self.log_level)
         close_once(worker)
         logging.getLogger("distributed.worker").addFilter(_CLOSING_TRANSITION)
         if getattr(worker, "nanny", None) and multiprocessing.parent_process() is not None:  # one worker here

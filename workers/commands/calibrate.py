@@ -124,23 +124,12 @@ def run_calibration(sources, board, params, *, step: int = 1, max_views: int | N
     """
     from dataclasses import asdict, replace
 
-    from schlieren.pipeline.calibration import (CalibrationError, background_plane, calibrate_rig,
-                                                detect_board)
-    from schlieren.storage.calibration_io import iter_board_frames
+    from schlieren.pipeline.calibration import CalibrationError, calibrate_rig
     from schlieren.storage.errors import SchlierenInputError
 
-    names = [s.name for s in sources]
-    for n in names:
-        if names.count(n) > 1:
-            raise SchlierenInputError("two sources have the same camera name; prefix them with "
-                                      "NAME= to tell them apart", camera=n)
-    by_name = {s.name: s for s in sources}
+    by_name = _sources_by_name(sources, background_boards, background_distances)
     background_boards = dict(background_boards or {})
     background_distances = dict(background_distances or {})
-    for n in list(background_boards) + list(background_distances):
-        if n not in by_name:
-            raise SchlierenInputError(f"background given for an unknown camera (cameras: "
-                                      f"{', '.join(names)})", camera=n)
     detections, sizes = {}, {}
     for s in sources:
         detections[s.name], sizes[s.name] = detect_source(s, board, step=step, max_views=max_views)
@@ -154,27 +143,53 @@ def run_calibration(sources, board, params, *, step: int = 1, max_views: int | N
     for cam in rig.cameras:
         bg = None
         if cam.name in background_boards:
-            bsrc = background_boards[cam.name]
-            dets = []
-            for _, img in iter_board_frames(bsrc):
-                if (img.shape[1], img.shape[0]) != tuple(cam.image_size):
-                    raise SchlierenInputError(
-                        f"background image is {img.shape[1]}x{img.shape[0]} pixels but the camera's "
-                        f"board views are {cam.image_size[0]}x{cam.image_size[1]}",
-                        file=bsrc.label, camera=cam.name)
-                dets.append(detect_board(img, board))
-            try:
-                plane = background_plane(dets, board, K=cam.K, dist=cam.dist, R=cam.R, t=cam.t,
-                                         min_corners=params.min_corners, name=cam.name)
-            except CalibrationError as exc:
-                raise SchlierenInputError(str(exc), file=bsrc.label, camera=cam.name) from None
-            bg = {"point": plane["point"], "normal": plane["normal"]}
+            bg = _background_plane(cam, background_boards[cam.name], board, params)
         elif cam.name in background_distances:
             bg = {"distance": background_distances[cam.name]}
         elif background_distance is not None:
             bg = {"distance": float(background_distance)}
         cams.append(replace(cam, background=bg))
     return replace(rig, cameras=tuple(cams))
+
+
+def _sources_by_name(sources, background_boards, background_distances) -> dict:
+    """Camera name -> source; refuses two sources of one name and backgrounds of unknown cameras."""
+    from schlieren.storage.errors import SchlierenInputError
+
+    names = [s.name for s in sources]
+    for n in names:
+        if names.count(n) > 1:
+            raise SchlierenInputError("two sources have the same camera name; prefix them with "
+                                      "NAME= to tell them apart", camera=n)
+    by_name = {s.name: s for s in sources}
+    for n in list(background_boards or {}) + list(background_distances or {}):
+        if n not in by_name:
+            raise SchlierenInputError(f"background given for an unknown camera (cameras: "
+                                      f"{', '.join(names)})", camera=n)
+    return by_name
+
+
+def _background_plane(cam, bsrc, board, params) -> dict:
+    """The background plane of calibrated camera ``cam`` fitted through the corners of the
+    board views ``bsrc`` (a board stuck on its background): ``{"point", "normal"}``."""
+    from schlieren.pipeline.calibration import CalibrationError, background_plane, detect_board
+    from schlieren.storage.calibration_io import iter_board_frames
+    from schlieren.storage.errors import SchlierenInputError
+
+    dets = []
+    for _, img in iter_board_frames(bsrc):
+        if (img.shape[1], img.shape[0]) != tuple(cam.image_size):
+            raise SchlierenInputError(
+                f"background image is {img.shape[1]}x{img.shape[0]} pixels but the camera's "
+                f"board views are {cam.image_size[0]}x{cam.image_size[1]}",
+                file=bsrc.label, camera=cam.name)
+        dets.append(detect_board(img, board))
+    try:
+        plane = background_plane(dets, board, K=cam.K, dist=cam.dist, R=cam.R, t=cam.t,
+                                 min_corners=params.min_corners, name=cam.name)
+    except CalibrationError as exc:
+        raise SchlierenInputError(str(exc), file=bsrc.label, camera=cam.name) from None
+    return {"point": plane["point"], "normal": plane["normal"]}
 
 
 def _report(rig, out: str) -> str:

@@ -35,6 +35,31 @@ def test_time_knots_are_linear():
     assert list(ph.knots_covering(0.2, 0.3)) == [0, 1]
 
 
+def test_knot_cache_keeps_the_last_knots_used():
+    """Knot volumes are computed once while among the cache_size used last (LRU), read-only,
+    and a volume of the wrong shape is refused every time (never cached)."""
+    g = Grid((0, 0, 0), (0.01, 0.01, 0.01), 0.005)
+    calls = []
+
+    def knot(i):
+        calls.append(i)
+        return np.full(g.shape, 1e-4 * (i + 1))
+
+    ph = Phantom(g, [0.0, 1.0, 2.0, 3.0], knot, cache_size=2)
+    a = ph.knot_refractivity(0)
+    assert ph.knot_refractivity(np.int64(0)) is a and not a.flags.writeable
+    ph.knot_refractivity(1)
+    ph.knot_refractivity(0)  # 0 is now the most recent: 1 goes when 2 comes
+    ph.knot_refractivity(2)
+    ph.knot_refractivity(0)
+    ph.knot_refractivity(1)
+    assert calls == [0, 1, 2, 1]
+    bad = Phantom(g, [0.0], lambda i: np.zeros((1, 1, 1)))
+    for _ in range(2):
+        with pytest.raises(ValueError, match="knot volume shape"):
+            bad.knot_refractivity(0)
+
+
 def test_tealights_three_plumes_in_realistic_range():
     ph = tealight_plumes(GRID, knot_times=[0.0, 0.5])
     T = ph.temperature(0.0)

@@ -1,0 +1,69 @@
+"""The ``potential``, ``threshold`` and ``mask`` tasks: where each camera sees the flow.
+
+A mask is the part of a camera's image whose deflections belong to the flow, not to the
+noise (:mod:`schlieren.pipeline.masks`): each camera-frame's flow is integrated into a
+potential (paper sec. 4) and summarised; one ``threshold`` task pools the summaries of
+the whole sequence into one threshold; each mask then thresholds the evidence of its
+frame and its temporal neighbours.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from schlieren.pipeline import masks as masksmod
+from schlieren.pipeline.stages import kernel_kwargs
+from schlieren.workers.tasks.run_context import RunContext
+
+__all__ = ["potential_task", "threshold_task", "mask_task"]
+
+
+def potential_task(ctx: RunContext, c: int, k: int) -> dict:
+    """Potential of one camera-frame (the flow Poisson-integrated, paper sec. 4) and its summary.
+
+    The summary (:func:`~schlieren.pipeline.masks.potential_summary`) is the map step of
+    the sequence-wide threshold, computed here while the potential is in memory so the
+    single ``threshold`` task that every mask waits for only pools small vectors.
+    """
+    f = ctx.read_upstream("flow", (c, k))
+    p = np.asarray(masksmod.flow_potential(f), dtype=np.float32)
+    kw = kernel_kwargs(ctx.config.masks, masksmod.potential_summary)
+    ctx.store.write("potential", (c, k), p)
+    ctx.store.write("potential_summary", (c, k), masksmod.potential_summary(p, **kw))
+    return {}
+
+
+def threshold_task(ctx: RunContext) -> dict:
+    """The sequence-wide mask threshold (stored ``mask_threshold``) from every potential's summary."""
+    params = ctx.config.masks
+    # stores of versions that wrote no summaries are not resumed (no chunk checksums), so
+    # every summary under a set potential marker exists (a lost one raises ChunkError)
+    summaries = [ctx.store.read("potential_summary", (c, k))
+                 for c in range(len(ctx.cameras)) for k in range(ctx.n_frames)]
+    thr = masksmod.threshold_from_summaries(
+        summaries, **kernel_kwargs(params, masksmod.threshold_from_summaries))
+    ctx.store.write("mask_threshold", (), np.array([thr], dtype=np.float64))
+    return {"threshold": float(thr)}
+
+
+def mask_task(ctx: RunContext, c: int, k: int) -> dict:
+    """Camera ``c``'s mask at frame ``k`` (stored ``mask``) from the evidence of frames ``k +- temporal_radius``."""
+    params = ctx.config.masks
+    h = params.temporal_radius
+    ks = [min(max(i, 0), ctx.n_frames - 1) for i in range(k - h, k + h + 1)]
+    thr = ctx.mask_threshold()
+    kw = kernel_kwargs(params, masksmod.frame_evidence)
+
+    def evidence(i):  # masksmod.make_mask, with each frame's evidence made once per process
+        return masksmod.frame_evidence(ctx.read_upstream("potential", (c, i)), thr,
+                                       flow=ctx.read_upstream("flow", (c, i)), **kw)
+
+    keys = {i: ("mask_evidence", c, i, thr) for i in ks}
+    todo = [(c, i) for i, key in keys.items() if not ctx.memoized(key)]
+    if todo:  # read the frames still needed together (concurrent requests on object stores)
+        ctx.read_upstream_many("potential", todo)
+        ctx.read_upstream_many("flow", todo)
+    ev = [ctx.memo(key, lambda i=i: evidence(i)) for i, key in keys.items()]
+    m = masksmod.mask_from_evidence(ev, **kernel_kwargs(params, masksmod.mask_from_evidence))
+    ctx.store.write("mask", (c, k), np.asarray(m, dtype=bool))
+    return {"fraction": float(np.mean(m))}
