@@ -347,3 +347,85 @@ def test_workers_gone_longer_than_wait_timeout_end_the_submit_with_one_line(slur
     print(f"\nworkers gone at {killed_at:.1f} s, replacement held: ended at {run.ended:.1f} s: {line}")
     assert "no worker for 25 s (schlieren.wait-timeout)" in line and "1 worker job(s) pending" in line, line
     assert _jobs(slurm) == [], "closing the cluster cancels its pending job"
+
+
+# --------------------------------------------------------------------------------------
+# slurm.sh start itself: it ends, within seconds, with one line saying why, whatever goes
+# wrong (CI once waited 900 s on it with no output: its folder was under pytest's 0700
+# tmp folder, slurmctld died at once, and each sinfo against the dead controller blocked)
+# --------------------------------------------------------------------------------------
+def _start_here(tmp_path: Path, folder: Path, fake: dict[str, str] | None = None, **env) -> tuple[int, str, float]:
+    """``slurm.sh start`` on free ports with ``fake`` commands first on PATH; its exit
+    code, stderr and wall time. Skips where SLURM cannot be installed or started at all."""
+    if os.name != "posix" or os.geteuid() != 0:
+        pytest.skip("slurm.sh start: needs root")
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir(exist_ok=True)
+    for name, body in (fake or {}).items():
+        (bin_dir / name).write_text(f"#!/bin/bash\n{body}\n")
+        (bin_dir / name).chmod(0o755)
+    e = dict(os.environ, PATH=f"{bin_dir}:{os.environ['PATH']}", SCHLIEREN_SLURM_DIR=str(folder),
+             SCHLIEREN_SLURMCTLD_PORT=str(_free_port()), SCHLIEREN_SLURMD_PORT=str(_free_port()), **env)
+    t0 = time.monotonic()
+    code, err = _start(e)
+    took = time.monotonic() - t0
+    subprocess.run([str(SCRIPT), "stop"], capture_output=True, text=True, timeout=60, env=e)
+    assert code is not None, f"slurm.sh start did not end within {START_TIMEOUT} s: {err}"
+    if code == 3 and ("installing" in err or "needs root" in err or "apt-get" in err):
+        pytest.skip(f"SLURM: {err.strip().splitlines()[-1]}")
+    return code, err, took
+
+
+def _no_daemon_of(folder: Path) -> bool:
+    """No process names ``folder`` and none of its pid files names a live process."""
+    ps = subprocess.run(["ps", "-eo", "args"], capture_output=True, text=True, timeout=30).stdout
+    for pid_file in (folder / "run").glob("*.pid"):
+        status = Path(f"/proc/{pid_file.read_text().strip()}/status")
+        if status.exists() and "\nState:\tZ" not in status.read_text():
+            return False
+    return str(folder) not in ps
+
+
+def test_start_refuses_a_folder_the_slurm_user_cannot_reach(tmp_path):
+    private = tmp_path / "private"
+    private.mkdir(mode=0o700)
+    folder = private / "slurm"
+    code, err, took = _start_here(tmp_path, folder)
+    print(f"\nfolder under a 0700 folder: exit {code} after {took:.1f} s: {err.strip()}")
+    assert code == 3 and len(err.strip().splitlines()) == 1, err
+    assert f"the slurm user cannot write {folder}/state" in err and "SCHLIEREN_SLURM_DIR" in err, err
+    assert took < 30 and _no_daemon_of(folder)
+
+
+def _public_folder() -> Path:
+    folder = Path(tempfile.mkdtemp(prefix="schlieren-slurm-", dir="/tmp"))
+    folder.chmod(0o755)
+    return folder
+
+
+def test_a_controller_that_dies_is_reported_at_once_with_its_last_log_line(tmp_path):
+    folder = _public_folder()
+    try:
+        code, err, took = _start_here(tmp_path, folder, {
+            "slurmctld": 'echo "slurmctld: fatal: Unable to stat state save loc: it is gone" >&2; exit 1',
+            "slurmd": f'echo $$ > {folder}/run/slurmd.pid; exec sleep 300'})
+        print(f"\ncontroller dying: exit {code} after {took:.1f} s: {err.strip()}")
+        assert code == 3 and "slurmctld exited after" in err and "fatal: Unable to stat state save loc" in err, err
+        assert took < 20 and _no_daemon_of(folder), "the start is over at once and leaves no daemon"
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def test_a_controller_that_does_not_answer_ends_the_start_after_its_wait(tmp_path):
+    folder = _public_folder()
+    try:
+        code, err, took = _start_here(tmp_path, folder, {
+            "slurmctld": f'echo $$ > {folder}/run/slurmctld.pid; exec sleep 300',
+            "slurmd": f'echo $$ > {folder}/run/slurmd.pid; exec sleep 300',
+            "sinfo": "exec sleep 300"},  # each call blocks, as against a controller that hangs
+            SCHLIEREN_SLURM_WAIT="4", SCHLIEREN_SLURM_CALL_TIMEOUT="1")
+        print(f"\ncontroller not answering: exit {code} after {took:.1f} s: {err.strip()}")
+        assert code == 3 and "the node did not come up within 4 s" in err, err
+        assert took < 20 and _no_daemon_of(folder)
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)

@@ -944,6 +944,7 @@ def test_dev_pins_cover_the_test_environment_and_agree_with_the_image():
 # the local SLURM script and the guide's SLURM section
 
 
+@pytest.mark.system  # runs deploy/slurm/local/slurm.sh start (it ends at once here, but it is SLURM's script)
 @pytest.mark.skipif(os.name != "posix", reason="a bash script")
 def test_local_slurm_script_says_in_one_line_why_it_cannot_start(tmp_path):
     """Where SLURM cannot be started (here: not root) slurm.sh exits 3 with one line, which

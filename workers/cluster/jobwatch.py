@@ -119,8 +119,14 @@ async def batch_states(kind: str, timeout: float = 30.0) -> dict[str, str] | Non
     try:
         proc = await asyncio.create_subprocess_exec(*cmd, stdout=asyncio.subprocess.PIPE,
                                                     stderr=asyncio.subprocess.PIPE)
+    except OSError:
+        return None
+    try:
         out, _err = await asyncio.wait_for(proc.communicate(), timeout)
-    except (OSError, asyncio.TimeoutError):
+    except asyncio.TimeoutError:  # a controller that does not answer: ask again next poll
+        with contextlib.suppress(ProcessLookupError):
+            proc.kill()
+        await proc.wait()
         return None
     if proc.returncode != 0:
         return None

@@ -164,7 +164,9 @@ start() {
         fi
         sleep 0.2
     done
-    failed "the node did not come up within $WAIT s (node state: $(node_state); slurmctld: $(last_log_line slurmctld); logs: $DIR/log)"
+    local state
+    state=$(node_state)
+    failed "the node did not come up within $WAIT s (node state: ${state:-no answer from the controller}; slurmctld: $(last_log_line slurmctld); logs: $DIR/log)"
 }
 
 # a start that failed leaves no daemon behind
