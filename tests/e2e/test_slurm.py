@@ -29,6 +29,7 @@ import sys
 import tempfile
 import threading
 import time
+import urllib.request
 from pathlib import Path
 
 import pytest
@@ -154,12 +155,15 @@ class Submit:
                                             "--config", str(config), "--no-progress"],
                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
         self.lines: list[tuple[float, str]] = []
+        self.dashboard: tuple[int, str] | str | None = None  # what the printed link answered
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
 
     def _read(self) -> None:
         for line in self.proc.stderr:
             self.lines.append((time.monotonic() - self.t0, line.rstrip("\n")))
+            if line.startswith("dashboard: http") and self.dashboard is None:
+                self.dashboard = _get(line.split()[1].replace("/status", "/health"))
 
     def now(self) -> float:
         return time.monotonic() - self.t0
@@ -186,9 +190,18 @@ class Submit:
     def report(self) -> str:
         """Cluster start (first workers joined: the dashboard line), run time, total."""
         store = next(line for _, line in self.lines if line.startswith("store:"))
-        run = re.search(r", ([\d.]+) s, ", store).group(1)
+        run = re.search(r"([\d.]+) s, \S+ executor\)", store).group(1)
         return (f"cluster started (first workers joined) at {self.at('dashboard:'):.1f} s, run {run} s, "
                 f"submit ended at {self.ended:.1f} s")
+
+
+def _get(url: str) -> tuple[int, str] | str:
+    """(HTTP status, body) of ``url``, or the error that stopped the request."""
+    try:
+        with urllib.request.urlopen(url, timeout=10) as resp:
+            return resp.status, resp.read().decode(errors="replace")
+    except OSError as exc:
+        return f"{url}: {exc}"
 
 
 def _marker_chunks(store: Path) -> int:
@@ -209,6 +222,7 @@ def test_submit_gives_the_serial_store_and_quiet_job_logs(slurm, tls_dir, tiny_s
     print(f"\nplain run: {run.report()}")
     assert_same_store(serial_store, out)
     assert "Traceback" not in run.stderr
+    assert run.dashboard == (200, "ok"), f"the printed dashboard link: {run.dashboard}"
     logs = _job_logs(tmp_path)
     assert logs
     for log in logs:  # the job logs: no tracebacks of a cluster closing under its workers
@@ -255,25 +269,36 @@ def test_a_job_killed_before_its_workers_joined_is_replaced(slurm, tls_dir, tiny
     assert_same_store(serial_store, out)
 
 
-# Seconds. A new worker spends its first 5-8 s (on this loaded 2-core machine) importing and
-# loading numba's compiled kernels; at 12 s it retired after one or two tasks, and a run
-# took 29 jobs and more than 15 minutes. The session below is long enough (8 frames) for
-# the run to outlive the first job whatever the load.
+# Seconds. A new worker first spends a few seconds importing and loading numba's compiled
+# kernels, so a much shorter lifetime leaves it time for a task or two and the run turns
+# into a churn of jobs. The run must outlive its first job's workers on a quiet machine as
+# on a loaded one: the session is sized from a measured serial run (below).
 LIFETIME = 20
+#: Seconds of serial work the lifetime session should take: with the test's two worker
+#: processes, about LIFETIME * 1.5 of compute, so the first job's workers retire mid-run.
+SERIAL_TARGET = 60
 
 
 @pytest.fixture(scope="module")
 def longer_session(tmp_path_factory):
-    """The tiny session with 8 frames instead of 3, and its serial reference store."""
+    """The tiny session with enough frames to outlive a LIFETIME on this machine now (its
+    serial run timed with 8 frames, then scaled to SERIAL_TARGET), and its serial store."""
     from conftest import TINY
 
     from schlieren.workers.run import run_session
     from schlieren.workers.synth import synthesize
 
-    res = synthesize(tmp_path_factory.mktemp("longer") / "session", **{**TINY, "frames": 8})
-    ref = tmp_path_factory.mktemp("longer-serial") / "store.zarr"
-    assert run_session(res.session, ref, serial=True).ok
-    return res.session, ref
+    frames, done = 8, None
+    while True:
+        res = synthesize(tmp_path_factory.mktemp("longer") / "session", **{**TINY, "frames": frames})
+        ref = tmp_path_factory.mktemp("longer-serial") / "store.zarr"
+        summary = run_session(res.session, ref, serial=True)
+        assert summary.ok
+        if done or summary.seconds >= SERIAL_TARGET * 0.8:
+            print(f"\nlifetime session: {frames} frames, serial run {summary.seconds:.1f} s")
+            return res.session, ref
+        done = frames
+        frames = min(64, int(frames * SERIAL_TARGET / max(summary.seconds, 1.0)) + 1)
 
 
 def test_workers_retiring_at_their_lifetime_are_replaced(slurm, tls_dir, longer_session, tmp_path):
