@@ -352,6 +352,7 @@ def nanny_log():
         logger.removeHandler(handler)
 
 
+@pytest.mark.system
 @pytest.mark.timeout(120)
 def test_closing_a_local_cluster_does_not_wait_for_the_interpreter_teardown(nanny_log):
     """A closed worker's process ends at once: before, Python tore its interpreter down
@@ -367,6 +368,7 @@ def test_closing_a_local_cluster_does_not_wait_for_the_interpreter_teardown(nann
     assert not any(psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE for p in pids.values())
 
 
+@pytest.mark.system
 @pytest.mark.timeout(120)
 def test_after_ctrl_c_workers_do_not_wait_for_their_running_task(nanny_log):
     """A terminal's Ctrl-C reaches the worker processes too; when the client then closes
@@ -395,6 +397,7 @@ def _sleep(seconds: float) -> float:
     return seconds
 
 
+@pytest.mark.system
 @pytest.mark.timeout(180)
 def test_workers_retiring_together_at_their_lifetime_log_no_errors(capfd):
     """The worker processes of a batch job retire at about the same time (``--lifetime``):

@@ -75,6 +75,7 @@ def _health(link: str) -> tuple[int, str]:
     return _get(link.replace("/status", "/health"))
 
 
+@pytest.mark.system
 @pytest.mark.timeout(120)
 def test_a_taken_dashboard_port_is_named_in_the_dashboard_line():
     """8787 taken (another run, a notebook's cluster): the run still starts, on another port,
@@ -96,6 +97,7 @@ def test_a_taken_dashboard_port_is_named_in_the_dashboard_line():
             assert _health(info.dashboard_link) == (200, "ok")
 
 
+@pytest.mark.system
 @pytest.mark.timeout(120)
 def test_a_batch_clusters_dashboard_link_names_where_it_listens():
     """The submit scheduler listens on all interfaces (host None: the compute nodes reach it)
