@@ -438,7 +438,7 @@ def test_a_controller_that_dies_is_reported_at_once_with_its_last_log_line(tmp_p
     try:
         code, err, took = _start_here(tmp_path, folder, {
             "slurmctld": 'echo "slurmctld: fatal: Unable to stat state save loc: it is gone" >&2; exit 1',
-            "slurmd": f'echo $$ > {folder}/run/slurmd.pid; exec sleep 300'})
+            "slurmd": f'echo $$ > {folder}/run/slurmd.pid; exec -a "slurmd $*" sleep 300'})
         print(f"\ncontroller dying: exit {code} after {took:.1f} s: {err.strip()}")
         assert code == 3 and "slurmctld exited after" in err and "fatal: Unable to stat state save loc" in err, err
         assert took < 20 and _no_daemon_of(folder), "the start is over at once and leaves no daemon"
@@ -450,8 +450,8 @@ def test_a_controller_that_does_not_answer_ends_the_start_after_its_wait(tmp_pat
     folder = _public_folder()
     try:
         code, err, took = _start_here(tmp_path, folder, {
-            "slurmctld": f'echo $$ > {folder}/run/slurmctld.pid; exec sleep 300',
-            "slurmd": f'echo $$ > {folder}/run/slurmd.pid; exec sleep 300',
+            "slurmctld": f'echo $$ > {folder}/run/slurmctld.pid; exec -a "slurmctld $*" sleep 300',
+            "slurmd": f'echo $$ > {folder}/run/slurmd.pid; exec -a "slurmd $*" sleep 300',
             "sinfo": "exec sleep 300"},  # each call blocks, as against a controller that hangs
             SCHLIEREN_SLURM_WAIT="4", SCHLIEREN_SLURM_CALL_TIMEOUT="1")
         print(f"\ncontroller not answering: exit {code} after {took:.1f} s: {err.strip()}")
