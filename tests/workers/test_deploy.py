@@ -352,7 +352,7 @@ def test_submit_runs_the_session_on_the_cluster_it_creates(tiny_session, tmp_pat
     saved = {k: os.environ.get(k) for k in THREAD_ENV}  # in-process nannies export them here
     try:
         code = cli_main(["submit", str(tiny_session.session), "--out", str(tmp_path / "store"), "--cluster", "slurm",
-                         "--config", str(cfg_path), "--scale", "3", "--frames", "1:3", "--no-progress",
+                         "--config", str(cfg_path), "--scale", "3", "--frames", "5:7", "--no-progress",
                          "--log", str(tmp_path / "run.jsonl"), "--verify"])
     finally:
         for k, v in saved.items():
@@ -363,7 +363,7 @@ def test_submit_runs_the_session_on_the_cluster_it_creates(tiny_session, tmp_pat
     assert code == 0
     assert made["kind"] == "slurm" and made["scale"] == 3
     name = yaml.safe_load(Path(tiny_session.session).read_text())["name"]
-    assert calls == [(name, str(tmp_path / "store"), (1, 3), True, False)]  # --verify reaches the run
+    assert calls == [(name, str(tmp_path / "store"), (5, 7), True, False)]  # --verify reaches the run
     lines = [json.loads(x) for x in (tmp_path / "run.jsonl").read_text().splitlines()]
     assert [x["message"] for x in lines] == ["task receipt", "run finished"]
     assert lines[0]["session"] == name and lines[0]["iterations"] == 7 and lines[0]["frame"] == 2
