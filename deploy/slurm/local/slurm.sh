@@ -172,7 +172,22 @@ start() {
 # a start that failed leaves no daemon behind
 failed() { stop_daemons; die "$@"; }
 
+# our cluster's jobs, cancelled and gone (at most 10 s): a slurmd stopped under a running
+# job leaves its slurmstepd behind
+cancel_jobs() {
+    [[ -f $CONF ]] && own_controller || return 0
+    local jobs deadline=$((SECONDS + 10))
+    jobs=$(SLURM_CONF=$CONF timeout "$CALL" squeue -h -o %i 2>/dev/null || true)
+    [[ -n $jobs ]] || return 0
+    SLURM_CONF=$CONF timeout "$CALL" scancel $jobs 2>/dev/null || true
+    while ((SECONDS < deadline)); do
+        [[ -z $(SLURM_CONF=$CONF timeout "$CALL" squeue -h -o %i 2>/dev/null || echo timeout) ]] && return 0
+        sleep 0.5
+    done
+}
+
 stop_daemons() {
+    cancel_jobs
     for d in slurmd slurmctld; do
         # a stale pid file may name another process by now: only one started with our config
         local pid
