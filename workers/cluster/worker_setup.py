@@ -162,8 +162,8 @@ def close_once(worker: Any) -> None:
     pool that the first one closed ("ConnectionPool is closed" and a traceback in the job
     log). Nothing is lost either way.
     """
-    close = worker.close
-    if getattr(close, "_schlieren_once", False):
+    close = getattr(worker, "close", None)
+    if close is None or getattr(close, "_schlieren_once", False):  # None: not a distributed Worker
         return
     started = False
 
