@@ -192,7 +192,7 @@ stop_daemons() {
         # a stale pid file may name another process by now: only one started with our config
         local pid
         pid=$(cat "$DIR/run/$d.pid" 2>/dev/null || true)
-        if [[ -n $pid ]] && tr '\0' ' ' <"/proc/$pid/cmdline" 2>/dev/null | grep -qF -- "$CONF"; then
+        if [[ -n $pid ]] && { tr '\0' ' ' <"/proc/$pid/cmdline"; } 2>/dev/null | grep -qF -- "$CONF"; then
             kill "$pid" 2>/dev/null || true
         fi
         pkill -f "^$d -D .*-f $CONF" 2>/dev/null || true
