@@ -11,7 +11,14 @@ Dependencies are declared per index:
 
 * ``same``: the task at the same index of that stage (matching the dims they share),
 * ``all``: every task of that stage,
-* ``window``: the tasks of that stage within ``frame_halo`` frames, same camera.
+* ``window``: the tasks of that stage within ``frame_halo`` frames, same camera,
+* ``neighbours``: the tasks of that stage within the run's space-time window
+  (:func:`~schlieren.pipeline.spacetime.window_frames`: up to ``spacetime.window`` frames
+  either side).
+
+The ``spacetime`` stage (:data:`SPACETIME_STAGE`) is in a run only when
+``spacetime.window > 0`` (:func:`run_stages`); a dependency on a stage that is not in the
+run is dropped.
 """
 
 from __future__ import annotations
@@ -24,12 +31,13 @@ from schlieren.pipeline import flow as _flow
 from schlieren.pipeline import hull as _hull
 from schlieren.pipeline import masks as _masks
 from schlieren.pipeline import poisson as _poisson
+from schlieren.pipeline import spacetime as _spacetime
 from schlieren.pipeline import sync as _sync
 from schlieren.pipeline import tomography as _tomo
 from schlieren.pipeline.params import validate as _validate
 from schlieren.pipeline.params import param
 
-__all__ = ["Stage", "RunConfig", "STAGES", "stage", "middle_frame",
+__all__ = ["Stage", "RunConfig", "STAGES", "SPACETIME_STAGE", "run_stages", "stage", "middle_frame",
            "config_from_dict", "config_to_dict", "check_config", "kernel_kwargs", "bind_medium",
            "bind_flow_factor"]
 
@@ -47,6 +55,10 @@ class RunConfig:
     warm_start_block : int
         Frames solved in sequence, each tomography solve warm-started from the previous
         frame's solution; blocks are independent (more blocks, more parallel work).
+    spacetime : SpaceTimeParams
+        Space-time reconstruction (beyond the paper): with ``spacetime.window > 0`` each
+        frame's gradient is the motion-compensated mean of the per-frame solutions of its
+        window (stage ``spacetime``); the two-step reconstruction only.
     """
 
     flow: _flow.FlowParams = field(default_factory=_flow.FlowParams)
@@ -59,12 +71,16 @@ class RunConfig:
     reconstruction: str = param("two-step", choices=("two-step", "direct"))
     warm_start_block: int = param(4, unit="frames", ge=1, le=10000)
     direct: _tomo.RefractivityParams = field(default_factory=_tomo.RefractivityParams)
+    spacetime: _spacetime.SpaceTimeParams = field(default_factory=_spacetime.SpaceTimeParams)
 
     def __post_init__(self):
         if self.reconstruction not in {"two-step", "direct"}:
             raise ValueError(f"reconstruction must be 'two-step' or 'direct', not {self.reconstruction!r}")
         if self.warm_start_block < 1:
             raise ValueError("warm_start_block must be at least 1")
+        if self.reconstruction == "direct" and self.spacetime.window > 0:
+            raise ValueError("spacetime.window > 0 needs reconstruction 'two-step' (the direct solve has no "
+                             "per-frame gradient stage to average)")
 
     @property
     def flow_factor(self) -> int:
@@ -120,7 +136,7 @@ class Stage:
     over : tuple of str
         Dims mapped over: ``("camera", "frame")``, ``("frame",)``, ``("camera",)`` or ``()``.
     after : tuple of (str, str)
-        ``(stage, how)`` dependencies, ``how`` in ``{"same", "all", "window", "chain",
+        ``(stage, how)`` dependencies, ``how`` in ``{"same", "all", "window", "neighbours", "chain",
         "block", "middle", "margin"}`` (``block``: every frame of the task's warm-start block;
         ``middle``: the dependency's indices at the middle frame, :func:`middle_frame`;
         ``margin``: all of the dependency's indices, for tasks at raw frames outside the
@@ -204,10 +220,28 @@ STAGES: tuple[Stage, ...] = (
           resources={"TOMO": 1}, cost=0.71),
     Stage("integrate", _poisson.integrate, "poisson", ("gradient", "hull"),
           ("refractivity", "density", "temperature"), ("frame",),
-          after=(("tomography", "same"),), resources={"TOMO": 1}, cost=0.23),
+          after=(("tomography", "same"), ("spacetime", "same")), resources={"TOMO": 1}, cost=0.23),
 )
 
-_BY_NAME = {s.name: s for s in STAGES}
+#: The space-time stage (beyond the paper; in a run when ``spacetime.window > 0``): frame
+#: ``k``'s gradient from the per-frame solutions of frames ``k - W .. k + W`` (``gradient_frame``,
+#: which the tomography stage then writes instead of ``gradient``) moved onto frame ``k``
+#: along their motion and averaged.
+SPACETIME_STAGE = Stage("spacetime", _spacetime.motion_compensated_mean, "spacetime",
+                        ("gradient_frame", "hull"), ("gradient",), ("frame",),
+                        after=(("tomography", "neighbours"), ("hull", "same")), cost=0.5)
+
+
+def run_stages(spacetime_window: int = 0) -> tuple[Stage, ...]:
+    """The stages of a run: :data:`STAGES`, with :data:`SPACETIME_STAGE` before the
+    integration when ``spacetime_window > 0``."""
+    if spacetime_window <= 0:
+        return STAGES
+    i = next(j for j, s in enumerate(STAGES) if s.name == "integrate")
+    return STAGES[:i] + (SPACETIME_STAGE,) + STAGES[i:]
+
+
+_BY_NAME = {s.name: s for s in STAGES + (SPACETIME_STAGE,)}
 
 
 def stage(name: str) -> Stage:

@@ -113,7 +113,7 @@ def _f32(name, dims, shape, chunks, attrs, fill=np.nan, dtype="float32", zstd_le
 def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tuple[int, int],
                   grid: Grid, first_frame: int = 0, n_raw: int | None = None,
                   raw_first: int | None = None, n_summary: int = 2001,
-                  flow_factor: int | None = None) -> list[ArraySpec]:
+                  flow_factor: int | None = None, per_frame_gradient: bool = False) -> list[ArraySpec]:
     """Every array of a run's store (SPEC section 2 and docs/design.md).
 
     Parameters
@@ -141,6 +141,9 @@ def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tup
     flow_factor : int, optional
         Image pixels per flow cell (``FlowGrid.factor``): with it the ``u`` and ``v``
         coordinates give the image position (pixels) of every flow cell's centre.
+    per_frame_gradient : bool
+        Also ``gradient_frame``, each frame's own tomographic solve, when a space-time stage
+        computes ``gradient`` from it (``spacetime.window > 0``).
 
     Returns
     -------
@@ -156,7 +159,8 @@ def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tup
         raw_first = first_frame
     h, w = (int(s) for s in flow_shape)
     return (_coordinates(camera_names, F, R, first_frame, raw_first, grid, (h, w), flow_factor)
-            + _camera_arrays(C, F, R, (h, w), n_summary) + _volumes(F, grid))
+            + _camera_arrays(C, F, R, (h, w), n_summary) + _volumes(F, grid)
+            + (_per_frame_gradient(F, grid) if per_frame_gradient else []))
 
 
 def _coordinates(camera_names: Sequence[str], F: int, R: int, first_frame: int, raw_first: int | None, grid: Grid,
@@ -278,6 +282,14 @@ def _volumes(F: int, grid: Grid) -> list[ArraySpec]:
               "stage": "integrate",
               **vol_attrs, **t}),
     ]
+
+
+def _per_frame_gradient(F: int, grid: Grid) -> list[ArraySpec]:
+    """``gradient_frame``: the per-frame solve a space-time stage averages into ``gradient``."""
+    nz, ny, nx = grid.shape
+    return [_f32("gradient_frame", ("frame", "z", "y", "x", "axis"), (F, nz, ny, nx, 3), (1, nz, ny, nx, 3),
+                 {"long_name": "gradient of the refractive index, each frame solved alone", "units": "m-1",
+                  "stage": "tomography", **grid.to_attrs(), "coordinates": "time"})]
 
 
 def stage_markers() -> dict[str, tuple[str, ...]]:

@@ -31,7 +31,15 @@ from pathlib import Path
 from typing import Callable
 
 from schlieren.pipeline.geometry import FlowGrid
-from schlieren.pipeline.stages import STAGES, RunConfig, bind_flow_factor, bind_medium, check_config, config_to_dict
+from schlieren.pipeline.stages import (
+    STAGES,
+    RunConfig,
+    bind_flow_factor,
+    bind_medium,
+    check_config,
+    config_to_dict,
+    run_stages,
+)
 from schlieren.pipeline.tomography.binning import cells_per_voxel
 from schlieren.storage import location
 from schlieren.storage.layout import result_layout
@@ -140,11 +148,13 @@ def run_layout(session: Session, cfg: RunConfig) -> tuple[list, Extents]:
     raw_last = min(session.n_frames_available, b + RAW_MARGIN)
     fg = FlowGrid(session.cameras[0].image_size, cfg.flow_factor)
     ext = Extents(camera=len(session.cameras), frame=n_frames, raw_frame=raw_last - raw_first,
-                  raw_offset=a - raw_first, warm_start_block=cfg.warm_start_block)
+                  raw_offset=a - raw_first, warm_start_block=cfg.warm_start_block,
+                  spacetime_window=cfg.spacetime.window)
     layout = result_layout(camera_names=[c.name for c in session.cameras], n_frames=n_frames,
                            flow_shape=fg.shape, grid=session.grid, first_frame=a,
                            n_raw=ext.raw_frame, raw_first=raw_first,
-                           n_summary=cfg.masks.n_quantiles + 1, flow_factor=fg.factor)
+                           n_summary=cfg.masks.n_quantiles + 1, flow_factor=fg.factor,
+                           per_frame_gradient=cfg.spacetime.window > 0)
     return layout, ext
 
 
@@ -171,7 +181,7 @@ def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig) -> tup
                                 for name, (n, gone) in session.video_slots.items()}},
         "stage_times": {},
     }
-    markers = {st.name: st.over for st in STAGES}
+    markers = {st.name: st.over for st in run_stages(ext.spacetime_window)}
     try:
         store = ResultStore.create(out_path, layout, attrs=attrs, markers=markers,
                                    producers=producers(cfg, [s.name for s in layout]))
@@ -183,7 +193,9 @@ def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig) -> tup
 
 def producers(cfg: RunConfig, names) -> dict[str, str]:
     """Array -> the stage whose completion marker covers its chunks (the task writing them)."""
-    out = {a: st.name for st in STAGES for a in st.outputs if a in names}
+    out = {a: st.name for st in run_stages(cfg.spacetime.window) for a in st.outputs if a in names}
+    if cfg.spacetime.window > 0 and "gradient_frame" in names:
+        out["gradient_frame"] = "tomography"  # the per-frame solve, which the spacetime stage averages
     if cfg.reconstruction == "direct" and "refractivity" in out:
         out["refractivity"] = "tomography"  # solved directly by the tomography task
     return out

@@ -78,9 +78,11 @@ def extents_of(store: ResultStore) -> Extents:
     a = store.attrs
     run = a["run"]
     first = int(run["frames"][0])
+    params = a.get("params") or {}
     return Extents(camera=int(store.array("camera").shape[0]), frame=int(run["n_frames"]),
                    raw_frame=int(run["n_raw"]), raw_offset=first - int(run["raw_first"]),
-                   warm_start_block=int((a.get("params") or {}).get("warm_start_block", 4)))
+                   warm_start_block=int(params.get("warm_start_block", 4)),
+                   spacetime_window=int((params.get("spacetime") or {}).get("window", 0)))
 
 
 def downstream(ext: Extents, roots) -> set[tuple[str, tuple[int, ...]]]:

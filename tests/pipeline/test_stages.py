@@ -30,20 +30,24 @@ def test_bind_medium_sets_every_n_ambient():
     assert found and all(v == 1.0003 for v in found)
 
 
-def test_table_is_consistent():
-    names = [s.name for s in STAGES]
+@pytest.mark.parametrize("window", [0, 1])
+def test_table_is_consistent(window):
+    table = stages.run_stages(window)
+    names = [s.name for s in table]
     assert len(set(names)) == len(names)
+    optional = {stages.SPACETIME_STAGE.name} - set(names)  # a dependency on it is dropped without it
     produced = {"images"}
-    for s in STAGES:
+    for s in table:
         for dep, how in s.after:
-            assert dep in names[: names.index(s.name) + (how == "chain")], (s.name, dep)
-            assert how in {"same", "all", "window", "chain", "block", "middle", "margin"}
+            assert dep in names[: names.index(s.name) + (how == "chain")] or dep in optional, (s.name, dep)
+            assert how in {"same", "all", "window", "neighbours", "chain", "block", "middle", "margin"}
         if s.params is not None:
             assert hasattr(RunConfig(), s.params), s.name
         produced |= set(s.outputs)
-    # every stage's inputs are produced by an earlier stage (or are the frames)
-    seen = {"images"}
-    for s in STAGES:
+    # every stage's inputs are produced by an earlier stage (or are the frames); under a
+    # space-time stage the tomography writes the per-frame gradient it reads
+    seen = {"images"} | ({"gradient_frame"} if window else set())
+    for s in table:
         assert set(s.inputs) <= seen | {"geometry"}, s.name
         seen |= set(s.outputs)
 

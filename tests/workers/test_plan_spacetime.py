@@ -1,0 +1,44 @@
+"""The space-time stage in the plan: present only with a window, fed by the per-frame
+solves of its window, and feeding the integration."""
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from schlieren.pipeline.spacetime import window_frames
+from schlieren.pipeline.stages import STAGES, run_stages
+from schlieren.workers.plan import Extents, make_plan, task_key
+
+extents = st.builds(
+    lambda c, f, block, window: Extents(camera=c, frame=f, raw_frame=f + 2, raw_offset=1, warm_start_block=block,
+                                        spacetime_window=window),
+    st.integers(1, 3), st.integers(1, 8), st.integers(1, 4), st.integers(0, 3))
+
+
+def test_run_stages_add_the_spacetime_stage_before_the_integration():
+    assert run_stages(0) == STAGES
+    names = [s.name for s in run_stages(2)]
+    assert names.index("tomography") < names.index("spacetime") == names.index("integrate") - 1
+
+
+@settings(max_examples=40, deadline=None)
+@given(extents)
+def test_spacetime_tasks_wait_for_their_window_and_feed_the_integration(ext):
+    plan = make_plan(ext, "tok")
+    seen = set()
+    for t in plan.tasks:
+        assert all(d in seen for d in t.deps), (t.key, t.deps)
+        seen.add(t.key)
+    by = plan.by_stage()
+    spacetime = by.get("spacetime", [])
+    if ext.spacetime_window == 0:
+        assert not spacetime
+        for t in by["integrate"]:
+            assert not any(d.startswith("spacetime-") for d in t.deps)
+        return
+    assert [t.index for t in spacetime] == [(k,) for k in range(ext.frame)]
+    for t in spacetime:
+        (k,) = t.index
+        tomo = sorted(int(d.split("-")[-1]) for d in t.deps if d.startswith("tomography-"))
+        assert tomo == list(window_frames(k, ext.frame, ext.spacetime_window))
+    for t in by["integrate"]:
+        assert task_key("spacetime", "tok", t.index) in t.deps
