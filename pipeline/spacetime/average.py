@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from schlieren.pipeline.spacetime.motion import downsample2, upsample_motion, volume_motion, warp_volume
+from schlieren.pipeline.spacetime.motion import downsample2, volume_motion, warp_volume
 from schlieren.pipeline.spacetime.params import SpaceTimeParams
 
 __all__ = ["SpaceTimeInfo", "motion_compensated_mean", "window_frames", "window_weights", "support_box"]
@@ -86,30 +86,21 @@ def support_box(support: np.ndarray, margin: int = BOX_MARGIN) -> tuple[slice, s
 
 
 def _motion(ref: np.ndarray, mov: np.ndarray, params: SpaceTimeParams) -> np.ndarray:
-    """``u`` with ``mov(p + u) ~ ref(p)`` on the volumes' grid, estimated at 1 / ``motion_scale``."""
-    kw = dict(levels=params.motion_levels, window=params.motion_window, iterations=params.motion_iterations,
-              reg=params.motion_reg)
-    a, b = ref, mov
+    """``u`` with ``mov(p + u) ~ ref(p)``, estimated and returned on the grid ``motion_scale``
+    times coarser than the volumes' (voxels of that grid; :func:`~schlieren.pipeline.spacetime.
+    motion.warp_volume`'s ``scale`` takes it so)."""
     halvings = {1: 0, 2: 1, 4: 2}.get(int(params.motion_scale))
     if halvings is None:
         raise ValueError(f"motion_scale must be 1, 2 or 4, not {params.motion_scale}")
+    a, b = ref, mov
     for _ in range(halvings):
         a, b = downsample2(a), downsample2(b)
-    u = volume_motion(a, b, **kw)
-    for level in range(halvings, 0, -1):  # back up one halving at a time
-        shape = ref.shape[:3] if level == 1 else _halved(ref.shape[:3], level - 1)
-        u = upsample_motion(u, shape)
-    return u
+    return volume_motion(a, b, levels=params.motion_levels, window=params.motion_window,
+                         iterations=params.motion_iterations, reg=params.motion_reg)
 
 
-def _halved(shape, times: int) -> tuple[int, int, int]:
-    for _ in range(times):
-        shape = tuple((s + 1) // 2 for s in shape)
-    return tuple(shape)
-
-
-def motion_compensated_mean(volumes, offsets, support: np.ndarray, *,
-                            params: SpaceTimeParams = SpaceTimeParams()) -> tuple[np.ndarray, SpaceTimeInfo]:
+def motion_compensated_mean(volumes, offsets, support: np.ndarray, *, params: SpaceTimeParams = SpaceTimeParams(),
+                            region: np.ndarray | None = None) -> tuple[np.ndarray, SpaceTimeInfo]:
     """Frame ``k``'s gradient from the per-frame gradients of its window.
 
     Parameters
@@ -119,11 +110,13 @@ def motion_compensated_mean(volumes, offsets, support: np.ndarray, *,
     offsets : sequence of int
         Each volume's frame minus ``k`` (one of them 0: frame ``k`` itself).
     support : ndarray, shape (nz, ny, nx) bool
-        Where the result is wanted (frame ``k``'s basis set); zero elsewhere. The motion
-        is estimated in the bounding box of the union of the window's non-zero voxels
-        and ``support`` (:func:`support_box`).
+        Where the result is wanted (frame ``k``'s basis set); zero elsewhere.
     params : SpaceTimeParams
         Weights (``neighbour_weight``) and the motion estimator's settings.
+    region : ndarray, shape (nz, ny, nx) bool, optional
+        Where the window's volumes may be non-zero (the union of their basis sets): the
+        motion is estimated in its bounding box with ``support`` (:func:`support_box`).
+        Default: found from the volumes.
 
     Returns
     -------
@@ -140,24 +133,27 @@ def motion_compensated_mean(volumes, offsets, support: np.ndarray, *,
     if ref.shape != support.shape + (3,):
         raise ValueError(f"volumes {ref.shape} and support {support.shape} do not match")
     out = np.zeros(ref.shape, np.float32)
-    w = window_weights(offsets, params.neighbour_weight)
-    live = support.copy()
-    for v in volumes:
-        live |= np.any(np.asarray(v) != 0, axis=-1)
-    box = support_box(live)
     if not support.any() or len(volumes) == 1:
         out[support] = ref[support]
         return out, SpaceTimeInfo((0,), (1.0,), (), time.perf_counter() - t0)
-    a = ref[box]
+    w = window_weights(offsets, params.neighbour_weight)
+    if region is None:
+        region = np.zeros(support.shape, bool)
+        for v in volumes:
+            region |= np.any(np.asarray(v) != 0, axis=-1)
+    box = support_box(np.asarray(region, dtype=bool) | support)
+    a = np.ascontiguousarray(ref[box])
     acc = w[c] * a
+    s = int(params.motion_scale)
+    inside = support[box][::s, ::s, ::s]
     moved = []
     for j, (o, v) in enumerate(zip(offsets, volumes)):
         if o == 0:
             continue
-        b = np.asarray(v, dtype=np.float32)[box]
+        b = np.ascontiguousarray(np.asarray(v, dtype=np.float32)[box])
         u = _motion(a, b, params)
-        acc += w[j] * warp_volume(b, u, order=3)
-        moved.append(float(np.mean(np.linalg.norm(u[support[box]], axis=-1))))
+        acc += w[j] * warp_volume(b, u, order=3, scale=s)
+        moved.append(float(s * np.mean(np.linalg.norm(u[inside], axis=-1))) if inside.any() else 0.0)
     out[box] = acc
     out[~support] = 0.0
     return out, SpaceTimeInfo(tuple(offsets), tuple(float(x) for x in w), tuple(moved), time.perf_counter() - t0)

@@ -11,13 +11,16 @@ solves the 3x3 normal equations of the linearised brightness constancy summed ov
 channels and a Gaussian window, with a Tikhonov term relative to the mean structure tensor
 trace so that featureless regions keep the coarser estimate.
 
-Displacements are in voxels, ordered (z, y, x) like the array axes.
+Displacements are in voxels, ordered (z, y, x) like the array axes. The warps and the
+interpolation of a coarse motion are numba kernels (:mod:`._kernels`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 import scipy.ndimage as ndi
+
+from schlieren.pipeline.spacetime import _kernels
 
 __all__ = ["volume_motion", "warp_volume", "downsample2", "upsample_motion"]
 
@@ -36,31 +39,24 @@ def downsample2(v: np.ndarray) -> np.ndarray:
     return out
 
 
-def upsample_motion(u: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
-    """A motion field of a half-resolution level (voxels of that level) on the finer
-    ``shape``: interpolated linearly and doubled."""
-    u = np.asarray(u, dtype=np.float32)
-    zoom = [s / n for s, n in zip(shape, u.shape[:3])]
-    out = np.empty(tuple(shape) + (3,), np.float32)
-    for i in range(3):
-        r = ndi.zoom(u[..., i], zoom, order=1, mode="nearest", grid_mode=True)
-        out[..., i] = 2.0 * r[: shape[0], : shape[1], : shape[2]]
-    return out
+def upsample_motion(u: np.ndarray, shape: tuple[int, int, int], scale: int = 2) -> np.ndarray:
+    """A motion field of a grid ``scale`` times coarser (voxels of that grid; its voxel ``j``
+    is the fine voxel ``scale * j``, as :func:`downsample2` takes it) on the fine ``shape``:
+    interpolated trilinearly and multiplied by ``scale``."""
+    return _kernels.upsample(np.ascontiguousarray(u, dtype=np.float32), tuple(int(s) for s in shape), int(scale))
 
 
-def warp_volume(v: np.ndarray, u: np.ndarray, *, order: int = 1) -> np.ndarray:
-    """``v(p + u(p))`` for every voxel ``p`` (``v`` (nz, ny, nx[, c]), ``u`` (nz, ny, nx, 3)
-    in voxels, (z, y, x)); outside the volume the nearest edge value. ``order``: spline
-    order of the interpolation (1 linear, 3 cubic)."""
+def warp_volume(v: np.ndarray, u: np.ndarray, *, order: int = 1, scale: int = 1) -> np.ndarray:
+    """``v(p + u(p))`` for every voxel ``p`` (``v`` (nz, ny, nx[, c]), ``u`` in voxels of ``v``,
+    (z, y, x)); outside the volume the nearest edge value. ``order``: 1 trilinear, 3 Keys
+    cubic. ``scale``: ``u`` is given on a grid this many times coarser
+    (:func:`upsample_motion`'s convention), sampled trilinearly."""
+    if order not in (1, 3):
+        raise ValueError(f"warp_volume: order must be 1 or 3, not {order}")
     v = np.asarray(v)
     squeeze = v.ndim == 3
-    vc = _channels(v)
-    shape = vc.shape[:3]
-    grid = np.indices(shape, dtype=np.float32)
-    coords = grid + np.moveaxis(np.asarray(u, dtype=np.float32), -1, 0)
-    out = np.empty(vc.shape, np.float32)
-    for c in range(vc.shape[-1]):
-        out[..., c] = ndi.map_coordinates(vc[..., c], coords, order=order, mode="nearest", prefilter=order > 1)
+    vc = np.ascontiguousarray(_channels(v))
+    out = _kernels.warp(vc, np.ascontiguousarray(u, dtype=np.float32), int(scale), order == 3)
     return out[..., 0] if squeeze else out
 
 

@@ -10,7 +10,7 @@ integration reads as it reads a per-frame gradient.
 from __future__ import annotations
 
 from schlieren.pipeline import spacetime
-from schlieren.pipeline.tomography.solve import basis_set
+from schlieren.pipeline.tomography.solve import basis_set, block_support
 from schlieren.workers.tasks.run_context import RunContext
 
 __all__ = ["spacetime_task", "per_frame_array"]
@@ -27,7 +27,10 @@ def spacetime_task(ctx: RunContext, k: int) -> dict:
     params = ctx.config.spacetime
     frames = list(spacetime.window_frames(k, ctx.n_frames, params.window))
     volumes = ctx.read_upstream_many("gradient_frame", [(j,) for j in frames])
-    support = basis_set(ctx.store.read("hull", (k,)), ctx.config.tomography.hull_dilation)
-    grad, info = spacetime.motion_compensated_mean(volumes, [j - k for j in frames], support, params=params)
+    dilation = ctx.config.tomography.hull_dilation
+    support = basis_set(ctx.store.read("hull", (k,)), dilation)
+    region = block_support(ctx.read_upstream_many("hull", [(j,) for j in frames]), dilation)
+    grad, info = spacetime.motion_compensated_mean(volumes, [j - k for j in frames], support, params=params,
+                                                   region=region)
     ctx.store.write("gradient", (k,), grad)
     return {"frames": list(info.frames), "mean_motion": [round(v, 3) for v in info.mean_motion]}
