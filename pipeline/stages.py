@@ -229,7 +229,7 @@ STAGES: tuple[Stage, ...] = (
 #: along their motion and averaged.
 SPACETIME_STAGE = Stage("spacetime", _spacetime.motion_compensated_mean, "spacetime",
                         ("gradient_frame", "hull"), ("gradient",), ("frame",),
-                        after=(("tomography", "neighbours"), ("hull", "same")), cost=0.5)
+                        after=(("tomography", "neighbours"), ("hull", "same")), resources={"TOMO": 1}, cost=0.3)
 
 
 def run_stages(spacetime_window: int = 0) -> tuple[Stage, ...]:

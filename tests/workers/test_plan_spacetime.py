@@ -42,3 +42,15 @@ def test_spacetime_tasks_wait_for_their_window_and_feed_the_integration(ext):
         assert tomo == list(window_frames(k, ext.frame, ext.spacetime_window))
     for t in by["integrate"]:
         assert task_key("spacetime", "tok", t.index) in t.deps
+
+
+def test_spacetime_tasks_go_into_the_solves_resource_graph():
+    """Dask gets one graph per resource request, each after the graphs it depends on: the
+    space-time tasks (between the solves and the integrations) ask for the same TOMO slot."""
+    from schlieren.workers.graph import plan_graphs
+
+    plan = make_plan(Extents(camera=2, frame=5, raw_frame=7, raw_offset=1, warm_start_block=2,
+                             spacetime_window=1), "tok")
+    for have in (set(), {"TOMO"}):
+        graphs = plan_graphs("store.zarr", plan, have)
+        assert sum(len(g) for _, g in graphs) == len(plan.tasks)
