@@ -7,6 +7,8 @@ import shutil
 import cv2
 import numpy as np
 
+import pytest
+
 from schlieren.workers.diagnostics import diagnose
 
 
@@ -60,6 +62,7 @@ def test_verbose_lines_say_which_stage_camera_and_frame(tiny_session, serial_sto
         assert ln.startswith("INFO schlieren.receipts: task receipt: stage integrate, frame ") and f"frame {f}," in ln
 
 
+@pytest.mark.system
 def test_ctrl_c_on_a_local_cluster_prints_one_line_and_keeps_the_chunks(tiny_session, serial_store, tmp_path):
     """SIGINT to the whole process group (what a terminal's Ctrl-C does): no worker
     tracebacks, the one-line message, exit 130, and the rerun completes the same store."""
@@ -242,3 +245,12 @@ def test_distributeds_failed_cancel_after_a_ctrl_c_is_not_printed(monkeypatch):
         signal.signal(signal.SIGINT, before)
         log.removeHandler(handler)
     assert len(got) == 2 and "sync.<locals>.cancel" in got[0] and "something else" in got[1], got
+
+
+def test_flash_lit_frames_get_no_deflection_warning():
+    """The strobe flash lights frames the sync already excludes: their large deflections
+    are the flash, not a bumped camera."""
+    receipts = [{"stage": "deflection", "camera": "cam03", "frame": f, "max_px": 46.0} for f in (3, 4)] + \
+               [{"stage": "deflection", "camera": "cam01", "frame": 3, "max_px": 40.0}]
+    w = diagnose(receipts, n_voxels=100, flash_frames={"cam03": (3, 4), "cam01": (-1, -1)})
+    assert len(w) == 1 and w[0].startswith("camera cam01, frame 3: deflections up to 40 px"), w
