@@ -26,10 +26,11 @@ from schlieren.pipeline import masks as _masks
 from schlieren.pipeline import poisson as _poisson
 from schlieren.pipeline import sync as _sync
 from schlieren.pipeline import tomography as _tomo
+from schlieren.pipeline import uncertainty as _unc
 from schlieren.pipeline.params import validate as _validate
 from schlieren.pipeline.params import param
 
-__all__ = ["Stage", "RunConfig", "STAGES", "stage", "middle_frame",
+__all__ = ["Stage", "RunConfig", "STAGES", "OPTIONAL_STAGES", "run_stages", "stage", "middle_frame",
            "config_from_dict", "config_to_dict", "check_config", "kernel_kwargs", "bind_medium",
            "bind_flow_factor"]
 
@@ -47,6 +48,8 @@ class RunConfig:
     warm_start_block : int
         Frames solved in sequence, each tomography solve warm-started from the previous
         frame's solution; blocks are independent (more blocks, more parallel work).
+    uncertainty : UncertaintyParams
+        The optional standard errors per voxel (``uncertainty.enabled``; beyond the paper).
     """
 
     flow: _flow.FlowParams = field(default_factory=_flow.FlowParams)
@@ -59,6 +62,7 @@ class RunConfig:
     reconstruction: str = param("two-step", choices=("two-step", "direct"))
     warm_start_block: int = param(4, unit="frames", ge=1, le=10000)
     direct: _tomo.RefractivityParams = field(default_factory=_tomo.RefractivityParams)
+    uncertainty: _unc.UncertaintyParams = field(default_factory=_unc.UncertaintyParams)
 
     def __post_init__(self):
         if self.reconstruction not in {"two-step", "direct"}:
@@ -135,6 +139,9 @@ class Stage:
     grid : {"image", "flow"}
         What a batched stage's work scales with: the camera images or the (downsampled)
         flow grid (:func:`~schlieren.workers.run.default_frames_per_task`).
+    enabled_by : str or None
+        An optional stage (:data:`OPTIONAL_STAGES`): the :class:`RunConfig` switch that adds
+        it to a run (``"uncertainty.enabled"``); None for the stages every run has.
     cost : float
         Rough seconds per task, used only to order the work (``workers/plan.py``,
         :func:`~schlieren.workers.plan.critical_path_priorities`): the serial in-task
@@ -154,6 +161,14 @@ class Stage:
     batch: bool = False
     cost: float = 0.01
     grid: str = "image"
+    enabled_by: str | None = None
+
+    def enabled(self, cfg: RunConfig) -> bool:
+        """Whether a run of ``cfg`` has this stage."""
+        if self.enabled_by is None:
+            return True
+        group, name = self.enabled_by.split(".")
+        return bool(getattr(getattr(cfg, group), name))
 
 
 def middle_frame(n_frames: int) -> int:
@@ -207,7 +222,26 @@ STAGES: tuple[Stage, ...] = (
           after=(("tomography", "same"),), resources={"TOMO": 1}, cost=0.23),
 )
 
-_BY_NAME = {s.name: s for s in STAGES}
+#: Stages a run has only when its configuration asks for them (``Stage.enabled_by``): a
+#: run without them keeps the plan, the markers and the store of :data:`STAGES` alone.
+OPTIONAL_STAGES: tuple[Stage, ...] = (
+    # the standard errors per voxel: the frame's noise through its own solve and integration
+    # (a few solves per frame, so a stage of its own: its tasks run beside the next frames'
+    # solves, and the per-frame tomography is left as it is)
+    Stage("uncertainty", _unc.frame_uncertainty, "uncertainty",
+          ("flow", "mask", "hull", "gradient", "refractivity", "geometry", "reg_weight", "flow_window"),
+          ("refractivity_sigma", "density_sigma", "temperature_sigma"), ("frame",),
+          after=(("integrate", "same"), ("geometry", "all"), ("regularisation", "all")),
+          resources={"TOMO": 1}, cost=5.0, enabled_by="uncertainty.enabled"),
+)
+
+
+def run_stages(cfg: RunConfig) -> tuple[Stage, ...]:
+    """The stages of a run of ``cfg``: :data:`STAGES` and the optional ones it enables."""
+    return STAGES + tuple(s for s in OPTIONAL_STAGES if s.enabled(cfg))
+
+
+_BY_NAME = {s.name: s for s in STAGES + OPTIONAL_STAGES}
 
 
 def stage(name: str) -> Stage:

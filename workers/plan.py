@@ -10,7 +10,7 @@ from __future__ import annotations
 import itertools
 from dataclasses import dataclass, field
 
-from schlieren.pipeline.stages import STAGES, Stage, middle_frame
+from schlieren.pipeline.stages import OPTIONAL_STAGES, STAGES, Stage, middle_frame
 
 __all__ = ["Task", "Plan", "make_plan", "Extents", "critical_path_priorities"]
 
@@ -60,11 +60,11 @@ class Plan:
     def by_stage(self) -> dict[str, list[Task]]:
         out: dict[str, list[Task]] = {s.name: [] for s in STAGES}
         for t in self.tasks:
-            out[t.stage].append(t)
+            out.setdefault(t.stage, []).append(t)
         return out
 
 
-_STAGE = {s.name: s for s in STAGES}
+_STAGE = {s.name: s for s in STAGES + OPTIONAL_STAGES}
 
 
 def _indices(st: Stage, ext: Extents) -> list[tuple[int, ...]]:
