@@ -34,11 +34,12 @@ from schlieren.pipeline import poisson as _poisson
 from schlieren.pipeline import spacetime as _spacetime
 from schlieren.pipeline import sync as _sync
 from schlieren.pipeline import tomography as _tomo
+from schlieren.pipeline import uncertainty as _unc
 from schlieren.pipeline.params import validate as _validate
 from schlieren.pipeline.params import param
 
-__all__ = ["Stage", "RunConfig", "STAGES", "SPACETIME_STAGE", "run_stages", "stage", "middle_frame",
-           "config_from_dict", "config_to_dict", "check_config", "kernel_kwargs", "bind_medium",
+__all__ = ["Stage", "RunConfig", "STAGES", "SPACETIME_STAGE", "OPTIONAL_STAGES", "run_stages", "stages_with",
+           "stage", "middle_frame", "config_from_dict", "config_to_dict", "check_config", "kernel_kwargs", "bind_medium",
            "bind_flow_factor"]
 
 
@@ -59,6 +60,8 @@ class RunConfig:
         Space-time reconstruction (beyond the paper): with ``spacetime.window > 0`` each
         frame's gradient is the motion-compensated mean of the per-frame solutions of its
         window (stage ``spacetime``); the two-step reconstruction only.
+    uncertainty : UncertaintyParams
+        The optional standard errors per voxel (``uncertainty.enabled``; beyond the paper).
     """
 
     flow: _flow.FlowParams = field(default_factory=_flow.FlowParams)
@@ -72,6 +75,7 @@ class RunConfig:
     warm_start_block: int = param(4, unit="frames", ge=1, le=10000)
     direct: _tomo.RefractivityParams = field(default_factory=_tomo.RefractivityParams)
     spacetime: _spacetime.SpaceTimeParams = field(default_factory=_spacetime.SpaceTimeParams)
+    uncertainty: _unc.UncertaintyParams = field(default_factory=_unc.UncertaintyParams)
 
     def __post_init__(self):
         if self.reconstruction not in {"two-step", "direct"}:
@@ -151,6 +155,10 @@ class Stage:
     grid : {"image", "flow"}
         What a batched stage's work scales with: the camera images or the (downsampled)
         flow grid (:func:`~schlieren.workers.run.default_frames_per_task`).
+    enabled_by : str or None
+        An optional stage (:data:`OPTIONAL_STAGES`): the :class:`RunConfig` switch that adds
+        it to a run when true (``"uncertainty.enabled"``; ``"spacetime.window"``: when > 0);
+        None for the stages every run has.
     cost : float
         Rough seconds per task, used only to order the work (``workers/plan.py``,
         :func:`~schlieren.workers.plan.critical_path_priorities`): the serial in-task
@@ -170,6 +178,14 @@ class Stage:
     batch: bool = False
     cost: float = 0.01
     grid: str = "image"
+    enabled_by: str | None = None
+
+    def enabled(self, cfg: RunConfig) -> bool:
+        """Whether a run of ``cfg`` has this stage."""
+        if self.enabled_by is None:
+            return True
+        group, name = self.enabled_by.split(".")
+        return bool(getattr(getattr(cfg, group), name))
 
 
 def middle_frame(n_frames: int) -> int:
@@ -229,19 +245,41 @@ STAGES: tuple[Stage, ...] = (
 #: along their motion and averaged.
 SPACETIME_STAGE = Stage("spacetime", _spacetime.motion_compensated_mean, "spacetime",
                         ("gradient_frame", "hull"), ("gradient",), ("frame",),
-                        after=(("tomography", "neighbours"), ("hull", "same")), resources={"TOMO": 1}, cost=0.3)
+                        after=(("tomography", "neighbours"), ("hull", "same")), resources={"TOMO": 1}, cost=0.3,
+                        enabled_by="spacetime.window")
+
+#: Stages a run has only when its configuration asks for them (``Stage.enabled_by``): a
+#: run without them keeps the plan, the markers and the store of :data:`STAGES` alone.
+OPTIONAL_STAGES: tuple[Stage, ...] = (
+    SPACETIME_STAGE,
+    # the standard errors per voxel: the frame's noise through its own solve and integration
+    # (a few solves per frame, so a stage of its own: its tasks run beside the next frames'
+    # solves, and the per-frame tomography is left as it is)
+    Stage("uncertainty", _unc.frame_uncertainty, "uncertainty",
+          ("flow", "mask", "hull", "gradient", "refractivity", "geometry", "reg_weight", "flow_window"),
+          ("refractivity_sigma", "density_sigma", "temperature_sigma"), ("frame",),
+          after=(("integrate", "same"), ("geometry", "all"), ("regularisation", "all")),
+          resources={"TOMO": 1}, cost=5.0, enabled_by="uncertainty.enabled"),
+)
 
 
-def run_stages(spacetime_window: int = 0) -> tuple[Stage, ...]:
-    """The stages of a run: :data:`STAGES`, with :data:`SPACETIME_STAGE` before the
-    integration when ``spacetime_window > 0``."""
-    if spacetime_window <= 0:
-        return STAGES
-    i = next(j for j, s in enumerate(STAGES) if s.name == "integrate")
-    return STAGES[:i] + (SPACETIME_STAGE,) + STAGES[i:]
+def stages_with(names) -> tuple[Stage, ...]:
+    """:data:`STAGES` and the optional stages named in ``names``, each placed before the
+    first stage that waits for it (the space-time stage before the integration), the
+    others at the end."""
+    out = list(STAGES)
+    for s in OPTIONAL_STAGES:
+        if s.name in names:
+            out.insert(next((i for i, t in enumerate(out) if any(d == s.name for d, _ in t.after)), len(out)), s)
+    return tuple(out)
 
 
-_BY_NAME = {s.name: s for s in STAGES + (SPACETIME_STAGE,)}
+def run_stages(cfg: RunConfig) -> tuple[Stage, ...]:
+    """The stages of a run of ``cfg``: :data:`STAGES` and the optional ones it enables."""
+    return stages_with({s.name for s in OPTIONAL_STAGES if s.enabled(cfg)})
+
+
+_BY_NAME = {s.name: s for s in STAGES + OPTIONAL_STAGES}
 
 
 def stage(name: str) -> Stage:

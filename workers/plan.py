@@ -11,7 +11,7 @@ import itertools
 from dataclasses import dataclass, field
 
 from schlieren.pipeline.spacetime import window_frames
-from schlieren.pipeline.stages import SPACETIME_STAGE, STAGES, Stage, middle_frame, run_stages
+from schlieren.pipeline.stages import OPTIONAL_STAGES, STAGES, Stage, middle_frame, stages_with
 
 __all__ = ["Task", "Plan", "make_plan", "Extents", "critical_path_priorities"]
 
@@ -66,7 +66,7 @@ class Plan:
         return out
 
 
-_STAGE = {s.name: s for s in STAGES + (SPACETIME_STAGE,)}
+_STAGE = {s.name: s for s in STAGES + OPTIONAL_STAGES}
 
 
 def _indices(st: Stage, ext: Extents) -> list[tuple[int, ...]]:
@@ -176,8 +176,8 @@ def make_plan(ext: Extents, token: str, *, done=None, stages: tuple[Stage, ...] 
     token : str
         Short session/run token that makes keys unique per run.
     stages : tuple of Stage, optional
-        The run's stages (default :func:`~schlieren.pipeline.stages.run_stages` of
-        ``ext.spacetime_window``); dependencies on stages not among them are dropped.
+        The run's stages (default :func:`~schlieren.pipeline.stages.stages_with` the
+        space-time stage when ``ext.spacetime_window > 0``); dependencies on stages not among them are dropped.
     done : callable(stage, index) -> bool, optional
         Completion-marker lookup; complete indices are dropped and so are edges to them.
     frames_per_task : int or dict
@@ -189,7 +189,8 @@ def make_plan(ext: Extents, token: str, *, done=None, stages: tuple[Stage, ...] 
         frame, so resume and the store do not depend on the grouping.
     """
     sizes = batch_sizes(frames_per_task)
-    stages = run_stages(ext.spacetime_window) if stages is None else stages
+    if stages is None:
+        stages = stages_with({"spacetime"} if ext.spacetime_window > 0 else ())
     present = {st.name for st in stages}
     plan = Plan(token=token)
     complete: set[tuple[str, tuple[int, ...]]] = set()

@@ -42,7 +42,7 @@ from schlieren.pipeline.stages import (
 )
 from schlieren.pipeline.tomography.binning import cells_per_voxel
 from schlieren.storage import location
-from schlieren.storage.layout import result_layout
+from schlieren.storage.layout import result_layout, with_uncertainty
 from schlieren.storage.session import Session, load_session
 from schlieren.storage.errors import StoreError
 from schlieren.storage.store import ResultStore, remove_store
@@ -165,6 +165,8 @@ def run_layout(session: Session, cfg: RunConfig) -> tuple[list, Extents]:
                            n_raw=ext.raw_frame, raw_first=raw_first,
                            n_summary=cfg.masks.n_quantiles + 1, flow_factor=fg.factor,
                            per_frame_gradient=cfg.spacetime.window > 0)
+    if cfg.uncertainty.enabled:  # the optional stage's standard errors beside the values
+        layout = with_uncertainty(layout)
     return layout, ext
 
 
@@ -191,7 +193,7 @@ def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig) -> tup
                                 for name, (n, gone) in session.video_slots.items()}},
         "stage_times": {},
     }
-    markers = {st.name: st.over for st in run_stages(ext.spacetime_window)}
+    markers = {st.name: st.over for st in run_stages(cfg)}
     try:
         store = ResultStore.create(out_path, layout, attrs=attrs, markers=markers,
                                    producers=producers(cfg, [s.name for s in layout]))
@@ -203,7 +205,7 @@ def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig) -> tup
 
 def producers(cfg: RunConfig, names) -> dict[str, str]:
     """Array -> the stage whose completion marker covers its chunks (the task writing them)."""
-    out = {a: st.name for st in run_stages(cfg.spacetime.window) for a in st.outputs if a in names}
+    out = {a: st.name for st in run_stages(cfg) for a in st.outputs if a in names}
     if cfg.spacetime.window > 0 and "gradient_frame" in names:
         out["gradient_frame"] = "tomography"  # the per-frame solve, which the spacetime stage averages
     if cfg.reconstruction == "direct" and "refractivity" in out:
@@ -278,7 +280,9 @@ def _done_predicate(done_sets: dict, ext: Extents) -> Callable[[str, object], bo
     def done(stage: str, index) -> bool:
         if tuple(index) in done_sets.get(stage, ()):
             return True
-        return stage == "geometry" and len(done_sets.get("tomography", ())) == ext.frame
+        # (and no uncertainty task, which reads the geometry too, when the run has that stage)
+        return stage == "geometry" and all(len(done_sets.get(s, ())) == ext.frame for s in ("tomography", "uncertainty")
+                                           if s == "tomography" or s in done_sets)
     return done
 
 
@@ -361,7 +365,8 @@ def _run_leased(session, out_path, cfg, *, client, serial, report, on_receipt, o
     dropper = _retention(store, ext, check, keep)
     if not isinstance(frames_per_task, dict):
         frames_per_task = int(frames_per_task)
-    plan = make_plan(ext, token, done=_done_predicate(check.done, ext), frames_per_task=frames_per_task)
+    plan = make_plan(ext, token, done=_done_predicate(check.done, ext), frames_per_task=frames_per_task,
+                     stages=run_stages(cfg))
     if on_plan:
         on_plan(plan)
     summary = RunSummary(store=str(out_path), executor="serial" if (serial or client is None) else "dask",

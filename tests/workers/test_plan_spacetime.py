@@ -1,11 +1,14 @@
 """The space-time stage in the plan: present only with a window, fed by the per-frame
 solves of its window, and feeding the integration."""
 
+import dataclasses
+
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from schlieren.pipeline.spacetime import window_frames
-from schlieren.pipeline.stages import STAGES, run_stages
+from schlieren.pipeline.spacetime import SpaceTimeParams
+from schlieren.pipeline.stages import STAGES, RunConfig, run_stages
 from schlieren.workers.plan import Extents, make_plan, task_key
 
 extents = st.builds(
@@ -15,9 +18,13 @@ extents = st.builds(
 
 
 def test_run_stages_add_the_spacetime_stage_before_the_integration():
-    assert run_stages(0) == STAGES
-    names = [s.name for s in run_stages(2)]
+    assert run_stages(RunConfig()) == STAGES
+    names = [s.name for s in run_stages(RunConfig(spacetime=SpaceTimeParams(window=2)))]
     assert names.index("tomography") < names.index("spacetime") == names.index("integrate") - 1
+    both = RunConfig(spacetime=SpaceTimeParams(window=2), uncertainty=dataclasses.replace(
+        RunConfig().uncertainty, enabled=True))
+    names = [s.name for s in run_stages(both)]
+    assert names.index("spacetime") == names.index("integrate") - 1 and names[-1] == "uncertainty"
 
 
 @settings(max_examples=40, deadline=None)
