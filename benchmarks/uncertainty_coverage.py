@@ -63,14 +63,7 @@ def fit(args) -> dict:
         for k, t_on, r_amb in cov.truth_on_grid(store, truth):
             t0 = time.perf_counter()
             cache = Path(args.cache) / f"{case}-{args.label}-{k}.npz" if args.cache else None
-            if cache is not None and cache.exists():
-                z = dict(np.load(cache))
-            else:
-                res = cov.decompose(ctx, k, params)
-                z = {"noise": res.noise_sigma, "boundary": res.boundary_sigma, "structure": res.structure_sigma}
-                if cache is not None:
-                    cache.parent.mkdir(parents=True, exist_ok=True)
-                    np.savez(cache, **{n: v.astype(np.float32) for n, v in z.items()})
+            z = cov.cached_terms(ctx, k, params, cache)
             hull = np.asarray(ctx.store.read("hull", (k,)), dtype=bool)
             err = np.asarray(ctx.store.read("refractivity", (k,)), dtype=np.float64) - t_on
             reg = cov.frame_regions(t_on, r_amb, hull)
@@ -114,13 +107,45 @@ def coverage(args) -> dict:
         if not store.exists():
             print(f"{name}: no store {store}; skipped", flush=True)
             continue
-        res = cov.store_coverage(store, truth)
-        res.update({"role": role, "cameras": cameras, "video": video, "seconds_per_frame": cov.stage_seconds(store)})
-        res["noise_only"] = _noise_only(store, truth)
+        if args.from_terms:
+            res = _terms_coverage(args, name, store, truth)
+        else:
+            res = cov.store_coverage(store, truth)
+            res.update({"seconds_per_frame": cov.stage_seconds(store), "noise_only": _noise_only(store, truth)})
+        res.update({"role": role, "cameras": cameras, "video": video})
         out["cases"][name] = res
         p = res["pooled"]["plume"]
         print(f"{name}: plume {p['within_1']:.3f} / {p['within_2']:.3f}", flush=True)
     return out
+
+
+def _terms_coverage(args, case, store, truth) -> dict:
+    """:func:`coverage` of a default run's store (no stored sigma): each frame's terms recomputed
+    through the stage's kernel (:func:`~schlieren.workers.bench.coverage.cached_terms`, ``--samples``
+    noise samples) and combined with the defaults' scales, as the stage would store them."""
+    from schlieren.pipeline import uncertainty as unc
+    from schlieren.storage.store import ResultStore
+    from schlieren.workers import tasks
+    from schlieren.workers.bench import coverage as cov
+
+    ctx = tasks.context(str(store))
+    params = dataclasses.replace(unc.UncertaintyParams(), samples=args.samples)
+    st = ResultStore.open(store, mode="r")
+    terms = {}
+
+    def term(k):
+        if k not in terms:
+            cache = Path(args.cache) / f"{case}-{args.label}-{k}.npz" if args.cache else None
+            terms[k] = cov.cached_terms(ctx, k, params, cache)
+        return terms[k]
+
+    res = cov.store_coverage(store, truth, sigma=lambda k: cov.terms_sigma(term(k), params, st.read("hull", (k,))))
+    noise = cov.store_coverage(store, truth, sigma=lambda k: np.where(st.read("hull", (k,)), term(k)["noise"], 0.0))
+    res["noise_only"] = noise["pooled"]["plume"]
+    secs = [float(z["seconds"]) for z in terms.values() if "seconds" in z]
+    times = cov.stage_seconds(store)
+    res["seconds_per_frame"] = {**times, **({"uncertainty": float(np.mean(secs))} if secs else {})}
+    return res
 
 
 def _noise_only(store, truth) -> dict:
@@ -151,8 +176,11 @@ def main(argv=None) -> int:
     ap.add_argument("--work", default="/work/realistic", help="the family's --out folder")
     ap.add_argument("--label", default="", help="the run's --label (stores store-LABEL.zarr)")
     ap.add_argument("--cases", default=None, help="comma-separated cases (fit: default the tune cases)")
-    ap.add_argument("--samples", type=int, default=8, help="fit: noise samples per frame")
-    ap.add_argument("--cache", default=None, help="fit: folder caching each frame's terms")
+    ap.add_argument("--samples", type=int, default=8, help="fit, --from-terms: noise samples per frame")
+    ap.add_argument("--cache", default=None, help="folder caching each frame's terms")
+    ap.add_argument("--from-terms", action="store_true",
+                    help="coverage: score a default run's stores, the sigma recomputed from the terms with the "
+                         "defaults' scales (no run with uncertainty.enabled needed)")
     ap.add_argument("--results", default=str(RESULTS))
     args = ap.parse_args(argv)
     from schlieren.workers.bench import coverage_markdown as md

@@ -26,7 +26,7 @@ from schlieren.pipeline import metrics
 from schlieren.pipeline import uncertainty as unc
 
 __all__ = ["truth_on_grid", "coverage", "frame_regions", "decompose", "fit_scales", "store_coverage",
-           "combine", "TARGET_1", "TARGET_2"]
+           "cached_terms", "terms_sigma", "combine", "TARGET_1", "TARGET_2"]
 
 #: The coverage targets the scales are fitted to (a Gaussian's: 68.3 % and 95.4 %).
 TARGET_1, TARGET_2 = 0.68, 0.95
@@ -126,18 +126,21 @@ def fit_scales(frames: list[dict], *, boundary=np.arange(2.0, 10.01, 0.25),
     return best
 
 
-def store_coverage(store_path, truth_path) -> dict:
+def store_coverage(store_path, truth_path, sigma=None) -> dict:
     """Coverage of one kept store's errors by its stored ``refractivity_sigma``, per frame and
-    pooled over the frames, in every region of :func:`frame_regions`."""
+    pooled over the frames, in every region of :func:`frame_regions`.
+
+    ``sigma``: optional ``sigma(k) -> ndarray`` used instead of the stored array (e.g. the
+    terms of :func:`decompose` combined with the run's scales, :func:`terms_sigma`)."""
     from schlieren.storage.store import ResultStore
 
     st = ResultStore.open(store_path, mode="r")
-    if "refractivity_sigma" not in st:
+    if sigma is None and "refractivity_sigma" not in st:
         raise ValueError(f"{store_path}: no refractivity_sigma (run with uncertainty.enabled)")
     per_frame, pooled = [], {}
     for k, truth, r_amb in truth_on_grid(store_path, truth_path):
         r = np.asarray(st.read("refractivity", (k,)), dtype=np.float64)
-        s = np.asarray(st.read("refractivity_sigma", (k,)), dtype=np.float64)
+        s = np.asarray(st.read("refractivity_sigma", (k,)) if sigma is None else sigma(k), dtype=np.float64)
         regions = frame_regions(truth, r_amb, st.read("hull", (k,)))
         row = {name: coverage(r - truth, s, m) for name, m in regions.items()}
         per_frame.append({"frame": k, **row})
@@ -150,6 +153,30 @@ def store_coverage(store_path, truth_path) -> dict:
                     "within_2": p[1] / p[2] if p[2] else float("nan"), "voxels": int(p[2])}
              for name, p in pooled.items()}
     return {"frames": per_frame, "pooled": total}
+
+
+def cached_terms(ctx, k: int, params: unc.UncertaintyParams, cache: Path | None) -> dict:
+    """Frame ``k``'s unscaled terms (:func:`decompose`) as ``{"noise", "boundary", "structure",
+    "seconds"}``, read from / written to ``cache`` (an ``.npz`` path) when given."""
+    import time
+
+    if cache is not None and Path(cache).exists():
+        z = dict(np.load(cache))
+        return {n: np.asarray(v, dtype=np.float64) for n, v in z.items()}
+    t0 = time.perf_counter()
+    res = decompose(ctx, k, params)
+    z = {"noise": res.noise_sigma, "boundary": res.boundary_sigma, "structure": res.structure_sigma,
+         "seconds": np.float64(time.perf_counter() - t0)}
+    if cache is not None:
+        Path(cache).parent.mkdir(parents=True, exist_ok=True)
+        np.savez(cache, **{n: np.asarray(v, dtype=np.float32) for n, v in z.items()})
+    return {n: np.asarray(v, dtype=np.float64) for n, v in z.items()}
+
+
+def terms_sigma(terms: dict, params: unc.UncertaintyParams, hull: np.ndarray) -> np.ndarray:
+    """The stage's ``refractivity_sigma`` from the unscaled terms and ``params``' scales (0 outside the hull)."""
+    s = combine(terms["noise"], terms["boundary"], terms["structure"], params.boundary_scale, params.structure_scale)
+    return np.where(np.asarray(hull, dtype=bool), s, 0.0)
 
 
 def stage_seconds(store_path) -> dict:

@@ -3,12 +3,13 @@ the temperature along the plume axis with its error bars (``uncertainty.enabled`
 
 The standard errors are the ``<quantity>_sigma`` arrays of the optional ``uncertainty``
 stage (docs/uncertainty.md). The plume axis is traced height by height: in each horizontal
-slice the hottest voxel of the hull, the temperature there and its sigma, drawn with one
+slice the hottest voxel of the hull's largest connected part, the temperature there and its sigma, drawn with one
 and two sigma bands.
 """
 
 from __future__ import annotations
 
+import matplotlib
 import numpy as np
 from matplotlib.figure import Figure
 
@@ -28,17 +29,19 @@ _SPECS = (("refractivity", "refractivity n - 1", "10$^{-6}$", 1e6, "viridis"),
 def value_sigma_figure(value: np.ndarray, sigma: np.ndarray, grid: Grid, *, index, label: str, units: str,
                        cmap: str, title: str | None = None) -> Figure:
     """Three orthogonal slices of ``value`` (top) and of its standard error ``sigma`` (bottom)
-    through the voxel ``index`` (iz, iy, ix), each row with its own colour bar."""
+    through the voxel ``index`` (iz, iy, ix), each row with its own colour bar; NaN voxels
+    (``sigma`` outside the hull, where it is not an estimate) are drawn grey."""
     nx, ny, nz = grid.shape_xyz
     fig = _new_figure(15.0, 10.0)
     axes = fig.subplots(2, 3, width_ratios=[nx / ny, nx / nz, ny / nz])
-    for row, (vol, lab, cm) in enumerate(((value, label, cmap), (sigma, f"sigma of the {label}", "magma"))):
+    sigma_cmap = matplotlib.colormaps["magma"].with_extremes(bad="0.8")
+    for row, (vol, lab, cm) in enumerate(((value, label, cmap), (sigma, f"sigma of the {label}", sigma_cmap))):
         finite = vol[np.isfinite(vol)]
         if not finite.size:
             lo, hi = 0.0, 1.0
         elif row == 0:  # the value's whole range, as the slices section
             lo, hi = float(finite.min()), float(finite.max())
-        else:  # sigma from 0; its 99.5th percentile (a few voxels at r ~ 0 have huge temperature sigmas)
+        else:  # sigma from 0 to its 99.5th percentile in the hull (a few voxels at r ~ 0 have huge T sigmas)
             lo, hi = 0.0, float(np.percentile(finite, 99.5))
         im = None
         for ax, axis in zip(axes[row], ("z", "y", "x")):
@@ -51,13 +54,19 @@ def value_sigma_figure(value: np.ndarray, sigma: np.ndarray, grid: Grid, *, inde
 
 
 def axis_profile(temperature: np.ndarray, sigma: np.ndarray, hull: np.ndarray, grid: Grid):
-    """The plume axis: per height with hull voxels, the hottest hull voxel's height (m), x and y
-    (m), temperature and sigma (K). Returns a dict of arrays (empty arrays without a hull)."""
+    """The plume axis: per height with voxels of the hull's largest connected part, its hottest
+    voxel's height (m), x and y (m), temperature and sigma (K). Stray hull pieces (a lone
+    voxel a mask let through) are left out, so the axis stays on the plume. Returns a dict of
+    arrays (empty arrays without a hull)."""
+    from scipy import ndimage
+
     z_axis = grid.axes()[2]
     xs, ys = grid.axes()[0], grid.axes()[1]
+    labels, n = ndimage.label(np.asarray(hull, dtype=bool))
+    main = labels == (1 + int(np.argmax(np.bincount(labels.ravel())[1:]))) if n else np.zeros(hull.shape, bool)
     rows = []
     for k in range(temperature.shape[0]):
-        t = np.where(hull[k] & np.isfinite(temperature[k]) & np.isfinite(sigma[k]), temperature[k], -np.inf)
+        t = np.where(main[k] & np.isfinite(temperature[k]) & np.isfinite(sigma[k]), temperature[k], -np.inf)
         if not np.isfinite(t).any():
             continue
         j, i = np.unravel_index(int(np.argmax(t)), t.shape)
@@ -105,6 +114,7 @@ def uncertainty_section(page: ReportPage, rd: ReportReader, grid: Grid, writer: 
             continue
         if key == "temperature":
             v, s = np.where(r > 0, v, np.nan), np.where(r > 0, s, np.nan)
+        s = np.where(hull, s, np.nan)  # outside the hull: the ambient constraint, not an estimate
         fig = value_sigma_figure(v * factor, s * factor, grid, index=index, label=label, units=units, cmap=cmap,
                                  title=f"{label} and its standard error, frame {cap}{tstamp}")
         parts.append(html_img(_figure(writer, f"uncertainty_{key}.png", fig), f"{key} and its standard error"))
@@ -118,12 +128,14 @@ def uncertainty_section(page: ReportPage, rd: ReportReader, grid: Grid, writer: 
         if prof["z"].size:
             fig = axis_profile_figure(prof, title=f"plume axis, frame {cap}")
             parts.append(html_img(_figure(writer, "uncertainty_axis.png", fig), "temperature along the plume axis",
-                                  "The temperature of the hottest hull voxel at each height, with its one and two "
-                                  "sigma bands."))
+                                  "The temperature of the hottest voxel at each height of the hull's largest "
+                                  "connected part, with its one and two sigma bands."))
     body = ("<p>Standard error of every voxel (one sigma; <code>uncertainty.enabled</code>, docs/uncertainty.md): "
             "the flows' measured noise propagated through the tomography and the integration, plus the "
             "integration's boundary sensitivity and the estimate's fine structure, scaled on the realistic family. "
-            "Zero outside the visual hull (the hull's ambient constraint is not an estimate).</p>"
+            "Zero in the store outside the visual hull, drawn grey: the hull's ambient constraint is not an "
+            "estimate, and flow every mask missed is not covered. With space-time reconstruction on, the noise term "
+            "is the per-frame solve's (the window's average has less noise: the sigma is then conservative).</p>"
             + html_table(["quantity", "units", "median sigma in the hull", "95th percentile"], rows, "num")
             + "\n".join(parts))
     page.add("Uncertainty", body, "uncertainty")
