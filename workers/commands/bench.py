@@ -133,7 +133,6 @@ def _realistic(args) -> int:
     from rich.console import Console
 
     from schlieren.pipeline.stages import config_from_dict
-    from schlieren.storage import bench_io
     from schlieren.workers import realistic as rb
 
     console = Console(stderr=True)
@@ -169,8 +168,14 @@ def _realistic(args) -> int:
     machine = _machine()
     result["machine"] = machine
     name = "realistic" + (f"_{args.label}" if args.label else "")
-    out = Path(args.results)
-    bench_io.write_text(out / f"{name}.md", rb.family_markdown(result, machine=machine))
+    return _write_family(Path(args.results), name, rb.family_markdown(result, machine=machine), result, console)
+
+
+def _write_family(out, name: str, markdown: str, result: dict, console) -> int:
+    """Write a family benchmark's ``<name>.md`` / ``.json`` under ``out``; 1 if a case's run failed."""
+    from schlieren.storage import bench_io
+
+    bench_io.write_text(out / f"{name}.md", markdown)
     bench_io.write_json(out / f"{name}.json", result)
     console.print(f"wrote {out / (name + '.md')} and {out / (name + '.json')} ({result['wall_seconds']:.0f} s)")
     failed = [c["case"] for c in result["cases"] if c.get("failures")]
@@ -189,7 +194,6 @@ def _spacetime(args) -> int:
     from rich.console import Console
 
     from schlieren.pipeline.stages import config_from_dict
-    from schlieren.storage import bench_io
     from schlieren.workers import realistic as rb
     from schlieren.workers.bench import spacetime as sb
 
@@ -224,18 +228,11 @@ def _spacetime(args) -> int:
     result["wall_seconds"] = time.perf_counter() - t0
     result["machine"] = _machine()
     name = "spacetime" + (f"_{args.label}" if args.label else "")
-    out = Path(args.results)
     command = "schlieren bench spacetime" + (f" --cases {args.cases}" if args.cases else "") + \
         (f" --role {args.role}" if args.role else "") + (f" --frames {frames}" if args.frames else "") + \
         (f" --params {args.params}" if args.params else "")
-    bench_io.write_text(out / f"{name}.md", sb.spacetime_markdown(result, machine=result["machine"], command=command))
-    bench_io.write_json(out / f"{name}.json", result)
-    console.print(f"wrote {out / (name + '.md')} and {out / (name + '.json')} ({result['wall_seconds']:.0f} s)")
-    failed = [c["case"] for c in result["cases"] if c.get("failures")]
-    if failed:
-        console.print(f"pipeline failures: {', '.join(failed)}")
-        return 1
-    return 0
+    return _write_family(Path(args.results), name,
+                         sb.spacetime_markdown(result, machine=result["machine"], command=command), result, console)
 
 
 def _has_bench_extra() -> bool:
