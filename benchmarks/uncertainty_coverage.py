@@ -98,7 +98,7 @@ def coverage(args) -> dict:
     from schlieren.workers.bench import coverage as cov
 
     out = {"command": "python benchmarks/uncertainty_coverage.py " + " ".join(sys.argv[1:]), "label": args.label,
-           "cases": {}, "load": os.getloadavg()}
+           "cases": {}, "load": os.getloadavg(), "from_terms": bool(args.from_terms), "samples": args.samples}
     wanted = set(args.cases.split(",")) if args.cases else None
     for name, role, cameras, video in _all_cases():
         if wanted is not None and name not in wanted:

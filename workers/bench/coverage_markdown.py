@@ -12,6 +12,10 @@ def _pct(v) -> str:
     return f"{100 * v:.1f} %" if isinstance(v, (int, float)) and np.isfinite(v) else "—"
 
 
+def _sec(v) -> str:
+    return f"{v:.1f}" if isinstance(v, (int, float)) and np.isfinite(v) else "—"
+
+
 def _pair(c: dict | None) -> str:
     return f"{_pct(c['within_1'])} / {_pct(c['within_2'])}" if c and c.get("voxels", 1) else "—"
 
@@ -40,14 +44,22 @@ def fit_markdown(out: dict) -> str:
 
 def coverage_markdown(out: dict) -> str:
     """:func:`benchmarks/uncertainty_coverage.coverage`'s result as a page (tune and report separate)."""
+    if out.get("from_terms"):
+        how = (f"Command: `{out['command']}` on the kept stores of a default run (`schlieren bench realistic --label "
+               f"{out['label']} --keep-stores`): each frame's terms recomputed through the stage's kernel "
+               f"({out.get('samples', '?')} noise samples) and combined with the defaults' scales, as the stage "
+               "would store them.")
+    else:
+        how = (f"Command: `{out['command']}` after `schlieren bench realistic --label {out['label']} --keep-stores "
+               "--params` with `uncertainty: {enabled: true}`.")
     lines = ["# Uncertainty per voxel: coverage on the realistic family", "",
-             f"Command: `{out['command']}` after `schlieren bench realistic --label {out['label']} --keep-stores "
-             "--params` with `uncertainty: {enabled: true}`. Coverage = the fraction of voxels whose error "
+             how + " Coverage = the fraction of voxels whose error "
              "|estimate - truth| lies within one / two `refractivity_sigma` (a Gaussian: 68.3 % / 95.4 %), "
              "pooled over the three frames. Plume = SPEC's in-plume voxels (|truth - ambient| > 1 % of the "
              "range); outside = the rest, inside the visual hull and beyond it (where sigma is 0 by construction: "
-             "the hull's ambient constraint). Noise alone = the stored sigma without its boundary and structure "
-             "terms.", ""]
+             "the hull's ambient constraint; an error of exactly 0 counts as covered). Noise alone = the sigma "
+             "without its boundary and structure terms. Seconds: task seconds per frame on the loaded machine "
+             "(— where the terms came from an earlier cache).", ""]
     for role in ("tune", "report"):
         rows = [(n, r) for n, r in out["cases"].items() if r["role"] == role]
         if not rows:
@@ -62,7 +74,7 @@ def coverage_markdown(out: dict) -> str:
             sec = r.get("seconds_per_frame", {})
             lines.append(f"| {name} | {_pair(p['plume'])} | {_pair(p['plume_in_hull'])} | {_pct(out_frac)} | "
                          f"{_pair(p['outside_in_hull'])} | {_pair(p['outside_hull'])} | {_pair(r.get('noise_only'))} | "
-                         f"{sec.get('tomography', float('nan')):.1f} | {sec.get('uncertainty', float('nan')):.1f} |")
+                         f"{_sec(sec.get('tomography'))} | {_sec(sec.get('uncertainty'))} |")
         lines.append("")
     load = out.get("load")
     if load:
