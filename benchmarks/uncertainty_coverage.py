@@ -98,7 +98,8 @@ def coverage(args) -> dict:
     from schlieren.workers.bench import coverage as cov
 
     out = {"command": "python benchmarks/uncertainty_coverage.py " + " ".join(sys.argv[1:]), "label": args.label,
-           "cases": {}, "load": os.getloadavg(), "from_terms": bool(args.from_terms), "samples": args.samples}
+           "cases": {}, "load": os.getloadavg(), "from_terms": bool(args.from_terms), "samples": args.samples,
+           "scales": args.scales}
     wanted = set(args.cases.split(",")) if args.cases else None
     for name, role, cameras, video in _all_cases():
         if wanted is not None and name not in wanted:
@@ -130,6 +131,9 @@ def _terms_coverage(args, case, store, truth) -> dict:
 
     ctx = tasks.context(str(store))
     params = dataclasses.replace(unc.UncertaintyParams(), samples=args.samples)
+    if args.scales:  # other boundary / structure scales than the defaults'
+        b, s = (float(v) for v in args.scales.split(","))
+        params = dataclasses.replace(params, boundary_scale=b, structure_scale=s)
     st = ResultStore.open(store, mode="r")
     terms = {}
 
@@ -181,6 +185,8 @@ def main(argv=None) -> int:
     ap.add_argument("--from-terms", action="store_true",
                     help="coverage: score a default run's stores, the sigma recomputed from the terms with the "
                          "defaults' scales (no run with uncertainty.enabled needed)")
+    ap.add_argument("--scales", default=None,
+                    help="coverage --from-terms: BOUNDARY,STRUCTURE scales instead of the defaults'")
     ap.add_argument("--results", default=str(RESULTS))
     args = ap.parse_args(argv)
     from schlieren.workers.bench import coverage_markdown as md

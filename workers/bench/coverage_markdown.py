@@ -47,8 +47,9 @@ def coverage_markdown(out: dict) -> str:
     if out.get("from_terms"):
         how = (f"Command: `{out['command']}` on the kept stores of a default run (`schlieren bench realistic --label "
                f"{out['label']} --keep-stores`): each frame's terms recomputed through the stage's kernel "
-               f"({out.get('samples', '?')} noise samples) and combined with the defaults' scales, as the stage "
-               "would store them.")
+               f"({out.get('samples', '?')} noise samples) and combined with "
+               + (f"the scales {out['scales']} (boundary, structure)" if out.get("scales") else "the defaults' scales")
+               + ", as the stage would store them.")
     else:
         how = (f"Command: `{out['command']}` after `schlieren bench realistic --label {out['label']} --keep-stores "
                "--params` with `uncertainty: {enabled: true}`.")
