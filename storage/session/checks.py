@@ -60,7 +60,12 @@ def strobe_overlap(rng: tuple[int, int], strobe: tuple[int, int], what: str = "f
     (a, b), (s0, s1) = rng, strobe
     if a >= s1 or s0 >= b:
         return None
-    fix = f"[{s1}, {b})" if b > s1 else (f"[{a}, {s0})" if a < s0 else "frames outside it")
+    if b > s1:
+        fix = f"[{s1}, {b})"
+    elif a < s0:
+        fix = f"[{a}, {s0})"
+    else:
+        fix = f"frames from {s1} on" + (f" or before {s0}" if s0 > 0 else "")
     return (f"the {what} [{a}, {b}) overlap sync.strobe.search_frames [{s0}, {s1}): a frame the flash "
             f"lit cannot be reconstructed; process frames outside the strobe window (e.g. {fix})")
 
