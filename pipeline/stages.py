@@ -35,34 +35,17 @@ from schlieren.pipeline import spacetime as _spacetime
 from schlieren.pipeline import sync as _sync
 from schlieren.pipeline import tomography as _tomo
 from schlieren.pipeline import uncertainty as _unc
+from schlieren.pipeline.params import ParamsError, param, parameters
 from schlieren.pipeline.params import validate as _validate
-from schlieren.pipeline.params import param
 
 __all__ = ["Stage", "RunConfig", "STAGES", "SPACETIME_STAGE", "OPTIONAL_STAGES", "run_stages", "stages_with",
-           "stage", "middle_frame", "config_from_dict", "config_to_dict", "check_config", "kernel_kwargs", "bind_medium",
+           "stage", "middle_frame", "config_from_dict", "config_to_dict", "check_config", "bind_medium",
            "bind_flow_factor"]
 
 
-@dataclass(frozen=True)
+@parameters
 class RunConfig:
-    """Every parameter of a run, one frozen dataclass per stage (saved in the store).
-
-    Attributes
-    ----------
-    reconstruction : {"two-step", "direct"}
-        Reconstruction method. ``two-step``: the paper's gradient tomography (``tomography``) followed by the
-        anisotropic Poisson integration (``poisson``); ``direct``: refractivity solved
-        directly from the deflections (``direct``, beyond the paper).
-    warm_start_block : int
-        Frames solved in sequence, each tomography solve warm-started from the previous
-        frame's solution; blocks are independent (more blocks, more parallel work).
-    spacetime : SpaceTimeParams
-        Space-time reconstruction (beyond the paper): with ``spacetime.window > 0`` each
-        frame's gradient is the motion-compensated mean of the per-frame solutions of its
-        window (stage ``spacetime``); the two-step reconstruction only.
-    uncertainty : UncertaintyParams
-        The optional standard errors per voxel (``uncertainty.enabled``; beyond the paper).
-    """
+    """Every parameter of a run, one frozen params class per stage (saved in the store)."""
 
     flow: _flow.FlowParams = field(default_factory=_flow.FlowParams)
     flash: _sync.FlashParams = field(default_factory=_sync.FlashParams)
@@ -71,20 +54,18 @@ class RunConfig:
     hull: _hull.HullParams = field(default_factory=_hull.HullParams)
     tomography: _tomo.TomoParams = field(default_factory=_tomo.TomoParams)
     poisson: _poisson.PoissonParams = field(default_factory=_poisson.PoissonParams)
-    reconstruction: str = param("two-step", choices=("two-step", "direct"))
-    warm_start_block: int = param(4, unit="frames", ge=1, le=10000)
+    reconstruction: str = param(
+        "two-step", choices=("two-step", "direct"),
+        help="`two-step`: the paper's gradient tomography (`tomography`) followed by the anisotropic Poisson "
+             "integration (`poisson`); `direct`: refractivity solved directly from the deflections "
+             "(`direct`, beyond the paper).")
+    warm_start_block: int = param(
+        4, unit="frames", ge=1, le=10000,
+        help="Frames solved in sequence, each tomography solve warm-started from the previous frame's; "
+             "blocks are independent, so more blocks give more parallel work.")
     direct: _tomo.RefractivityParams = field(default_factory=_tomo.RefractivityParams)
     spacetime: _spacetime.SpaceTimeParams = field(default_factory=_spacetime.SpaceTimeParams)
     uncertainty: _unc.UncertaintyParams = field(default_factory=_unc.UncertaintyParams)
-
-    def __post_init__(self):
-        if self.reconstruction not in {"two-step", "direct"}:
-            raise ValueError(f"reconstruction must be 'two-step' or 'direct', not {self.reconstruction!r}")
-        if self.warm_start_block < 1:
-            raise ValueError("warm_start_block must be at least 1")
-        if self.reconstruction == "direct" and self.spacetime.window > 0:
-            raise ValueError("spacetime.window > 0 needs reconstruction 'two-step' (the direct solve has no "
-                             "per-frame gradient stage to average)")
 
     @property
     def flow_factor(self) -> int:
@@ -112,16 +93,6 @@ def bind_medium(cfg: RunConfig, n_ambient: float) -> RunConfig:
         if dataclasses.is_dataclass(value) and any(g.name == "n_ambient" for g in dataclasses.fields(value)):
             out[f.name] = dataclasses.replace(value, n_ambient=float(n_ambient))
     return dataclasses.replace(cfg, **out)
-
-
-def kernel_kwargs(params, kernel: Callable) -> dict:
-    """The fields of a params dataclass that ``kernel`` takes as keyword arguments."""
-    import inspect
-
-    if params is None:
-        return {}
-    accepted = inspect.signature(kernel).parameters
-    return {f.name: getattr(params, f.name) for f in dataclasses.fields(params) if f.name in accepted}
 
 
 @dataclass(frozen=True)
@@ -200,8 +171,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("clock", _sync.output_times, None, ("time_offset",), ("time",), (),
           after=(("sync", "all"),), cost=0.001),
     # a raw frame of the rolling-shutter margins is processed only if an output instant
-    # needs it, which the clock decides (4 of the 12 raw frames per camera of an 8-frame
-    # run; 2 of them were never used on the paper-scale session benchmark)
+    # needs it, which the clock decides (docs/tuning.md, "Frame quality")
     Stage("deflection", _flow.deflection_stage, "flow", ("images",), ("flow_raw", "frame_quality"),
           ("camera", "raw_frame"), after=(("clock", "margin"),), batch=True, cost=0.014),
     Stage("resample", _sync.resample_flow, "resample", ("flow_raw", "time_offset", "time"),
@@ -213,8 +183,7 @@ STAGES: tuple[Stage, ...] = (
           ("mask_threshold",), (), after=(("potential", "all"),), cost=0.02),
     # the potential edges are implied by the threshold's, but without them Dask counts
     # masks as root tasks (one small dependency group) and holds them in its scheduler
-    # queue until a worker runs out of hull and solve tasks: at 960x720 the last masks
-    # ran 7 s after the threshold, and the last warm-start chain ran alone at the end
+    # queue until a worker runs out of hull and solve tasks (docs/tuning.md, "Scheduling")
     Stage("mask", _masks.make_mask, "masks", ("potential", "mask_threshold"), ("mask",),
           ("camera", "frame"), after=(("threshold", "all"), ("potential", "window")), frame_halo=1,
           batch=True, cost=0.003, grid="flow"),
@@ -223,9 +192,8 @@ STAGES: tuple[Stage, ...] = (
           after=(("mask", "same"),), cost=0.36),
     # the regularisation weight, from the noise measured outside the masks (discrepancy
     # principle on the middle frame; with reg_choice "fixed" it only records reg_weight).
-    # It reads the middle frame's masks only: waiting for every mask (as it once did) held
-    # every solve until all masks were done, then kept one worker busy with this task alone
-    # (3.2 idle worker-seconds of 175 on the 32-frame paper-scale session)
+    # It reads the middle frame's masks only, so the solves need not wait for every mask
+    # (docs/tuning.md, "Tomography weight")
     Stage("regularisation", _tomo.choose_reg_weight, "tomography", ("flow", "mask", "geometry"),
           ("reg_weight", "rhs_noise"), (), after=(("mask", "middle"), ("geometry", "all")),
           resources={"TOMO": 1}, cost=2.5),
@@ -301,9 +269,15 @@ def config_from_dict(d: dict | None) -> RunConfig:
     Raises
     ------
     schlieren.pipeline.params.ParamsError
-        A ``ValueError`` naming the parameter (``tomography.max_iter``) and its valid values.
+        A ``ValueError`` naming the parameter (``tomography.max_iter``) and its valid values;
+        also ``spacetime.window > 0`` with the ``direct`` reconstruction (it has no
+        per-frame gradient stage to average).
     """
-    return _validate(RunConfig, d)
+    cfg = _validate(RunConfig, d)
+    if cfg.reconstruction == "direct" and cfg.spacetime.window > 0:
+        raise ParamsError("> 0 needs reconstruction 'two-step' (the direct solve has no per-frame gradient stage "
+                          "to average)", "spacetime.window")
+    return cfg
 
 
 def check_config(cfg: RunConfig) -> RunConfig:

@@ -95,7 +95,7 @@ def _motion(ref: np.ndarray, mov: np.ndarray, params: SpaceTimeParams) -> np.nda
     a, b = ref, mov
     for _ in range(halvings):
         a, b = downsample2(a), downsample2(b)
-    return volume_motion(a, b, levels=params.motion_levels, window=params.motion_window,
+    return volume_motion(a, b, levels=params.motion_levels, sigma=params.motion_window,
                          iterations=params.motion_iterations, reg=params.motion_reg)
 
 

@@ -95,7 +95,7 @@ def _lk_step(ref: np.ndarray, warped: np.ndarray, sigma: float, reg: float) -> n
     return du
 
 
-def volume_motion(ref: np.ndarray, mov: np.ndarray, *, levels: int = 3, window: float = 3.0,
+def volume_motion(ref: np.ndarray, mov: np.ndarray, *, levels: int = 3, sigma: float = 3.0,
                   iterations: int = 3, reg: float = 0.05, skip: int = 0,
                   max_step: float = 1.0) -> np.ndarray:
     """The displacement ``u`` with ``mov(p + u(p)) ~ ref(p)``: pyramidal 3D Lucas-Kanade.
@@ -108,7 +108,7 @@ def volume_motion(ref: np.ndarray, mov: np.ndarray, *, levels: int = 3, window: 
     levels : int
         Pyramid levels (each halves the resolution): displacements up to about
         ``2 ** (levels - 1)`` voxels are found.
-    window : float
+    sigma : float
         Gaussian window of the structure tensor, voxels of each level.
     iterations : int
         Warp-and-update steps per level.
@@ -144,6 +144,6 @@ def volume_motion(ref: np.ndarray, mov: np.ndarray, *, levels: int = 3, window: 
         if lvl < skip:
             continue
         for _ in range(iterations):
-            du = _lk_step(a, warp_volume(b, u), window, reg)
+            du = _lk_step(a, warp_volume(b, u), sigma, reg)
             u += np.clip(du, -max_step, max_step)
     return u

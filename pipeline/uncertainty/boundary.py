@@ -34,7 +34,7 @@ _PAD = ((1, 1), (1, 1), (1, 1))
 
 
 def natural_integration(gradient: np.ndarray, hull: np.ndarray, grid: Grid, *,
-                        params: PoissonParams = PoissonParams(), tensor: np.ndarray | None = None,
+                        poisson: PoissonParams = PoissonParams(), tensor: np.ndarray | None = None,
                         tol: float = 1e-5, max_iter: int = 1000) -> np.ndarray:
     """``r - r_ambient`` integrated from ``gradient`` inside ``hull`` with a natural boundary on
     the hull surface (eq. 8 without the Dirichlet condition), each connected part's constant
@@ -45,7 +45,7 @@ def natural_integration(gradient: np.ndarray, hull: np.ndarray, grid: Grid, *,
     gradient : ndarray, shape (nz, ny, nx, 3)
     hull : ndarray, shape (nz, ny, nx) bool
     grid : Grid
-    params : PoissonParams
+    poisson : PoissonParams
         The integration's (``alpha`` and the tensor's constants).
     tensor : ndarray, shape (nz + 2, ny + 2, nx + 2, 3, 3), optional
         The diffusion tensor on the padded grid (e.g. :attr:`LinearisedIntegration.tensor`).
@@ -56,7 +56,7 @@ def natural_integration(gradient: np.ndarray, hull: np.ndarray, grid: Grid, *,
         return out
     hull_p = np.pad(hull, _PAD)
     g_p = np.pad(np.asarray(gradient, dtype=np.float64), _PAD + ((0, 0),))
-    A, f = assemble(g_p, hull_p, float(grid.voxel_size), params=params, real=hull_p, tensor=tensor)
+    A, f = assemble(g_p, hull_p, float(grid.voxel_size), params=poisson, real=hull_p, tensor=tensor)
     # singular (one constant per connected part) but consistent: f = D^T g lies in A's range, and
     # CG on it with a positive definite preconditioner converges in that range. The V-cycle of
     # the pinned problem (Dirichlet outside the hull) is one; the natural problem's own V-cycle
@@ -72,7 +72,7 @@ def natural_integration(gradient: np.ndarray, hull: np.ndarray, grid: Grid, *,
 
 
 def boundary_sensitivity(gradient: np.ndarray, integration: LinearisedIntegration, grid: Grid, *,
-                         params: PoissonParams = PoissonParams()) -> np.ndarray:
+                         poisson: PoissonParams = PoissonParams()) -> np.ndarray:
     """``r_N - r_D``: the natural-boundary integration of ``gradient``
     (:func:`natural_integration`) minus the pinned one (``integration``, the frame's
     linearised integration, without the sign constraint); zero outside the hull.
@@ -85,5 +85,5 @@ def boundary_sensitivity(gradient: np.ndarray, integration: LinearisedIntegratio
     if not hull.any():
         return np.zeros(hull.shape)
     r_d = integration(gradient)
-    r_n = natural_integration(gradient, hull, grid, params=params, tensor=integration.tensor)
+    r_n = natural_integration(gradient, hull, grid, poisson=poisson, tensor=integration.tensor)
     return np.where(hull, r_n - r_d, 0.0)

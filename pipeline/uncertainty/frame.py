@@ -119,7 +119,7 @@ def frame_uncertainty(geom: TomoGeometry, flows: np.ndarray, quiet: np.ndarray, 
     flows = np.asarray(flows)
     level = flow_noise_level(flows, quiet)
     zero = np.zeros(hull.shape)
-    integration = LinearisedIntegration(hull, grid, params=poisson, gradient=gradient)
+    integration = LinearisedIntegration(hull, grid, poisson=poisson, gradient=gradient)
     noise_var, samples, its = zero, 0, ()
     if params.samples > 0 and not np.all(np.isfinite(level)):
         log.warning("uncertainty: no noise measurable outside the masks; the noise term is left out")
@@ -133,7 +133,7 @@ def frame_uncertainty(geom: TomoGeometry, flows: np.ndarray, quiet: np.ndarray, 
         noise_var, samples, its = masked_mean(ens.variance, hull, params.smoothing), ens.samples, ens.iterations
     bound = zero
     if params.boundary_scale > 0 and hull.any():
-        d = boundary_sensitivity(gradient, integration, grid, params=poisson)
+        d = boundary_sensitivity(gradient, integration, grid, poisson=poisson)
         bound = params.boundary_scale * np.sqrt(masked_mean(d * d, hull, params.boundary_smoothing))
     struct = zero
     if params.structure_scale > 0:

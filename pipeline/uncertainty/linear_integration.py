@@ -34,7 +34,7 @@ class LinearisedIntegration:
     ----------
     hull : ndarray, shape (nz, ny, nx) bool
     grid : Grid
-    params : PoissonParams
+    poisson : PoissonParams
         As the run's integration (``alpha``, ``box_boundary``, the tensor's constants).
     gradient : ndarray, shape (nz, ny, nx, 3)
         The estimate the tensor is taken from (unused for ``alpha >= 1``).
@@ -43,18 +43,18 @@ class LinearisedIntegration:
         integration's multigrid V-cycle); a standard error needs two digits.
     """
 
-    def __init__(self, hull: np.ndarray, grid: Grid, *, params: PoissonParams = PoissonParams(),
+    def __init__(self, hull: np.ndarray, grid: Grid, *, poisson: PoissonParams = PoissonParams(),
                  gradient: np.ndarray | None = None, tol: float = 1e-4, max_iter: int = 500):
         self.hull = np.asarray(hull, dtype=bool)
         if self.hull.shape != tuple(grid.shape):
             raise ValueError(f"hull {self.hull.shape} does not match the grid {grid.shape}")
         self.h = float(grid.voxel_size)
-        self.params = params
+        self.params = poisson
         self.tol, self.max_iter = float(tol), int(max_iter)
         self.n = int(self.hull.sum())
         self.hull_p = np.pad(self.hull, _PAD)
         self.real = None
-        if params.box_boundary == "neumann":  # as integrate(): natural faces unless the hull fills the box
+        if poisson.box_boundary == "neumann":  # as integrate(): natural faces unless the hull fills the box
             rim = ndi.binary_dilation(self.hull, structure=ndi.generate_binary_structure(3, 1)) & ~self.hull
             if rim.any():
                 self.real = np.pad(np.ones(self.hull.shape, bool), _PAD)
@@ -62,8 +62,8 @@ class LinearisedIntegration:
             return
         g = np.zeros(self.hull.shape + (3,)) if gradient is None else np.asarray(gradient, dtype=np.float64)
         g_p = np.pad(g, _PAD + ((0, 0),))
-        self.tensor = tensor_field(g_p, self.hull_p, self.h, params=params)
-        self.A, _ = assemble(g_p, self.hull_p, self.h, params=params, real=self.real, tensor=self.tensor)
+        self.tensor = tensor_field(g_p, self.hull_p, self.h, params=poisson)
+        self.A, _ = assemble(g_p, self.hull_p, self.h, params=poisson, real=self.real, tensor=self.tensor)
         self.mg = LaplaceMultigrid(self.hull_p, self.h, real=self.real)
 
     def __call__(self, dg: np.ndarray) -> np.ndarray:

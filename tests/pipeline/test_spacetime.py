@@ -32,7 +32,7 @@ def test_volume_motion_recovers_a_known_shift():
     v = _texture((48, 40, 40))
     shift = np.array([2.3, 0.0, -0.7], np.float32)  # voxels, (z, y, x)
     moved = warp_volume(v, np.broadcast_to(-shift, v.shape + (3,)), order=3)  # moved(p + shift) = v(p)
-    u = volume_motion(v, moved, levels=3, window=3.0, iterations=3)
+    u = volume_motion(v, moved, levels=3, sigma=3.0, iterations=3)
     inner = u[10:-10, 10:-10, 10:-10].reshape(-1, 3)
     np.testing.assert_allclose(inner.mean(axis=0), shift, atol=0.05)
     assert inner.std(axis=0).max() < 0.1

@@ -22,6 +22,12 @@ def test_unknown_parameters_are_refused():
         RunConfig(reconstruction="three-step")
 
 
+def test_spacetime_needs_the_two_step_reconstruction():
+    with pytest.raises(ValueError, match="spacetime.window"):
+        config_from_dict({"reconstruction": "direct", "spacetime": {"window": 1}})
+    assert config_from_dict({"spacetime": {"window": 1}}).spacetime.window == 1
+
+
 def test_bind_medium_sets_every_n_ambient():
     cfg = bind_medium(RunConfig(), 1.0003)
     found = [getattr(cfg, f.name).n_ambient for f in dataclasses.fields(cfg)
@@ -51,12 +57,3 @@ def test_table_is_consistent(optional):
         # (flow_window: written by the regularisation task beside its reg_weight)
         assert set(s.inputs) <= seen | {"geometry", "flow_window"}, s.name
         seen |= set(s.outputs)
-
-
-def test_kernel_kwargs_passes_only_accepted_fields():
-    from schlieren.pipeline import masks
-
-    kw = stages.kernel_kwargs(masks.MaskParams(), masks.make_mask)
-    assert set(kw) <= {"smooth_sigma", "dilation_radius", "temporal_radius", "deflection_threshold",
-                       "flow_sigma", "percentile", "n_quantiles", "noise_factor", "grow_factor"}
-    assert "dilation_radius" in kw
