@@ -44,7 +44,7 @@ from schlieren.pipeline.uncertainty.structure import curvature_rms
 from schlieren.pipeline.uncertainty.noise import flow_noise_level
 from schlieren.pipeline.uncertainty.params import UncertaintyParams
 
-__all__ = ["FrameUncertainty", "frame_uncertainty", "temperature_sigma", "density_sigma"]
+__all__ = ["FrameUncertainty", "frame_uncertainty", "frame_rng", "temperature_sigma", "density_sigma"]
 
 log = logging.getLogger(__name__)
 
@@ -143,6 +143,12 @@ def frame_uncertainty(geom: TomoGeometry, flows: np.ndarray, quiet: np.ndarray, 
     return FrameUncertainty(refractivity_sigma=total, noise_sigma=noise, boundary_sigma=bound,
                             structure_sigma=struct, flow_noise=level, samples=samples, iterations=its,
                             seconds=time.perf_counter() - t0)
+
+
+def frame_rng(params: UncertaintyParams, frame: int) -> np.random.Generator:
+    """The noise samples' generator of capture frame ``frame``: seeded by ``(params.seed, frame)``,
+    so a frame's sigma does not depend on which task or worker computes it."""
+    return np.random.default_rng([params.seed, int(frame)])
 
 
 def density_sigma(refractivity_sigma: np.ndarray, medium: Medium = Medium()) -> np.ndarray:

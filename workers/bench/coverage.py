@@ -81,7 +81,7 @@ def decompose(ctx, k: int, params: unc.UncertaintyParams) -> unc.FrameUncertaint
     return unc.frame_uncertainty(
         cached_geometry(ctx.store_path, geometry_key(ctx)), flows, ~masks, ctx.store.read("hull", (k,)),
         ctx.store.read("gradient", (k,)), ctx.store.read("refractivity", (k,)), ctx.session.grid,
-        window_cells=noise_window(ctx), rng=np.random.default_rng([params.seed, ctx.first_frame + k]),
+        window_cells=noise_window(ctx), rng=unc.frame_rng(params, ctx.first_frame + k),
         binning=ctx.ray_binning, tomography=tomo_params(ctx), poisson=ctx.config.poisson, params=raw,
         **flow_blur(ctx))
 

@@ -56,7 +56,7 @@ def uncertainty_task(ctx: RunContext, k: int) -> dict:
     res = uncertainty.frame_uncertainty(
         cached_geometry(ctx.store_path, geometry_key(ctx)), flows, ~masks, hull,
         ctx.store.read("gradient", (k,)), r, grid, window_cells=noise_window(ctx),
-        rng=np.random.default_rng([params.seed, ctx.first_frame + k]), binning=ctx.ray_binning,
+        rng=uncertainty.frame_rng(params, ctx.first_frame + k), binning=ctx.ray_binning,
         tomography=tomo_params(ctx), poisson=ctx.config.poisson, params=params, **flow_blur(ctx))
     sigma = res.refractivity_sigma
     ctx.store.write("refractivity_sigma", (k,), sigma.astype(np.float32))
