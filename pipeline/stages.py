@@ -11,7 +11,14 @@ Dependencies are declared per index:
 
 * ``same``: the task at the same index of that stage (matching the dims they share),
 * ``all``: every task of that stage,
-* ``window``: the tasks of that stage within ``frame_halo`` frames, same camera.
+* ``window``: the tasks of that stage within ``frame_halo`` frames, same camera,
+* ``neighbours``: the tasks of that stage within the run's space-time window
+  (:func:`~schlieren.pipeline.spacetime.window_frames`: up to ``spacetime.window`` frames
+  either side).
+
+The ``spacetime`` stage (:data:`SPACETIME_STAGE`) is in a run only when
+``spacetime.window > 0`` (:func:`run_stages`); a dependency on a stage that is not in the
+run is dropped.
 """
 
 from __future__ import annotations
@@ -24,13 +31,16 @@ from schlieren.pipeline import flow as _flow
 from schlieren.pipeline import hull as _hull
 from schlieren.pipeline import masks as _masks
 from schlieren.pipeline import poisson as _poisson
+from schlieren.pipeline import spacetime as _spacetime
 from schlieren.pipeline import sync as _sync
 from schlieren.pipeline import tomography as _tomo
-from schlieren.pipeline.params import param, parameters
+from schlieren.pipeline import uncertainty as _unc
+from schlieren.pipeline.params import ParamsError, param, parameters
 from schlieren.pipeline.params import validate as _validate
 
-__all__ = ["Stage", "RunConfig", "STAGES", "stage", "middle_frame",
-           "config_from_dict", "config_to_dict", "check_config", "bind_medium", "bind_flow_factor"]
+__all__ = ["Stage", "RunConfig", "STAGES", "SPACETIME_STAGE", "OPTIONAL_STAGES", "run_stages", "stages_with",
+           "stage", "middle_frame", "config_from_dict", "config_to_dict", "check_config", "bind_medium",
+           "bind_flow_factor"]
 
 
 @parameters
@@ -54,6 +64,8 @@ class RunConfig:
         help="Frames solved in sequence, each tomography solve warm-started from the previous frame's; "
              "blocks are independent, so more blocks give more parallel work.")
     direct: _tomo.RefractivityParams = field(default_factory=_tomo.RefractivityParams)
+    spacetime: _spacetime.SpaceTimeParams = field(default_factory=_spacetime.SpaceTimeParams)
+    uncertainty: _unc.UncertaintyParams = field(default_factory=_unc.UncertaintyParams)
 
     @property
     def flow_factor(self) -> int:
@@ -99,7 +111,7 @@ class Stage:
     over : tuple of str
         Dims mapped over: ``("camera", "frame")``, ``("frame",)``, ``("camera",)`` or ``()``.
     after : tuple of (str, str)
-        ``(stage, how)`` dependencies, ``how`` in ``{"same", "all", "window", "chain",
+        ``(stage, how)`` dependencies, ``how`` in ``{"same", "all", "window", "neighbours", "chain",
         "block", "middle", "margin"}`` (``block``: every frame of the task's warm-start block;
         ``middle``: the dependency's indices at the middle frame, :func:`middle_frame`;
         ``margin``: all of the dependency's indices, for tasks at raw frames outside the
@@ -114,6 +126,10 @@ class Stage:
     grid : {"image", "flow"}
         What a batched stage's work scales with: the camera images or the (downsampled)
         flow grid (:func:`~schlieren.workers.run.default_frames_per_task`).
+    enabled_by : str or None
+        An optional stage (:data:`OPTIONAL_STAGES`): the :class:`RunConfig` switch that adds
+        it to a run when true (``"uncertainty.enabled"``; ``"spacetime.window"``: when > 0);
+        None for the stages every run has.
     cost : float
         Rough seconds per task, used only to order the work (``workers/plan.py``,
         :func:`~schlieren.workers.plan.critical_path_priorities`): the serial in-task
@@ -133,6 +149,14 @@ class Stage:
     batch: bool = False
     cost: float = 0.01
     grid: str = "image"
+    enabled_by: str | None = None
+
+    def enabled(self, cfg: RunConfig) -> bool:
+        """Whether a run of ``cfg`` has this stage."""
+        if self.enabled_by is None:
+            return True
+        group, name = self.enabled_by.split(".")
+        return bool(getattr(getattr(cfg, group), name))
 
 
 def middle_frame(n_frames: int) -> int:
@@ -180,10 +204,50 @@ STAGES: tuple[Stage, ...] = (
           resources={"TOMO": 1}, cost=0.71),
     Stage("integrate", _poisson.integrate, "poisson", ("gradient", "hull"),
           ("refractivity", "density", "temperature"), ("frame",),
-          after=(("tomography", "same"),), resources={"TOMO": 1}, cost=0.23),
+          after=(("tomography", "same"), ("spacetime", "same")), resources={"TOMO": 1}, cost=0.23),
 )
 
-_BY_NAME = {s.name: s for s in STAGES}
+#: The space-time stage (beyond the paper; in a run when ``spacetime.window > 0``): frame
+#: ``k``'s gradient from the per-frame solutions of frames ``k - W .. k + W`` (``gradient_frame``,
+#: which the tomography stage then writes instead of ``gradient``) moved onto frame ``k``
+#: along their motion and averaged.
+SPACETIME_STAGE = Stage("spacetime", _spacetime.motion_compensated_mean, "spacetime",
+                        ("gradient_frame", "hull"), ("gradient",), ("frame",),
+                        after=(("tomography", "neighbours"), ("hull", "same")), resources={"TOMO": 1}, cost=0.3,
+                        enabled_by="spacetime.window")
+
+#: Stages a run has only when its configuration asks for them (``Stage.enabled_by``): a
+#: run without them keeps the plan, the markers and the store of :data:`STAGES` alone.
+OPTIONAL_STAGES: tuple[Stage, ...] = (
+    SPACETIME_STAGE,
+    # the standard errors per voxel: the frame's noise through its own solve and integration
+    # (a few solves per frame, so a stage of its own: its tasks run beside the next frames'
+    # solves, and the per-frame tomography is left as it is)
+    Stage("uncertainty", _unc.frame_uncertainty, "uncertainty",
+          ("flow", "mask", "hull", "gradient", "refractivity", "geometry", "reg_weight", "flow_window"),
+          ("refractivity_sigma", "density_sigma", "temperature_sigma"), ("frame",),
+          after=(("integrate", "same"), ("geometry", "all"), ("regularisation", "all")),
+          resources={"TOMO": 1}, cost=5.0, enabled_by="uncertainty.enabled"),
+)
+
+
+def stages_with(names) -> tuple[Stage, ...]:
+    """:data:`STAGES` and the optional stages named in ``names``, each placed before the
+    first stage that waits for it (the space-time stage before the integration), the
+    others at the end."""
+    out = list(STAGES)
+    for s in OPTIONAL_STAGES:
+        if s.name in names:
+            out.insert(next((i for i, t in enumerate(out) if any(d == s.name for d, _ in t.after)), len(out)), s)
+    return tuple(out)
+
+
+def run_stages(cfg: RunConfig) -> tuple[Stage, ...]:
+    """The stages of a run of ``cfg``: :data:`STAGES` and the optional ones it enables."""
+    return stages_with({s.name for s in OPTIONAL_STAGES if s.enabled(cfg)})
+
+
+_BY_NAME = {s.name: s for s in STAGES + OPTIONAL_STAGES}
 
 
 def stage(name: str) -> Stage:
@@ -205,9 +269,15 @@ def config_from_dict(d: dict | None) -> RunConfig:
     Raises
     ------
     schlieren.pipeline.params.ParamsError
-        A ``ValueError`` naming the parameter (``tomography.max_iter``) and its valid values.
+        A ``ValueError`` naming the parameter (``tomography.max_iter``) and its valid values;
+        also ``spacetime.window > 0`` with the ``direct`` reconstruction (it has no
+        per-frame gradient stage to average).
     """
-    return _validate(RunConfig, d)
+    cfg = _validate(RunConfig, d)
+    if cfg.reconstruction == "direct" and cfg.spacetime.window > 0:
+        raise ParamsError("> 0 needs reconstruction 'two-step' (the direct solve has no per-frame gradient stage "
+                          "to average)", "spacetime.window")
+    return cfg
 
 
 def check_config(cfg: RunConfig) -> RunConfig:

@@ -51,13 +51,17 @@ log = logging.getLogger(__name__)
 
 FORMATS = ("vti", "raw", "nrrd", "ome-zarr")
 STAGE_OF = {"refractivity": "integrate", "density": "integrate", "temperature": "integrate",
-            "gradient": "tomography", "hull": "hull"}
+            "gradient": "tomography", "hull": "hull", "refractivity_sigma": "uncertainty",
+            "density_sigma": "uncertainty", "temperature_sigma": "uncertainty"}
 QUANTITIES = {  # name -> (units, components)
     "refractivity": ("1", 1),
     "density": ("kg/m^3", 1),
     "temperature": ("K", 1),
     "gradient": ("1/m", 3),
     "hull": ("1", 1),
+    "refractivity_sigma": ("1", 1),
+    "density_sigma": ("kg/m^3", 1),
+    "temperature_sigma": ("K", 1),
 }
 
 
@@ -92,8 +96,12 @@ def _frame_values(arr, f: int, quantity: str) -> np.ndarray:
 
 
 def export(store_path: str | os.PathLike, out_path: str | os.PathLike, *, format: str = "vti",
-           quantity: str = "refractivity", frames=None) -> ExportResult:
+           quantity: str = "refractivity", frames=None, with_sigma: bool = True) -> ExportResult:
     """Write one volume quantity of a result store in a format other tools read.
+
+    With ``with_sigma``, a quantity whose standard error the store holds (its
+    ``ancillary_variables``, ``uncertainty.enabled``) is written with it: the same files for
+    ``<quantity>_sigma`` beside the value's (its entry points follow the value's).
 
     Parameters
     ----------
@@ -107,6 +115,8 @@ def export(store_path: str | os.PathLike, out_path: str | os.PathLike, *, format
     frames : (a, b), optional
         Half-open range of capture frames (default: all). Frames whose stage is not complete
         (``status/<stage>`` marker unset) are skipped and listed in the result.
+    with_sigma : bool
+        Also write the quantity's standard error when the store has it.
 
     Returns
     -------
@@ -121,6 +131,13 @@ def export(store_path: str | os.PathLike, out_path: str | os.PathLike, *, format
     src = _open_source(store_path, format, quantity, frames)
     out = Path(out_path)
     out.mkdir(parents=True, exist_ok=True)
+    sigma = src.arr.attrs.get("ancillary_variables") if with_sigma else None
+    group = open_result(store_path) if sigma in QUANTITIES else None
+    if group is not None and sigma in group and np.any(_done(group, sigma, src.arr.shape[0])[src.sel]):
+        value = export(store_path, out, format=format, quantity=quantity, frames=frames, with_sigma=False)
+        err = export(store_path, out, format=format, quantity=sigma, frames=frames, with_sigma=False)
+        return ExportResult(entry_points=value.entry_points + err.entry_points, files=value.files + err.files,
+                            skipped=value.skipped)
     if format == "ome-zarr":
         return _export_ome_zarr(out, src.arr, quantity, src.sel, src.done, src.first, src.times, src.origin, src.h,
                                 src.ncomp, src.name)
@@ -179,12 +196,17 @@ def _open_source(store_path, format: str, quantity: str, frames) -> _Source:
     sel = frame_range(frames, int(arr.shape[0]), first)
     times = np.asarray(group["time"][:], dtype=np.float64) if "time" in group else None
     units, ncomp = QUANTITIES[quantity]
-    try:
-        done = np.asarray(group[f"status/{STAGE_OF[quantity]}"][...]).reshape(-1) == 1
-    except KeyError:  # a store without completion markers: take every frame
-        done = np.ones(int(arr.shape[0]), bool)
+    done = _done(group, quantity, int(arr.shape[0]))
     return _Source(str(store_path), arr, quantity, first, sel, times, done, [float(v) for v in grid.origin],
                    float(grid.voxel_size), tuple(grid.shape), units, ncomp)
+
+
+def _done(group, quantity: str, n: int) -> np.ndarray:
+    """Store frames whose stage (``STAGE_OF``) is complete (every frame without markers)."""
+    try:
+        return np.asarray(group[f"status/{STAGE_OF[quantity]}"][...]).reshape(-1) == 1
+    except KeyError:  # a store without completion markers: take every frame
+        return np.ones(n, bool)
 
 
 def _export_frames(out: Path, src: _Source, format: str) -> tuple[ExportResult, list[dict], str]:

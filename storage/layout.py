@@ -16,6 +16,7 @@ gradient's 3-vector axis is named ``axis`` (x, y, z) and the flow's 2-vector axi
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -29,6 +30,8 @@ __all__ = [
     "ArraySpec",
     "AlignmentError",
     "result_layout",
+    "SIGMA_OF",
+    "with_uncertainty",
     "stage_markers",
     "marker_spec",
     "MARKER_GROUP",
@@ -113,7 +116,7 @@ def _f32(name, dims, shape, chunks, attrs, fill=np.nan, dtype="float32", zstd_le
 def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tuple[int, int],
                   grid: Grid, first_frame: int = 0, n_raw: int | None = None,
                   raw_first: int | None = None, n_summary: int = 2001,
-                  flow_factor: int | None = None) -> list[ArraySpec]:
+                  flow_factor: int | None = None, per_frame_gradient: bool = False) -> list[ArraySpec]:
     """Every array of a run's store (SPEC section 2 and docs/design.md).
 
     Parameters
@@ -141,6 +144,9 @@ def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tup
     flow_factor : int, optional
         Image pixels per flow cell (``FlowGrid.factor``): with it the ``u`` and ``v``
         coordinates give the image position (pixels) of every flow cell's centre.
+    per_frame_gradient : bool
+        Also ``gradient_frame``, each frame's own tomographic solve, when a space-time stage
+        computes ``gradient`` from it (``spacetime.window > 0``).
 
     Returns
     -------
@@ -156,7 +162,8 @@ def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tup
         raw_first = first_frame
     h, w = (int(s) for s in flow_shape)
     return (_coordinates(camera_names, F, R, first_frame, raw_first, grid, (h, w), flow_factor)
-            + _camera_arrays(C, F, R, (h, w), n_summary) + _volumes(F, grid))
+            + _camera_arrays(C, F, R, (h, w), n_summary) + _volumes(F, grid)
+            + (_per_frame_gradient(F, grid) if per_frame_gradient else []))
 
 
 def _coordinates(camera_names: Sequence[str], F: int, R: int, first_frame: int, raw_first: int | None, grid: Grid,
@@ -278,6 +285,41 @@ def _volumes(F: int, grid: Grid) -> list[ArraySpec]:
               "stage": "integrate",
               **vol_attrs, **t}),
     ]
+
+
+def _per_frame_gradient(F: int, grid: Grid) -> list[ArraySpec]:
+    """``gradient_frame``: the per-frame solve a space-time stage averages into ``gradient``."""
+    nz, ny, nx = grid.shape
+    return [_f32("gradient_frame", ("frame", "z", "y", "x", "axis"), (F, nz, ny, nx, 3), (1, nz, ny, nx, 3),
+                 {"long_name": "gradient of the refractive index, each frame solved alone", "units": "m-1",
+                  "stage": "tomography", **grid.to_attrs(), "coordinates": "time"})]
+#: The standard-error arrays of the optional ``uncertainty`` stage and the value array each
+#: belongs to (docs/store.md).
+SIGMA_OF = {"refractivity_sigma": "refractivity", "density_sigma": "density", "temperature_sigma": "temperature"}
+
+
+def with_uncertainty(layout: list[ArraySpec]) -> list[ArraySpec]:
+    """``layout`` with the standard errors of the optional ``uncertainty`` stage.
+
+    Beside each of ``refractivity``, ``density`` and ``temperature`` a ``<name>_sigma``
+    array of the same dims, chunks and grid attributes (CF conventions: ``standard_name``
+    "<standard name> standard_error", the value's units), and the value's
+    ``ancillary_variables`` attribute naming it, so that xarray users (and CF tools) find
+    the standard error beside the value.
+    """
+    by_name = {a.name: a for a in layout}
+    out = []
+    for a in layout:
+        sigma = next((s for s, v in SIGMA_OF.items() if v == a.name), None)
+        out.append(a if sigma is None else dataclasses.replace(a, attrs={**a.attrs, "ancillary_variables": sigma}))
+    for sigma, value in SIGMA_OF.items():
+        v = by_name[value]
+        attrs = {k: val for k, val in v.attrs.items() if k not in ("long_name", "standard_name", "stage")}
+        attrs.update({"long_name": f"standard error of the {value} (one standard deviation)",
+                      "standard_name": f"{v.attrs.get('standard_name', value)} standard_error",
+                      "units": v.attrs.get("units", "1"), "stage": "uncertainty"})
+        out.append(dataclasses.replace(v, name=sigma, attrs=attrs))
+    return out
 
 
 def stage_markers() -> dict[str, tuple[str, ...]]:

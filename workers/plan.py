@@ -10,7 +10,8 @@ from __future__ import annotations
 import itertools
 from dataclasses import dataclass, field
 
-from schlieren.pipeline.stages import STAGES, Stage, middle_frame
+from schlieren.pipeline.spacetime import window_frames
+from schlieren.pipeline.stages import OPTIONAL_STAGES, STAGES, Stage, middle_frame, stages_with
 
 __all__ = ["Task", "Plan", "make_plan", "Extents", "critical_path_priorities"]
 
@@ -24,6 +25,7 @@ class Extents:
     raw_frame: int
     raw_offset: int  # raw_frame index of output frame 0 (raw_first = first_frame - raw_offset)
     warm_start_block: int = 4
+    spacetime_window: int = 0  # frames either side of the space-time stage's window; 0: no such stage
 
 
 @dataclass(frozen=True)
@@ -60,11 +62,11 @@ class Plan:
     def by_stage(self) -> dict[str, list[Task]]:
         out: dict[str, list[Task]] = {s.name: [] for s in STAGES}
         for t in self.tasks:
-            out[t.stage].append(t)
+            out.setdefault(t.stage, []).append(t)
         return out
 
 
-_STAGE = {s.name: s for s in STAGES}
+_STAGE = {s.name: s for s in STAGES + OPTIONAL_STAGES}
 
 
 def _indices(st: Stage, ext: Extents) -> list[tuple[int, ...]]:
@@ -111,6 +113,8 @@ def _deps(st: Stage, index: tuple[int, ...], ext: Extents) -> list[tuple[str, tu
                 else:  # pragma: no cover - the table is static
                     axes.append(range(sizes[d]))
             out += [(dep_name, i) for i in itertools.product(*axes)]
+        elif how == "neighbours":  # the frames of the space-time window
+            out += [(dep_name, (j,)) for j in window_frames(labels["frame"], sizes["frame"], ext.spacetime_window)]
         elif how == "chain":
             k = labels["frame"]
             if k % max(ext.warm_start_block, 1) != 0:
@@ -162,7 +166,7 @@ def _blocks(st: Stage, indices: list[tuple[int, ...]], frames_per_task: int) -> 
     return [groups[k] for k in sorted(groups)]
 
 
-def make_plan(ext: Extents, token: str, *, done=None, stages: tuple[Stage, ...] = STAGES,
+def make_plan(ext: Extents, token: str, *, done=None, stages: tuple[Stage, ...] | None = None,
               frames_per_task: int | dict = 1) -> Plan:
     """All tasks of all stages, minus those already complete.
 
@@ -171,6 +175,9 @@ def make_plan(ext: Extents, token: str, *, done=None, stages: tuple[Stage, ...] 
     ext : Extents
     token : str
         Short session/run token that makes keys unique per run.
+    stages : tuple of Stage, optional
+        The run's stages (default :func:`~schlieren.pipeline.stages.stages_with` the
+        space-time stage when ``ext.spacetime_window > 0``); dependencies on stages not among them are dropped.
     done : callable(stage, index) -> bool, optional
         Completion-marker lookup; complete indices are dropped and so are edges to them.
     frames_per_task : int or dict
@@ -182,6 +189,9 @@ def make_plan(ext: Extents, token: str, *, done=None, stages: tuple[Stage, ...] 
         frame, so resume and the store do not depend on the grouping.
     """
     sizes = batch_sizes(frames_per_task)
+    if stages is None:
+        stages = stages_with({"spacetime"} if ext.spacetime_window > 0 else ())
+    present = {st.name for st in stages}
     plan = Plan(token=token)
     complete: set[tuple[str, tuple[int, ...]]] = set()
     owner: dict[tuple[str, tuple[int, ...]], str] = {}  # (stage, index) -> key of its task
@@ -202,7 +212,7 @@ def make_plan(ext: Extents, token: str, *, done=None, stages: tuple[Stage, ...] 
             deps: dict[str, None] = {}   # ordered, de-duplicated (a list's `in` made "all" edges quadratic)
             for index in block:
                 for n, i in _deps(st, index, ext):
-                    if (n, i) in complete:
+                    if (n, i) in complete or n not in present:
                         continue
                     d = owner[(n, i)]
                     if d != key:

@@ -41,7 +41,7 @@ class StageProgress:
     def plan(self, plan) -> None:
         counts = {s.name: 0 for s in STAGES}
         for t in plan.tasks:
-            counts[t.stage] += len(t.indices)
+            counts[t.stage] = counts.get(t.stage, 0) + len(t.indices)
         if self._progress is None:
             return
         for name, n in counts.items():

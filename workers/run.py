@@ -32,9 +32,9 @@ from typing import Callable
 
 from schlieren.pipeline.geometry import FlowGrid
 from schlieren.pipeline.overrides import bind_run, records, session_overrides
-from schlieren.pipeline.stages import STAGES, RunConfig, check_config, config_to_dict
+from schlieren.pipeline.stages import STAGES, RunConfig, check_config, config_to_dict, run_stages
 from schlieren.storage import location
-from schlieren.storage.layout import result_layout
+from schlieren.storage.layout import result_layout, with_uncertainty
 from schlieren.storage.session import Session, load_session
 from schlieren.storage.errors import StoreError
 from schlieren.storage.store import ResultStore, remove_store
@@ -151,11 +151,15 @@ def run_layout(session: Session, cfg: RunConfig) -> tuple[list, Extents]:
     raw_last = min(session.n_frames_available, b + RAW_MARGIN)
     fg = FlowGrid(session.cameras[0].image_size, cfg.flow_factor)
     ext = Extents(camera=len(session.cameras), frame=n_frames, raw_frame=raw_last - raw_first,
-                  raw_offset=a - raw_first, warm_start_block=cfg.warm_start_block)
+                  raw_offset=a - raw_first, warm_start_block=cfg.warm_start_block,
+                  spacetime_window=cfg.spacetime.window)
     layout = result_layout(camera_names=[c.name for c in session.cameras], n_frames=n_frames,
                            flow_shape=fg.shape, grid=session.grid, first_frame=a,
                            n_raw=ext.raw_frame, raw_first=raw_first,
-                           n_summary=cfg.masks.n_quantiles + 1, flow_factor=fg.factor)
+                           n_summary=cfg.masks.n_quantiles + 1, flow_factor=fg.factor,
+                           per_frame_gradient=cfg.spacetime.window > 0)
+    if cfg.uncertainty.enabled:  # the optional stage's standard errors beside the values
+        layout = with_uncertainty(layout)
     return layout, ext
 
 
@@ -185,7 +189,7 @@ def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig,
         "stage_times": {},
         DERIVED_ATTR: dict(derived or {}),
     }
-    markers = {st.name: st.over for st in STAGES}
+    markers = {st.name: st.over for st in run_stages(cfg)}
     try:
         store = ResultStore.create(out_path, layout, attrs=attrs, markers=markers,
                                    producers=producers(cfg, [s.name for s in layout]))
@@ -197,7 +201,9 @@ def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig,
 
 def producers(cfg: RunConfig, names) -> dict[str, str]:
     """Array -> the stage whose completion marker covers its chunks (the task writing them)."""
-    out = {a: st.name for st in STAGES for a in st.outputs if a in names}
+    out = {a: st.name for st in run_stages(cfg) for a in st.outputs if a in names}
+    if cfg.spacetime.window > 0 and "gradient_frame" in names:
+        out["gradient_frame"] = "tomography"  # the per-frame solve, which the spacetime stage averages
     if cfg.reconstruction == "direct" and "refractivity" in out:
         out["refractivity"] = "tomography"  # solved directly by the tomography task
     return out
@@ -270,7 +276,9 @@ def _done_predicate(done_sets: dict, ext: Extents) -> Callable[[str, object], bo
     def done(stage: str, index) -> bool:
         if tuple(index) in done_sets.get(stage, ()):
             return True
-        return stage == "geometry" and len(done_sets.get("tomography", ())) == ext.frame
+        # (and no uncertainty task, which reads the geometry too, when the run has that stage)
+        return stage == "geometry" and all(len(done_sets.get(s, ())) == ext.frame for s in ("tomography", "uncertainty")
+                                           if s == "tomography" or s in done_sets)
     return done
 
 
@@ -351,7 +359,8 @@ def _run_leased(session, out_path, cfg, overrides, *, client, serial, report, on
     dropper = _retention(store, ext, check, keep)
     if not isinstance(frames_per_task, dict):
         frames_per_task = int(frames_per_task)
-    plan = make_plan(ext, token, done=_done_predicate(check.done, ext), frames_per_task=frames_per_task)
+    plan = make_plan(ext, token, done=_done_predicate(check.done, ext), frames_per_task=frames_per_task,
+                     stages=run_stages(cfg))
     if on_plan:
         on_plan(plan)
     summary = RunSummary(store=str(out_path), executor="serial" if (serial or client is None) else "dask",

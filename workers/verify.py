@@ -73,19 +73,29 @@ class VerifyReport:
         return text
 
 
+def _run_stages(store: ResultStore):
+    """The stages the store's run has: every default stage and the optional ones with a marker."""
+    from schlieren.pipeline.stages import stages_with
+
+    return stages_with(set(store.stages()))
+
+
 def extents_of(store: ResultStore) -> Extents:
     """The plan's extents, from the store's ``run`` attributes."""
     a = store.attrs
     run = a["run"]
     first = int(run["frames"][0])
+    params = a.get("params") or {}
     return Extents(camera=int(store.array("camera").shape[0]), frame=int(run["n_frames"]),
                    raw_frame=int(run["n_raw"]), raw_offset=first - int(run["raw_first"]),
-                   warm_start_block=int((a.get("params") or {}).get("warm_start_block", 4)))
+                   warm_start_block=int(params.get("warm_start_block", 4)),
+                   spacetime_window=int((params.get("spacetime") or {}).get("window", 0)))
 
 
-def downstream(ext: Extents, roots) -> set[tuple[str, tuple[int, ...]]]:
-    """``roots`` (stage, index) and every task that depends on them, directly or not."""
-    plan = make_plan(ext, "v", frames_per_task=1)
+def downstream(ext: Extents, roots, stages=None) -> set[tuple[str, tuple[int, ...]]]:
+    """``roots`` (stage, index) and every task that depends on them, directly or not
+    (``stages``: the run's, default :data:`~schlieren.pipeline.stages.STAGES`)."""
+    plan = make_plan(ext, "v", frames_per_task=1, **({"stages": tuple(stages)} if stages is not None else {}))
     node = {t.key: (t.stage, tuple(t.index)) for t in plan.tasks}
     key_of = {v: k for k, v in node.items()}
     waiting: dict[str, list[str]] = {k: [] for k in node}
@@ -151,7 +161,7 @@ def verify_store(store: ResultStore, *, full: bool = False, repair: bool = False
         return report
     ext = ext or extents_of(store)
     roots = {(p.stage, tuple(p.index)) for p in scan.problems if p.stage is not None}
-    redo = downstream(ext, roots)
+    redo = downstream(ext, roots, _run_stages(store))
     # downstream first, the damaged tasks last: an interrupted repair is found again
     order = sorted(redo - roots) + sorted(roots)
     for stage, idx in order:
@@ -168,7 +178,9 @@ def verify_store(store: ResultStore, *, full: bool = False, repair: bool = False
     if geo_problems:
         arrays_cache.remove_cache(store.path)
         report.removed_files += 1
-    if geo_unusable and () in scan.done.get("geometry", set()) and len(scan.done.get("tomography", ())) < ext.frame:
+    readers = [s for s in ("tomography", "uncertainty") if s == "tomography" or s in scan.done]
+    if geo_unusable and () in scan.done.get("geometry", set()) and any(len(scan.done.get(s, ())) < ext.frame
+                                                                       for s in readers):
         store.unmark("geometry")  # tomography remains: the run builds the geometry again
         scan.done.get("geometry", set()).discard(())
         report.invalidated["geometry"] = report.invalidated.get("geometry", 0) + 1

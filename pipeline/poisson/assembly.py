@@ -26,11 +26,32 @@ from schlieren.pipeline.poisson.tensor import diffusion_tensor
 if TYPE_CHECKING:
     from schlieren.pipeline.poisson.params import PoissonParams
 
-__all__ = ["assemble", "laplacian_matrix"]
+__all__ = ["assemble", "tensor_field", "laplacian_matrix"]
+
+
+def tensor_field(g: np.ndarray, hull: np.ndarray, h: float, *, params: PoissonParams) -> np.ndarray:
+    """The diffusion tensor ``D`` of every voxel :func:`assemble` reads (the hull and its
+    face neighbours; zero elsewhere): the identity for ``alpha >= 1``, else the Appendix's
+    tensor of ``g`` (:func:`~schlieren.pipeline.poisson.tensor.diffusion_tensor`).
+
+    Returns
+    -------
+    D : ndarray, shape hull.shape + (3, 3)
+    """
+    hull = np.asarray(hull, dtype=bool)
+    rows_mask = ndi.binary_dilation(hull, structure=ndi.generate_binary_structure(3, 1))
+    Dfull = np.zeros(hull.shape + (3, 3))
+    if params.alpha >= 1.0:
+        Dfull[rows_mask] = np.eye(3)
+    else:
+        Dfull[rows_mask] = diffusion_tensor(np.asarray(g, dtype=np.float64), h, alpha=params.alpha,
+                                            sigma=params.sigma, k=params.k, value_scale=params.value_scale,
+                                            where=rows_mask)
+    return Dfull
 
 
 def assemble(g: np.ndarray, hull: np.ndarray, h: float, *, params: PoissonParams,
-             real: np.ndarray | None = None):
+             real: np.ndarray | None = None, tensor: np.ndarray | None = None):
     """System ``A u = f`` of the hull-restricted (anisotropic) Poisson problem.
 
     Parameters
@@ -44,6 +65,9 @@ def assemble(g: np.ndarray, hull: np.ndarray, h: float, *, params: PoissonParams
     real : ndarray, shape (nz, ny, nx) bool, optional
         Cells that exist; differences reaching a non-real cell are dropped (natural
         boundary). Default: every cell is real (Dirichlet zero outside the hull).
+    tensor : ndarray, shape (nz, ny, nx, 3, 3), optional
+        The diffusion tensor to use (:func:`tensor_field`, e.g. of another gradient: the
+        integration linearised around an estimate); default ``tensor_field(g, ...)``.
 
     Returns
     -------
@@ -55,14 +79,10 @@ def assemble(g: np.ndarray, hull: np.ndarray, h: float, *, params: PoissonParams
     hull = np.asarray(hull, dtype=bool)
     if hull[[0, -1]].any() or hull[:, [0, -1]].any() or hull[:, :, [0, -1]].any():
         raise ValueError("the hull must not touch the array boundary (pad it)")
-    rows_mask = ndi.binary_dilation(hull, structure=ndi.generate_binary_structure(3, 1))
     g = np.asarray(g, dtype=np.float64)
-    Dfull = np.zeros(hull.shape + (3, 3))
-    if params.alpha >= 1.0:
-        Dfull[rows_mask] = np.eye(3)
-    else:
-        Dfull[rows_mask] = diffusion_tensor(g, h, alpha=params.alpha, sigma=params.sigma, k=params.k,
-                                            value_scale=params.value_scale, where=rows_mask)
+    Dfull = tensor_field(g, hull, h, params=params) if tensor is None else np.asarray(tensor, dtype=np.float64)
+    if Dfull.shape != hull.shape + (3, 3):
+        raise ValueError(f"tensor {Dfull.shape} does not match the hull {hull.shape}")
     if real is None:
         real = np.ones(hull.shape, bool)
     real = np.ascontiguousarray(real, dtype=np.bool_)

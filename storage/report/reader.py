@@ -28,6 +28,8 @@ log = logging.getLogger(__name__)
 EXPECTED_ARRAYS = ("time", "flow", "mask", "potential", "hull", "gradient", "refractivity", "density",
                    "temperature")
 VOLUME_ARRAYS = ("hull", "gradient", "refractivity", "density", "temperature")
+#: Arrays read when present and never listed as missing: the optional stages' (``uncertainty``).
+OPTIONAL_ARRAYS = ("refractivity_sigma", "density_sigma", "temperature_sigma")
 
 
 # ---------------------------------------------------------------------------------------
@@ -251,14 +253,15 @@ class ReportReader:
 
     STAGE_OF = {"flow": "resample", "mask": "mask", "potential": "potential", "hull": "hull",
                 "gradient": "tomography", "refractivity": "integrate", "density": "integrate",
-                "temperature": "integrate"}
+                "temperature": "integrate", "refractivity_sigma": "uncertainty", "density_sigma": "uncertainty",
+                "temperature_sigma": "uncertainty"}
 
     def __init__(self, store_path: str | os.PathLike):
         self.path = location.normalize(store_path)
         self._group = open_result(store_path)
         #: root attributes of the store (``session``, ``params``, ``stage_times``, ``run``, ...)
         self.attrs: dict = decode_attrs(self._group.attrs)
-        self._arrays = {k: self._group[k] for k in EXPECTED_ARRAYS if k in self._group}
+        self._arrays = {k: self._group[k] for k in EXPECTED_ARRAYS + OPTIONAL_ARRAYS if k in self._group}
         self._done: dict[str, np.ndarray | None] = {}
 
     # --- what exists -------------------------------------------------------------------

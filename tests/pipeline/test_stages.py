@@ -4,6 +4,7 @@ import dataclasses
 
 import pytest
 
+from schlieren.pipeline import stages
 from schlieren.pipeline.stages import STAGES, RunConfig, bind_medium, config_from_dict, config_to_dict
 
 
@@ -21,6 +22,12 @@ def test_unknown_parameters_are_refused():
         RunConfig(reconstruction="three-step")
 
 
+def test_spacetime_needs_the_two_step_reconstruction():
+    with pytest.raises(ValueError, match="spacetime.window"):
+        config_from_dict({"reconstruction": "direct", "spacetime": {"window": 1}})
+    assert config_from_dict({"spacetime": {"window": 1}}).spacetime.window == 1
+
+
 def test_bind_medium_sets_every_n_ambient():
     cfg = bind_medium(RunConfig(), 1.0003)
     found = [getattr(cfg, f.name).n_ambient for f in dataclasses.fields(cfg)
@@ -29,19 +36,24 @@ def test_bind_medium_sets_every_n_ambient():
     assert found and all(v == 1.0003 for v in found)
 
 
-def test_table_is_consistent():
-    names = [s.name for s in STAGES]
+@pytest.mark.parametrize("optional", [(), ("spacetime",), ("uncertainty",), ("spacetime", "uncertainty")])
+def test_table_is_consistent(optional):
+    table = stages.stages_with(optional)
+    names = [s.name for s in table]
     assert len(set(names)) == len(names)
+    absent = {s.name for s in stages.OPTIONAL_STAGES} - set(names)  # a dependency on it is dropped without it
     produced = {"images"}
-    for s in STAGES:
+    for s in table:
         for dep, how in s.after:
-            assert dep in names[: names.index(s.name) + (how == "chain")], (s.name, dep)
-            assert how in {"same", "all", "window", "chain", "block", "middle", "margin"}
+            assert dep in names[: names.index(s.name) + (how == "chain")] or dep in absent, (s.name, dep)
+            assert how in {"same", "all", "window", "neighbours", "chain", "block", "middle", "margin"}
         if s.params is not None:
             assert hasattr(RunConfig(), s.params), s.name
         produced |= set(s.outputs)
-    # every stage's inputs are produced by an earlier stage (or are the frames)
-    seen = {"images"}
-    for s in STAGES:
-        assert set(s.inputs) <= seen | {"geometry"}, s.name
+    # every stage's inputs are produced by an earlier stage (or are the frames); under a
+    # space-time stage the tomography writes the per-frame gradient it reads
+    seen = {"images"} | ({"gradient_frame"} if "spacetime" in optional else set())
+    for s in table:
+        # (flow_window: written by the regularisation task beside its reg_weight)
+        assert set(s.inputs) <= seen | {"geometry", "flow_window"}, s.name
         seen |= set(s.outputs)

@@ -1,10 +1,13 @@
-"""``schlieren bench table1|realistic [...]``.
+"""``schlieren bench table1|realistic|spacetime [...]``.
 
 ``table1`` reproduces the paper's Table 1 (sec. 6) on the project's synthetic plume and
 writes ``benchmarks/results/table1.md`` and ``table1.json`` (see
 :mod:`schlieren.workers.bench`). ``realistic`` runs the realistic capture family (CFD
 flows, weak deflections, lossy video; :mod:`schlieren.workers.realistic`) and writes
-``benchmarks/results/realistic[_LABEL].md`` / ``.json``.
+``benchmarks/results/realistic[_LABEL].md`` / ``.json``. ``spacetime`` runs the family's cases
+rendered with more frames (``--frames``, default 7) with space-time reconstruction on and
+scores it against the same run's per-frame solve (:mod:`schlieren.workers.bench.spacetime`,
+``benchmarks/results/spacetime[_LABEL].md`` / ``.json``).
 """
 
 from __future__ import annotations
@@ -23,9 +26,10 @@ _size = image_size(32)
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("bench", help="reproduce the paper's benchmark tables on synthetic data",
                               description="Reproduce a table of the paper on the project's synthetic plume.")
-    p.add_argument("table", choices=["table1", "realistic"],
+    p.add_argument("table", choices=["table1", "realistic", "spacetime"],
                    help="table1: reconstruction errors per rig (paper sec. 6); realistic: the realistic capture "
-                        "family (CFD plumes and jets, weak deflections, lossy video; needs the 'bench' extra)")
+                        "family (CFD plumes and jets, weak deflections, lossy video; needs the 'bench' extra); "
+                        "spacetime: the family's cases with more frames, space-time against per-frame")
     p.add_argument("--quick", action="store_true",
                    help=f"a small subset: one half ring of 3 cameras, {QUICK_SIZE[0]}x{QUICK_SIZE[1]} images, "
                         f"1 frame, {QUICK_VOXEL * 1000:.0f} mm voxels (for tests)")
@@ -36,7 +40,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--rigs", default=None, help="comma-separated RING:CAMERAS, default "
                                                 "half:8,half:16,half:32,full:7,full:15,full:31")
     p.add_argument("--size", type=_size, default=None, help="image WIDTHxHEIGHT (default 480x360)")
-    p.add_argument("--frames", type=int, default=None, help="output frames per rig (default 3)")
+    p.add_argument("--frames", type=int, default=None,
+                   help="output frames per rig (default 3; spacetime: frames of each case, default 7)")
     p.add_argument("--voxel", type=float, default=None, help="reconstruction voxel, metres (default 0.0025)")
     p.add_argument("--workers", type=int, default=None,
                    help="local Dask workers for the pipeline runs; 0 = serial (default 2, quick: 0)")
@@ -128,7 +133,6 @@ def _realistic(args) -> int:
     from rich.console import Console
 
     from schlieren.pipeline.stages import config_from_dict
-    from schlieren.storage import bench_io
     from schlieren.workers import realistic as rb
 
     console = Console(stderr=True)
@@ -164,8 +168,14 @@ def _realistic(args) -> int:
     machine = _machine()
     result["machine"] = machine
     name = "realistic" + (f"_{args.label}" if args.label else "")
-    out = Path(args.results)
-    bench_io.write_text(out / f"{name}.md", rb.family_markdown(result, machine=machine))
+    return _write_family(Path(args.results), name, rb.family_markdown(result, machine=machine), result, console)
+
+
+def _write_family(out, name: str, markdown: str, result: dict, console) -> int:
+    """Write a family benchmark's ``<name>.md`` / ``.json`` under ``out``; 1 if a case's run failed."""
+    from schlieren.storage import bench_io
+
+    bench_io.write_text(out / f"{name}.md", markdown)
     bench_io.write_json(out / f"{name}.json", result)
     console.print(f"wrote {out / (name + '.md')} and {out / (name + '.json')} ({result['wall_seconds']:.0f} s)")
     failed = [c["case"] for c in result["cases"] if c.get("failures")]
@@ -173,6 +183,56 @@ def _realistic(args) -> int:
         console.print(f"pipeline failures: {', '.join(failed)}")
         return 1
     return 0
+
+
+def _spacetime(args) -> int:
+    import contextlib
+    import re
+    import time
+    from pathlib import Path
+
+    from rich.console import Console
+
+    from schlieren.pipeline.stages import config_from_dict
+    from schlieren.workers import realistic as rb
+    from schlieren.workers.bench import spacetime as sb
+
+    console = Console(stderr=True)
+    if args.label and not re.fullmatch(r"[A-Za-z0-9_.-]+", args.label):
+        raise CLIError("--label may hold letters, digits, '_', '.' and '-' only")
+    frames = sb.DEFAULT_FRAMES if args.frames is None else args.frames
+    if not 3 <= frames <= 9:
+        raise CLIError("--frames must be in 3..9 (the CFD runs cover 9 processed frames)")
+    try:
+        cases = sb.longer_cases(rb.select_cases(args.cases, role=args.role), frames)
+    except ValueError as exc:
+        raise CLIError(f"--cases: {exc}") from None
+    if not cases:
+        raise CLIError("no case selected")
+    if not _has_bench_extra():
+        raise CLIError("the realistic family needs PhiFlow and imageio-ffmpeg: pip install 'schlieren[bench]'")
+    config = config_from_dict(_run_params(args.params)) if args.params else None
+    workers = 2 if args.workers is None else args.workers
+    if workers < 0:
+        raise CLIError("--workers must be >= 0")
+    t0 = time.perf_counter()
+    with contextlib.ExitStack() as stack:
+        client = None
+        if workers > 0:
+            from schlieren.workers.cluster import ClusterOptions, open_client
+
+            client, _info = stack.enter_context(open_client(ClusterOptions(workers=workers, dashboard_address=":0")))
+        result = sb.run_family(Path(args.out or "realistic-out"), cases, config=config, client=client,
+                               label=args.label, keep_stores=args.keep_stores or not args.label,
+                               progress=lambda m: console.print(m))
+    result["wall_seconds"] = time.perf_counter() - t0
+    result["machine"] = _machine()
+    name = "spacetime" + (f"_{args.label}" if args.label else "")
+    command = "schlieren bench spacetime" + (f" --cases {args.cases}" if args.cases else "") + \
+        (f" --role {args.role}" if args.role else "") + (f" --frames {frames}" if args.frames else "") + \
+        (f" --params {args.params}" if args.params else "")
+    return _write_family(Path(args.results), name,
+                         sb.spacetime_markdown(result, machine=result["machine"], command=command), result, console)
 
 
 def _has_bench_extra() -> bool:
@@ -184,6 +244,8 @@ def _has_bench_extra() -> bool:
 def handler(args) -> int:
     if args.table == "realistic":
         return _realistic(args)
+    if args.table == "spacetime":
+        return _spacetime(args)
     import contextlib
     import tempfile
     import time

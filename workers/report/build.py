@@ -35,6 +35,7 @@ from schlieren.workers.report._common import _finite, _get
 from schlieren.workers.report.residual_section import _residual_section
 from schlieren.workers.report.sections import (_deflection_section, _hull_section, _render_section,
                                                _slices_section, _timings_section)
+from schlieren.workers.report.uncertainty_section import uncertainty_section
 
 __all__ = ["build_report"]
 
@@ -106,6 +107,7 @@ def build_report(store_path: str | os.PathLike, out_dir: str | os.PathLike, *, f
     if grid is not None:
         _hull_section(page, rd, grid, writer, shown)
         _slices_section(page, rd, grid, writer, shown, times)
+        uncertainty_section(page, rd, grid, writer, shown, times)
         _render_section(page, rd, grid, writer, sel, shown, times, medium.refractivity_ambient, render_size)
     _residual_section(page, rd, grid, cameras, cam_note, writer, sel, shown, medium, max_cameras, params)
     _timings_section(page, attrs, writer)

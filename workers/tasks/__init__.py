@@ -15,8 +15,8 @@ Modules: :mod:`.run_context` (the run's per-process context, :class:`TaskFailed`
 :mod:`.runner` (running a task: marker, receipt, failure text), and one module per
 stage's task: :mod:`.sync` (``sync``, ``clock``), :mod:`.deflection`, :mod:`.resample`,
 :mod:`.masks` (``potential``, ``threshold``, ``mask``), :mod:`.geometry`, :mod:`.hull`,
-:mod:`.regularisation`, :mod:`.tomography` and :mod:`.integrate` (refractivity and the
-derived density and temperature).
+:mod:`.regularisation`, :mod:`.tomography`, :mod:`.integrate` (refractivity and the
+derived density and temperature) and the optional :mod:`.uncertainty` (their standard errors).
 """
 
 from schlieren.workers.tasks.deflection import flow_params, frame_flags, raw_frame_needed

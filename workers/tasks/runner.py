@@ -23,8 +23,10 @@ from schlieren.workers.tasks.masks import mask_task, potential_task, threshold_t
 from schlieren.workers.tasks.regularisation import regularisation_task
 from schlieren.workers.tasks.resample import resample_task
 from schlieren.workers.tasks.run_context import RunContext, TaskFailed, context
+from schlieren.workers.tasks.spacetime import spacetime_task
 from schlieren.workers.tasks.sync import clock_task, sync_task
 from schlieren.workers.tasks.tomography import tomography_task
+from schlieren.workers.tasks.uncertainty import uncertainty_task
 
 __all__ = ["run_task", "run_tasks", "flush_writes", "STAGE_TASKS", "failure_text"]
 
@@ -36,7 +38,7 @@ STAGE_TASKS = {
     "regularisation": regularisation_task,
     "resample": resample_task, "potential": potential_task, "threshold": threshold_task, "mask": mask_task,
     "geometry": geometry_task, "hull": hull_task, "tomography": tomography_task,
-    "integrate": integrate_task,
+    "spacetime": spacetime_task, "integrate": integrate_task, "uncertainty": uncertainty_task,
 }
 
 

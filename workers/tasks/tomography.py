@@ -18,6 +18,7 @@ from schlieren.pipeline.tomography.restriction import SHARED_RESTRICTIONS
 from schlieren.workers.tasks.geometry import cached_geometry, geometry_key
 from schlieren.workers.tasks.regularisation import window_model
 from schlieren.workers.tasks.run_context import RunContext, solver_receipt
+from schlieren.workers.tasks.spacetime import per_frame_array
 
 __all__ = ["tomography_task", "tomo_params", "flow_blur"]
 
@@ -37,13 +38,14 @@ def tomo_params(ctx: RunContext):
 
 
 def tomography_task(ctx: RunContext, k: int) -> dict:
-    """Frame ``k``'s gradient (stored ``gradient``; with ``reconstruction: direct`` also ``refractivity``)."""
+    """Frame ``k``'s gradient (stored ``gradient``, or ``gradient_frame`` under a space-time stage;
+    with ``reconstruction: direct`` also ``refractivity``)."""
     geom = cached_geometry(ctx.store_path, geometry_key(ctx))
     flows = ctx.tomography_flows(k)
     hull = ctx.store.read("hull", (k,))
     x0 = None
     if k % max(ctx.config.warm_start_block, 1) != 0:
-        x0 = ctx.store.read("gradient", (k - 1,))
+        x0 = ctx.store.read(per_frame_array(ctx), (k - 1,))
     if ctx.config.reconstruction == "direct":
         # beyond the paper: solve for n - 1 directly; the gradient stored is its derivative
         r0 = ctx.store.read("refractivity", (k - 1,)).astype(np.float64) if x0 is not None else None
@@ -58,7 +60,7 @@ def tomography_task(ctx: RunContext, k: int) -> dict:
     params = tomo_params(ctx)
     grad, info = tomography.solve_gradient(geom, flows, hull, params=params, x0=x0,
                                            support=_block_support(ctx, k, params.hull_dilation), **flow_blur(ctx))
-    ctx.store.write("gradient", (k,), np.asarray(grad, dtype=np.float32))
+    ctx.store.write(per_frame_array(ctx), (k,), np.asarray(grad, dtype=np.float32))
     return solver_receipt(info)
 
 
