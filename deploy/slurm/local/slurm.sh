@@ -65,7 +65,8 @@ start_munge() {
 write_conf() {
     local host cpus mem
     host=$(hostname -s)
-    cpus=$(nproc)
+    # every CPU of the machine: nproc would honour OMP_NUM_THREADS, which callers set to 1
+    cpus=$(getconf _NPROCESSORS_ONLN 2>/dev/null || nproc --all)
     # the node's memory in MB, less 1 GB for the system (slurmd refuses a node that claims more than it has)
     mem=$(( $(awk '/^MemTotal:/ {print $2}' /proc/meminfo) / 1024 - 1024 ))
     mkdir -p "$DIR"/{state,spool,log,run}
