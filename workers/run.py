@@ -30,6 +30,7 @@ from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Callable
 
+from schlieren.pipeline.capture import row_knots
 from schlieren.pipeline.geometry import FlowGrid
 from schlieren.pipeline.stages import STAGES, RunConfig, bind_flow_factor, bind_medium, check_config, config_to_dict
 from schlieren.pipeline.tomography.binning import cells_per_voxel
@@ -144,7 +145,9 @@ def run_layout(session: Session, cfg: RunConfig) -> tuple[list, Extents]:
     layout = result_layout(camera_names=[c.name for c in session.cameras], n_frames=n_frames,
                            flow_shape=fg.shape, grid=session.grid, first_frame=a,
                            n_raw=ext.raw_frame, raw_first=raw_first,
-                           n_summary=cfg.masks.n_quantiles + 1, flow_factor=fg.factor)
+                           n_summary=cfg.masks.n_quantiles + 1, flow_factor=fg.factor,
+                           image_shape=(session.cameras[0].height, session.cameras[0].width),
+                           row_knots=row_knots(session.cameras[0].height, cfg.capture.banding_rows))
     return layout, ext
 
 
