@@ -333,7 +333,8 @@ def _run_leased(session, out_path, cfg, *, client, serial, report, on_receipt, o
     _record_stage_times(store, out_path, plan, summary, clock)
     from schlieren.workers.diagnostics import diagnose
 
-    summary.warnings = diagnose(receipts, n_voxels=math.prod(session.grid.shape))
+    summary.warnings = diagnose(receipts, n_voxels=math.prod(session.grid.shape),
+                                motion_warning=cfg.capture.motion_warning)
     for w in summary.warnings:
         log.warning("%s", w)
     return summary

@@ -54,14 +54,14 @@ def motion_displacement(motion, x, y, image_size) -> tuple[np.ndarray, np.ndarra
 
     Parameters
     ----------
-    motion : array_like, shape (8,)
-        :data:`MOTION_PARAMS`.
+    motion : array_like, shape (..., 8)
+        :data:`MOTION_PARAMS` (several motions broadcast against ``x`` and ``y``).
     x, y : array_like
         Image coordinates (pixel centres at integers), broadcastable.
     image_size : (int, int)
         ``(width, height)``.
     """
-    u, v, a, b, c, d, g, h = (float(m) for m in np.asarray(motion, np.float64).ravel()[:8])
+    u, v, a, b, c, d, g, h = np.moveaxis(np.asarray(motion, np.float64), -1, 0)[:8]
     cx, cy = _centre(image_size)
     qx = np.asarray(x, np.float64) - cx
     qy = np.asarray(y, np.float64) - cy

@@ -217,8 +217,9 @@ def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowPara
         flow only has to find the deflections (a Lucas-Kanade step underestimates large
         displacements); it is subtracted from the result, which is then the deflection alone.
     invalid : ndarray, shape (H, W), bool, optional
-        Pixels known to be unusable (defective sensor pixels): weighted out like those of
-        ``invalid_check``, whether or not that is on.
+        Pixels known to be unusable (defective sensor pixels, mostly isolated): weighted out
+        like those of ``invalid_check`` (whether or not that is on), but the cells they
+        alone empty get their nearest valid cell's deflection rather than NaN.
 
     Returns
     -------
@@ -228,7 +229,8 @@ def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowPara
     f = params.factor
     H, W = np.shape(frame)[:2]
     rows, cols = FlowGrid((W, H), f).shape
-    valid = _valid_pixels(reference, frame, params.texture_threshold) if params.invalid_check else None
+    checked = _valid_pixels(reference, frame, params.texture_threshold) if params.invalid_check else None
+    valid = checked
     if invalid is not None and np.any(invalid):
         valid = ~np.asarray(invalid, bool) if valid is None else valid & ~np.asarray(invalid, bool)
     on_cells = uses_cell_solve(params)
@@ -252,6 +254,9 @@ def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowPara
             return np.full((rows, cols, 2), np.nan, np.float32)
         filled = _nearest_fill(np.dstack(comps), bad_cells)
         comps = [np.ascontiguousarray(filled[..., 0]), np.ascontiguousarray(filled[..., 1])]
+        if checked is not valid:  # cells lost to ``invalid`` pixels alone keep their filled value
+            bad_cells = _bad_cells(checked, params.window, params.window_type, f, (rows, cols)) \
+                if checked is not None else None
     if params.outlier_threshold > 0:
         comps = _replace_outliers(comps, params.outlier_threshold, params.outlier_epsilon)
     if keep and params.texture_correction:

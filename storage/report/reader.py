@@ -28,6 +28,9 @@ log = logging.getLogger(__name__)
 EXPECTED_ARRAYS = ("time", "flow", "mask", "potential", "hull", "gradient", "refractivity", "density",
                    "temperature")
 VOLUME_ARRAYS = ("hull", "gradient", "refractivity", "density", "temperature")
+#: Arrays read when present, never listed as missing (stores of older versions lack them):
+#: the capture corrections of issue 33 and the raw frames' coordinate.
+OPTIONAL_ARRAYS = ("background_motion", "photometric", "capture_fit", "defective_pixels", "row_knot", "raw_frame")
 
 
 # ---------------------------------------------------------------------------------------
@@ -258,7 +261,7 @@ class ReportReader:
         self._group = open_result(store_path)
         #: root attributes of the store (``session``, ``params``, ``stage_times``, ``run``, ...)
         self.attrs: dict = decode_attrs(self._group.attrs)
-        self._arrays = {k: self._group[k] for k in EXPECTED_ARRAYS if k in self._group}
+        self._arrays = {k: self._group[k] for k in EXPECTED_ARRAYS + OPTIONAL_ARRAYS if k in self._group}
         self._done: dict[str, np.ndarray | None] = {}
 
     # --- what exists -------------------------------------------------------------------
@@ -388,6 +391,11 @@ class ReportReader:
                 return None
             v = v.astype(np.float64)
         return v
+
+    def whole(self, name: str) -> np.ndarray | None:
+        """All of a present (small) array, e.g. ``background_motion`` (camera, raw_frame, 8);
+        None if absent."""
+        return np.asarray(self._arrays[name][...]) if name in self._arrays else None
 
     def camera_frame(self, name: str, c: int, f: int) -> np.ndarray | None:
         """``name[c, f]`` of a per-camera array (float64 if floating), or None if missing or unfinished."""
