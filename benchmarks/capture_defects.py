@@ -230,7 +230,8 @@ def run_one(name: str, session: Path, truth: Path, store: Path, params: dict, *,
     summary = run_session(session, store, serial=True, config=config_from_dict(params))
     seconds = time.perf_counter() - t0
     res = {"run": name, "describe": RUNS[name][2] if name in RUNS else name, "params": params,
-           "pipeline_seconds": seconds}
+           "pipeline_seconds": seconds,
+           "cpu_seconds": {k: float(v) for k, v in (summary.stage_cpu_seconds or {}).items()}}
     if not summary.ok:
         res["failures"] = dict(summary.root_failures())
         return res
@@ -305,18 +306,19 @@ def markdown(result: dict) -> str:
              "the lab session is the same capture with the perturbations of the benchmark's docstring "
              f"(seed {result['seed']}): {result['spec_text']}", "",
              "| run | whole box dB | in plume dB | mask fill | hull fill | motion left (median px) | "
-             "motion error RMS px | defective pixels found / missed / false | pipeline s |",
-             "|---|---:|---:|---:|---:|---:|---:|---|---:|"]
+             "motion error RMS px | defective pixels found / missed / false | pipeline s | deflection CPU s |",
+             "|---|---:|---:|---:|---:|---:|---:|---|---:|---:|"]
     for r in rows:
         if "failures" in r:
-            lines.append(f"| {r['describe']} | failed: {list(r['failures'].values())[:1]} | | | | | | | |")
+            lines.append(f"| {r['describe']} | failed: {list(r['failures'].values())[:1]} | | | | | | | | |")
             continue
         d = r.get("defects", {})
         dtext = f"{d.get('found', '-')} / {d.get('missed', '-')} / {d.get('false', d.get('flagged', '-'))}"
         me = r.get("motion_error_rms")
         lines.append(f"| {r['describe']} | {r['psnr']:.2f} | {r['psnr_plume']:.2f} | {r['mask_fill']:.3f} | "
                      f"{r['hull_fill']:.3f} | {r['motion_left_median']:.4f} | "
-                     f"{'-' if me is None else f'{me:.4f}'} | {dtext} | {r['pipeline_seconds']:.0f} |")
+                     f"{'-' if me is None else f'{me:.4f}'} | {dtext} | {r['pipeline_seconds']:.0f} | "
+                     f"{r.get('cpu_seconds', {}).get('deflection', float('nan')):.1f} |")
     lines += ["", "* motion left: the largest displacement of the affine motion fitted (Tukey IRLS) to each "
               "camera-frame's stored `flow_raw` on the static cells, median over the processed camera-frames.",
               "* motion error: the stored `background_motion` against the true motion, RMS displacement over "

@@ -76,10 +76,11 @@ def _knot(Y, k0, step, nk):
     return k, t - k
 
 
-@nb.njit(cache=True, nogil=True)
-def _residuals(cp, frame, xs, ys, scale, cx, cy, th, k0, step, gam, bet, e, gxs, gys, val):
-    """Residual ``frame - ((1 + gamma) ref(T) + beta)`` at the samples, and the prediction's
-    derivatives by the full-resolution displacement."""
+@nb.njit(cache=True, nogil=True, fastmath=True)
+def _residuals(cp, frame, xs, ys, scale, cx, cy, th, nm, k0, step, gam, bet, e, J, kk):
+    """Residual ``frame - ((1 + gamma) ref(T) + beta)`` at the samples, and each sample's
+    Jacobian row: the ``nm`` motion terms, then the gains and offsets of its row's two knots
+    (``kk``: the left knot)."""
     Hm = cp.shape[0] - 2 * _PAD - 1.0
     Wm = cp.shape[1] - 2 * _PAD - 1.0
     nk = gam.shape[0]
@@ -93,58 +94,21 @@ def _residuals(cp, frame, xs, ys, scale, cx, cy, th, k0, step, gam, bet, e, gxs,
         g = 1.0 + (1.0 - w) * gam[k] + w * gam[k1]
         b = (1.0 - w) * bet[k] + w * bet[k1]
         e[i] = frame[ys[i], xs[i]] - (g * v + b)
-        gxs[i] = g * dvx / scale
-        gys[i] = g * dvy / scale
-        val[i] = v
-
-
-@nb.njit(cache=True, nogil=True)
-def _normal_equations(xs, ys, scale, cx, cy, th, nm, k0, step, nk, e, gxs, gys, val, wt, A, rhs):
-    """Accumulate ``J^T W J`` and ``J^T W e`` (unknowns: ``nm`` motion terms, then ``nk``
-    gains, then ``nk`` offsets)."""
-    idx = np.empty(nm + 4, np.int64)
-    jac = np.empty(nm + 4)
-    for i in range(xs.shape[0]):
-        w_i = wt[i]
-        if w_i <= 0.0:
-            continue
-        X = scale * xs[i]
-        Y = scale * ys[i]
-        qx, qy, D, Tx, Ty = _warp(X, Y, cx, cy, th)
-        gx = gxs[i] / D
-        gy = gys[i] / D
-        m = 0
-        for j in range(nm):
-            if j == 0:
-                d = gx
-            elif j == 1:
-                d = gy
-            elif j == 2:
-                d = gx * qx
-            elif j == 3:
-                d = gx * qy
-            elif j == 4:
-                d = gy * qx
-            elif j == 5:
-                d = gy * qy
-            elif j == 6:
-                d = -(gx * Tx + gy * Ty) * qx
-            else:
-                d = -(gx * Tx + gy * Ty) * qy
-            idx[m] = j
-            jac[m] = d
-            m += 1
-        k, w = _knot(Y, k0, step, nk)
-        k1 = min(k + 1, nk - 1)
-        for kk, ww in ((k, 1.0 - w), (k1, w)):
-            idx[m] = nm + kk
-            jac[m] = val[i] * ww
-            m += 1
-            idx[m] = nm + nk + kk
-            jac[m] = ww
-            m += 1
-        for a in range(m):
-            ja = w_i * jac[a]
-            rhs[idx[a]] += ja * e[i]
-            for b in range(m):
-                A[idx[a], idx[b]] += ja * jac[b]
+        gx = g * dvx / scale / D
+        gy = g * dvy / scale / D
+        J[i, 0] = gx
+        J[i, 1] = gy
+        if nm > 2:
+            J[i, 2] = gx * qx
+            J[i, 3] = gx * qy
+            J[i, 4] = gy * qx
+            J[i, 5] = gy * qy
+        if nm > 6:
+            gt = -(gx * Tx + gy * Ty)
+            J[i, 6] = gt * qx
+            J[i, 7] = gt * qy
+        J[i, nm] = v * (1.0 - w)
+        J[i, nm + 1] = v * w
+        J[i, nm + 2] = 1.0 - w
+        J[i, nm + 3] = w
+        kk[i] = k
