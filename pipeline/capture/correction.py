@@ -5,8 +5,9 @@ kernel of the ``deflection`` stage with :class:`~.params.CaptureParams`.
    frame's gain and offset profiles on the pixels whose rays miss the volume;
 2. the frame's gain and offset are removed (when they depart from 1 and 0 by more than
    their tolerances);
-3. the flow (:func:`~schlieren.pipeline.flow.deflection_stage`) starts from the motion,
-   gives the defective pixels no weight, and returns the deflection minus the motion;
+3. the flow (:func:`~schlieren.pipeline.flow.deflection_stage`) starts from the motion
+   (or, beyond ``warp_above``, runs against the reference resampled at the moved
+   positions), gives the defective pixels no weight, and returns the deflection alone;
 4. what motion the flow still shows on the static cells is fitted robustly
    (:func:`~.motion.fit_flow_motion`) and removed too: where the static region is too
    small the registration used every pixel, and this fit on the flow's low-deflection
@@ -24,7 +25,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from schlieren.pipeline.flow import FlowParams, deflection_stage
+from schlieren.pipeline.flow import FlowParams, deflection_stage, prepare_reference
 from schlieren.pipeline.flow.splines import warp_image
 
 from .motion import fit_flow_motion, motion_displacement, motion_extent, motion_field
@@ -100,7 +101,6 @@ def corrected_deflection(reference, frame: np.ndarray, flow: FlowParams = FlowPa
     flow : ndarray, shape (H // f, W // f, 2), float32
     correction : CaptureCorrection
     """
-    from schlieren.pipeline.flow import prepare_reference
     from schlieren.pipeline.flow.reference import PreparedReference
 
     prep = reference if isinstance(reference, PreparedReference) else \
@@ -125,8 +125,13 @@ def corrected_deflection(reference, frame: np.ndarray, flow: FlowParams = FlowPa
     extent = motion_extent(motion, size)
     moved = capture.motion_model != "none" and extent > capture.motion_tolerance and \
         not extent <= capture.significance * fit.motion_sigma
-    start = functools.partial(motion_displacement, motion, image_size=size) if moved else None
-    d = deflection_stage(prep, img, flow, info=info, motion=start, invalid=bad)
+    if moved:  # the frame's border shows what the reference does not hold
+        bad = _border(bad, (H, W), int(np.ceil(extent)) + 1)
+    if moved and extent > capture.warp_above:
+        d = _flow_on_moved_reference(prep, img, flow, motion, size, bad, info)
+    else:
+        start = functools.partial(motion_displacement, motion, image_size=size) if moved else None
+        d = deflection_stage(prep, img, flow, info=info, motion=start, invalid=bad)
     residual = float("nan")
     if capture.motion_model != "none":
         cells = _fit_cells(d, static, flow.factor, fit.fallback)
@@ -140,6 +145,31 @@ def corrected_deflection(reference, frame: np.ndarray, flow: FlowParams = FlowPa
             if capture.motion_source == "camera":
                 d = to_reference_grid(d, motion, size, flow.factor)
     return d.astype(np.float32), CaptureCorrection(motion, fit, residual, flags)
+
+
+def _flow_on_moved_reference(prep, frame, flow: FlowParams, motion, size, bad, info) -> np.ndarray:
+    """The deflection against the reference resampled at ``p + motion(p)`` (exact cubic
+    B-splines), for motions beyond ``capture.warp_above``. The reference's defective pixels
+    move with it: the invalid pixels grow by the motion's reach."""
+    W, H = size
+    y, x = np.mgrid[0:H, 0:W].astype(np.float64)
+    mx, my = motion_displacement(motion, x, y, size)
+    ref = np.where(np.isfinite(prep.image), prep.image, np.float32(prep.mean)).astype(np.float32)
+    moved = warp_image(ref, np.dstack([mx, my]).astype(np.float32))
+    if bad is not None:
+        r = int(np.ceil(motion_extent(motion, size))) + 2
+        bad = cv2.dilate(bad.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8)).astype(bool)
+    return deflection_stage(prepare_reference(moved, **flow.reference_kwargs()), frame, flow, info=info, invalid=bad)
+
+
+def _border(bad: np.ndarray | None, shape: tuple[int, int], width: int) -> np.ndarray:
+    """``bad`` with a band of ``width`` pixels along the image's edges."""
+    out = np.zeros(shape, bool) if bad is None else bad.copy()
+    out[:width] = True
+    out[-width:] = True
+    out[:, :width] = True
+    out[:, -width:] = True
+    return out
 
 
 def _fit_cells(flow: np.ndarray, static: np.ndarray | None, factor: int, fallback: bool) -> np.ndarray:

@@ -17,10 +17,12 @@ Two tests, over the reference frames and a sample of the capture frames:
   neighbourhood in every frame (its neighbours' residuals carry half of its own, with
   the other sign);
 * **stuck**: its standard deviation over the frames is below ``stuck_ratio`` times the
-  median of its 5 x 5 neighbourhood's, while those neighbours do vary (sensor noise,
-  lighting, the flow), and its value is not the image's clipping level (a pixel of a
-  saturated patch of the background also stays constant, but so do its neighbours, or
-  it carries no texture the flow could use anyway).
+  smallest of its 8 neighbours', which do vary (each at least by the sensor noise,
+  whatever the motion or the lighting add: a pixel on a texture extremum barely follows
+  a sub-pixel motion while its neighbours on the slopes do, so a neighbourhood median
+  would flag it), and it is not at the frame's clipping level in half of the frames or
+  more (a pixel of a saturated or black patch of the background also stays constant, but
+  so do its neighbours, or it carries no texture the flow could use anyway).
 """
 
 from __future__ import annotations
@@ -44,7 +46,7 @@ _PREDICT = (np.array([[-1.0, 2.0, -1.0], [2.0, 0.0, 2.0], [-1.0, 2.0, -1.0]]) / 
 def _standard_residual(img: np.ndarray) -> np.ndarray:
     """The residual against the neighbours' quadratic prediction, in robust standard
     deviations (1.4826 x the median absolute residual, every second pixel)."""
-    r = img - cv2.filter2D(img, cv2.CV_32F, _PREDICT, borderType=cv2.BORDER_REFLECT_101)
+    r = img - cv2.filter2D(img, cv2.CV_32F, _PREDICT, borderType=cv2.BORDER_REPLICATE)
     scale = 1.4826 * float(np.median(np.abs(r[::2, ::2])))
     return r / np.float32(scale) if scale > 0 else np.zeros_like(r)
 
@@ -61,8 +63,8 @@ def find_defective_pixels(frames: Iterable[np.ndarray], *, threshold: float = 10
     threshold : float
         Hot and dead: robust standard deviations of the neighbour-prediction residual.
     stuck_ratio : float
-        Stuck: standard deviation over the frames below this fraction of the
-        neighbourhood's median (0 disables the test).
+        Stuck: standard deviation over the frames below this fraction of the smallest of
+        its 8 neighbours' (0 disables the test).
     min_stuck_frames : int
         The stuck test runs only with at least this many frames.
 
@@ -72,7 +74,7 @@ def find_defective_pixels(frames: Iterable[np.ndarray], *, threshold: float = 10
         Bit sum of :data:`HOT`, :data:`DEAD` and :data:`STUCK` (0 = a good pixel).
     """
     n = 0
-    zmin = zmax = peak = s1 = s2 = lo = hi = None
+    zmin = zmax = peak = s1 = s2 = clip = None
     box = np.ones((3, 3), np.uint8)
     for frame in frames:
         img = np.ascontiguousarray(frame, dtype=np.float32)
@@ -81,10 +83,11 @@ def find_defective_pixels(frames: Iterable[np.ndarray], *, threshold: float = 10
         a = np.abs(z)
         is_peak = a >= cv2.dilate(a, box)
         x = img.astype(np.float64)
+        lo, hi = cv2.minMaxLoc(img)[:2]
+        at_clip = ((img <= lo) | (img >= hi)).astype(np.int32)
         if n == 0:
             zmin, zmax, peak = z.copy(), z.copy(), is_peak
-            s1, s2 = x.copy(), x * x
-            lo, hi = float(img.min()), float(img.max())
+            s1, s2, clip = x.copy(), x * x, at_clip
         else:
             if z.shape != zmin.shape:
                 raise ValueError(f"frame {n} has shape {z.shape}, frame 0 has {zmin.shape}")
@@ -93,7 +96,7 @@ def find_defective_pixels(frames: Iterable[np.ndarray], *, threshold: float = 10
             peak &= is_peak
             s1 += x
             s2 += x * x
-            lo, hi = min(lo, float(img.min())), max(hi, float(img.max()))
+            clip += at_clip
         n += 1
     if n == 0:
         raise ValueError("no frames to find defective pixels in")
@@ -103,8 +106,10 @@ def find_defective_pixels(frames: Iterable[np.ndarray], *, threshold: float = 10
     if stuck_ratio > 0 and n >= min_stuck_frames:
         mean = s1 / n
         sd = np.sqrt(np.maximum(s2 / n - mean * mean, 0.0)).astype(np.float32)
-        around = cv2.medianBlur(sd, 5)
-        clipped = (mean <= lo) | (mean >= hi)
+        ring = np.ones((3, 3), np.uint8)
+        ring[1, 1] = 0
+        around = cv2.erode(sd, ring, borderType=cv2.BORDER_REFLECT_101)
+        clipped = 2 * clip >= n  # at the frame's darkest or brightest level in half of the frames
         out[(sd < stuck_ratio * around) & (around > 0) & ~clipped] |= STUCK
     return out
 

@@ -38,8 +38,9 @@ def _cells(d):
     return np.sqrt(np.nanmean(np.sum(d * d, axis=-1)))
 
 
-def test_static_scene_with_a_known_motion_gives_no_deflection(background, prep):
-    m = np.array([0.3, -0.2, 1e-4, -3e-4, 3e-4, 0.0, 0, 0])
+@pytest.mark.parametrize("shift", [0.3, 1.2])  # the flow starts from the motion / the reference is moved
+def test_static_scene_with_a_known_motion_gives_no_deflection(background, prep, shift):
+    m = np.array([shift, -0.6 * shift, 1e-4, -3e-4, 3e-4, 0.0, 0, 0])
     frame = render(background, SHAPE, lambda u, v: motion_displacement(m, u, v, SIZE), noise=1.5,
                    rng=np.random.default_rng(2))
     d, corr = corrected_deflection(prep, frame, FLOW, static=_static())
