@@ -2,7 +2,8 @@
 """Bootstrap and run: needs only Python 3.11+.
 
     python3 dev.py demo [ARGS...]   # make .venv, install schlieren, run `schlieren demo`
-    python3 dev.py test [ARGS...]   # same venv, run the default test suite (pytest)
+    python3 dev.py test [ARGS...]   # same venv, run the test suite (pytest): both tiers, as CI does
+    python3 dev.py test --fast      # only the fast tier: no Dask clusters, S3 server, browser or SLURM
     python3 dev.py schlieren ARGS   # any other schlieren command inside the venv
 
 The virtual environment lives in .venv beside this file and is (re)installed whenever
@@ -121,6 +122,8 @@ def main(argv: list[str]) -> int:
     ensure_env(EXTRAS.get(cmd, EXTRAS["test"]))
     env = dict(os.environ)
     if cmd == "test":
+        if rest[:1] == ["--fast"]:
+            rest = ["-q", "-m", "not slow and not system"] + rest[1:]
         args = [str(BIN / "python"), "-m", "pytest"] + (rest or ["-q", "-m", "not slow"])
     elif cmd == "demo":
         args = [str(BIN / "schlieren"), "demo"] + rest

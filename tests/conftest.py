@@ -119,3 +119,69 @@ def s3_server():
             proc.wait(10)
         except subprocess.TimeoutExpired:
             proc.kill()
+
+
+# --------------------------------------------------------------------------------------
+# test tiers: fast (pure Python, the edit-test loop) and system (daemons and tools)
+# --------------------------------------------------------------------------------------
+#: Fixtures that start something beyond Python: a test using one is in the system tier.
+SYSTEM_FIXTURES = {"s3_server", "external_cluster_factory", "external_scheduler", "slurm"}
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if SYSTEM_FIXTURES & set(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.system)
+
+
+def _starts_a_service(args) -> str | None:
+    """What a command line starts that belongs to the system tier, or None."""
+    words = [str(a) for a in (args if isinstance(args, (list, tuple)) else str(args).split())]
+    joined = " ".join(words)
+    if "--dry-run" in words or "--help" in words:
+        return None
+    for i, w in enumerate(words):
+        if w == "--workers" and i + 1 < len(words) and words[i + 1] not in ("0", "1"):
+            return f"a local Dask cluster ({joined[:120]})"
+        if w.startswith("--workers=") and w.split("=", 1)[1] not in ("0", "1"):
+            return f"a local Dask cluster ({joined[:120]})"
+    for needle, what in (("--scheduler", "a Dask client of a scheduler"), (" submit ", "a batch cluster"),
+                         ("moto.server", "an S3 server"), ("chromium", "a browser"),
+                         ("dask scheduler", "a Dask scheduler"), ("dask worker", "Dask workers"),
+                         ("slurm.sh", "SLURM")):
+        if needle in f" {joined} ":
+            return f"{what} ({joined[:120]})"
+    return None
+
+
+@pytest.fixture(autouse=True)
+def _fast_tier_starts_no_services(request, monkeypatch):
+    """In a run that deselects the system tier, a test that starts a Dask cluster, a
+    server, a browser or SLURM without the `system` marker fails and says so: the fast
+    tier stays fast because nothing can slip into it unmarked."""
+    markexpr = request.config.getoption("-m") or ""
+    if "not system" not in markexpr or request.node.get_closest_marker("system"):
+        return
+    import subprocess
+
+    import distributed.deploy.spec as spec
+
+    def refuse(what):
+        pytest.fail(f"this test starts {what}: mark it @pytest.mark.system (tests/conftest.py)", pytrace=False)
+
+    real_popen_init = subprocess.Popen.__init__
+
+    def popen_init(self, args, *a, **kw):
+        what = _starts_a_service(args)
+        if what:
+            refuse(what)
+        real_popen_init(self, args, *a, **kw)
+
+    real_spec_init = spec.SpecCluster.__init__
+
+    def spec_init(self, *a, **kw):
+        refuse("a Dask cluster in this process")
+        real_spec_init(self, *a, **kw)
+
+    monkeypatch.setattr(subprocess.Popen, "__init__", popen_init)
+    monkeypatch.setattr(spec.SpecCluster, "__init__", spec_init)

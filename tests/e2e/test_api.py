@@ -41,6 +41,7 @@ def test_the_documented_example_runs(tmp_path, monkeypatch, capsys):
     assert list((tmp_path / "api-demo" / "run_nrrd").glob("temperature_*.nrrd"))
 
 
+@pytest.mark.system
 def test_a_users_client_gets_the_worker_setup_and_the_tomo_resource(tiny_session, serial_store, tmp_path):
     """A LocalCluster the user started without the TOMO resource: tomography tasks would wait
     forever on it; schlieren.run(client=...) adds the resource and the thread caps."""

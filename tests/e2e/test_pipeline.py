@@ -80,6 +80,7 @@ def test_threshold_pools_the_summaries_the_potential_tasks_wrote(serial_store, t
         run_task(str(old), "threshold", (), run_token="old-store")
 
 
+@pytest.mark.system
 def test_dask_executor_gives_the_identical_store(serial_store, tiny_session, tmp_path):
     from schlieren.workers.cluster import ClusterOptions, open_client
 

@@ -41,7 +41,7 @@ def test_names_of_urls_and_paths(tmp_path):
 # ---------------------------------------------------------------------------------------
 # files: the same answers locally and on S3
 # ---------------------------------------------------------------------------------------
-@pytest.fixture(params=["local", "s3"])
+@pytest.fixture(params=["local", pytest.param("s3", marks=pytest.mark.system)])
 def root(request, tmp_path):
     if request.param == "s3":
         return request.getfixturevalue("s3_server").bucket() + "/root"

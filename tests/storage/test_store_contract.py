@@ -42,7 +42,7 @@ def attrs(fp="run-1"):
             "session": {"name": "tiny", "frames": (10, 14)}, "version": "0.1.0"}
 
 
-@pytest.fixture(params=["local", "memory", "s3"])
+@pytest.fixture(params=["local", "memory", pytest.param("s3", marks=pytest.mark.system)])
 def location(request, tmp_path):
     """A fresh place for a store: a folder path, a MemoryStore or a URL on a local S3 server."""
     if request.param == "local":

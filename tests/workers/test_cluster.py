@@ -108,6 +108,7 @@ def test_local_cluster_listens_on_loopback_only(local):
     assert hosts == {"127.0.0.1"}, hosts
 
 
+@pytest.mark.system
 @pytest.mark.timeout(120)
 def test_a_dashboard_port_taken_after_the_check_is_no_warning(recwarn, caplog, monkeypatch):
     """The dashboard port is free when checked but taken when the scheduler binds it
@@ -149,6 +150,7 @@ def test_worker_plugin_is_idempotent_and_logs_json(local):
     assert pid != os.getpid()
 
 
+@pytest.mark.system
 @pytest.mark.timeout(120)
 def test_tomo_resource_limits_concurrency_per_worker():
     # one worker with two threads but one TOMO slot: TOMO tasks never overlap, plain ones do

@@ -166,6 +166,7 @@ def test_jobqueue_kwargs_respect_user_resources_and_validate():
         make_batch_cluster("sge", cfg)
 
 
+@pytest.mark.system
 @pytest.mark.timeout(60)
 def test_jobqueue_cluster_object_renders_the_same_script(tmp_path):
     certs = make_certificates(tmp_path / "tls")
@@ -309,6 +310,7 @@ def test_kubernetes_dry_run_without_dask_kubernetes_says_what_to_install(monkeyp
     assert len(err) == 1 and "dask-kubernetes is not installed: pip install dask-kubernetes" in err[0]
 
 
+@pytest.mark.system
 @pytest.mark.timeout(120)
 def test_submit_runs_the_session_on_the_cluster_it_creates(tiny_session, tmp_path, monkeypatch, capsys):
     """The submit glue: config -> cluster -> client (plugin, TOMO) -> run_session -> exit code.

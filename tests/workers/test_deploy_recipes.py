@@ -721,6 +721,7 @@ def test_adapt_bounds_and_scale_override():
     assert "adapt" not in cfg["schlieren"] and schlieren_section(cfg)["scale"] == 3
 
 
+@pytest.mark.system
 @pytest.mark.timeout(60)
 def test_login_node_scheduler_does_not_take_the_workers_interface():
     """interface: ib0 (absent here) is for the workers; the login-node scheduler starts anyway."""

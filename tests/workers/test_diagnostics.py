@@ -7,6 +7,8 @@ import shutil
 import cv2
 import numpy as np
 
+import pytest
+
 from schlieren.workers.diagnostics import diagnose
 
 
@@ -75,6 +77,7 @@ def test_verbose_lines_say_which_stage_camera_and_frame(tiny_session, serial_sto
         assert ln.startswith("INFO schlieren.receipts: task receipt: stage integrate, frame ") and f"frame {f}," in ln
 
 
+@pytest.mark.system
 def test_ctrl_c_on_a_local_cluster_prints_one_line_and_keeps_the_chunks(tiny_session, serial_store, tmp_path):
     """SIGINT to the whole process group (what a terminal's Ctrl-C does): no worker
     tracebacks, the one-line message, exit 130, and the rerun completes the same store."""

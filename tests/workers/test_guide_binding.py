@@ -55,6 +55,7 @@ def _listeners(pids) -> list[tuple[str, int]]:
     return out
 
 
+@pytest.mark.system
 @pytest.mark.timeout(120)
 def test_the_guides_scheduler_and_worker_listen_on_the_named_interface_only(tmp_path):
     sched_cmd = _guide_commands("scheduler")[0]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 import shutil
 import subprocess
 import sys
@@ -21,6 +23,7 @@ def _copy_session(tiny_session, tmp_path):
     return sess
 
 
+@pytest.mark.system  # passes --workers N: the fast tier's guard cannot tell a refusal from a start
 def test_malformed_manifest_is_refused_before_any_work(tiny_session, tmp_path):
     sess = _copy_session(tiny_session, tmp_path)
     m = yaml.safe_load((sess / "session.yaml").read_text())
@@ -65,6 +68,7 @@ def test_bad_frame_range_argument(tiny_session, tmp_path):
     assert p.returncode == 2 and "--frames" in p.stderr and "Traceback" not in p.stderr
 
 
+@pytest.mark.system  # passes --workers N: the fast tier's guard cannot tell a refusal from a start
 def test_an_unwritable_log_path_is_refused_before_any_work(tiny_session, tmp_path):
     blocker = tmp_path / "not-a-folder"
     blocker.write_text("x")
@@ -75,6 +79,7 @@ def test_an_unwritable_log_path_is_refused_before_any_work(tiny_session, tmp_pat
     assert "dashboard:" not in p.stderr and not out.exists()  # no cluster, no store
 
 
+@pytest.mark.system  # passes --workers N: the fast tier's guard cannot tell a refusal from a start
 def test_bad_worker_counts_and_demo_sizes_are_refused(tiny_session, tmp_path):
     for n in ("0", "-3"):
         p = _cli("run", tiny_session.session, "--out", tmp_path / "o.zarr", "--workers", n)

@@ -193,6 +193,7 @@ def test_tls_cluster_accepts_certified_client_and_refuses_others(tmp_path, exter
             pass
 
 
+@pytest.mark.system
 @pytest.mark.timeout(120)
 def test_local_cluster_with_tls(tmp_path):
     certs = make_certificates(tmp_path / "tls")
