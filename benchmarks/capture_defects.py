@@ -314,22 +314,18 @@ def flow_start_probe(clean: Path, *, camera: int = 0, frames=(4, 5, 6),
     from schlieren.pipeline.flow.splines import warp_image
     from schlieren.storage.frames import open_frames, read_reference
     from schlieren.storage.session import load_session
-    from schlieren.workers.tasks.deflection import flow_params
+    from schlieren.pipeline.flow import window_for_voxel
+    from schlieren.pipeline.geometry import pixel_footprint
     from schlieren.pipeline.stages import RunConfig, bind_flow_factor
 
     sess = load_session(clean / "session.yaml")
     cam, src = sess.cameras[camera], sess.sources[camera]
-    cfg = bind_flow_factor(RunConfig(), sess.cameras, sess.grid)
-
-    class _Ctx:  # what flow_params reads
-        config, session = cfg, sess
-        cameras = sess.cameras
-
-        @staticmethod
-        def once(key, make):
-            return make()
-
-    params = flow_params(_Ctx, camera)
+    flow = bind_flow_factor(RunConfig(), sess.cameras, sess.grid).flow
+    grid = sess.grid  # the run's LK window (workers/tasks/deflection.py: flow_params)
+    params = flow
+    if flow.window_per_voxel > 0:
+        px = grid.voxel_size / pixel_footprint(cam, grid.center)
+        params = dataclasses.replace(flow, window=window_for_voxel(px, flow.window_per_voxel))
     f, size = params.factor, cam.image_size
     prep = prepare_reference(read_reference(src, camera_name=src.name), **params.reference_kwargs())
     truth = zarr.open_group(str(clean / "truth.zarr"), mode="r")

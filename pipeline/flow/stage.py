@@ -175,6 +175,7 @@ def _flow_components(reference, frame, *, method, window, window_type, levels, i
     return u, v
 
 
+# over 80 lines only by its numpydoc docstring: the steps are the functions it calls
 def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowParams(), *,
                      info: dict | None = None, motion=None, invalid: np.ndarray | None = None) -> np.ndarray:
     """Per camera-frame deflection stage: flow, area downsampling, outliers, smoothing.
@@ -249,14 +250,9 @@ def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowPara
         comps = [comps[0] - np.asarray(mx, np.float32), comps[1] - np.asarray(my, np.float32)]
     bad_cells = None
     if valid is not None:
-        bad_cells = _bad_cells(valid, params.window, params.window_type, f, (rows, cols))
-        if bad_cells.all():
+        comps, bad_cells = _fill_bad_cells(comps, valid, checked, params)
+        if comps is None:
             return np.full((rows, cols, 2), np.nan, np.float32)
-        filled = _nearest_fill(np.dstack(comps), bad_cells)
-        comps = [np.ascontiguousarray(filled[..., 0]), np.ascontiguousarray(filled[..., 1])]
-        if checked is not valid:  # cells lost to ``invalid`` pixels alone keep their filled value
-            bad_cells = _bad_cells(checked, params.window, params.window_type, f, (rows, cols)) \
-                if checked is not None else None
     if params.outlier_threshold > 0:
         comps = _replace_outliers(comps, params.outlier_threshold, params.outlier_epsilon)
     if keep and params.texture_correction:
@@ -268,6 +264,23 @@ def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowPara
     if bad_cells is not None and bad_cells.any():
         out[bad_cells] = np.nan
     return out
+
+
+def _fill_bad_cells(comps: list, valid: np.ndarray, checked: np.ndarray | None, params: FlowParams):
+    """The flow-grid cells that ``valid`` leaves without support (:func:`_bad_cells`) filled
+    from their nearest good cell, and the cells to return as NaN: those of ``checked`` (the
+    ``invalid_check`` map; the cells that only the caller's ``invalid`` pixels emptied keep
+    their filled value). ``(None, None)`` when no cell has support."""
+    shape = comps[0].shape
+    bad = _bad_cells(valid, params.window, params.window_type, params.factor, shape)
+    if bad.all():
+        return None, None
+    filled = _nearest_fill(np.dstack(comps), bad)
+    comps = [np.ascontiguousarray(filled[..., 0]), np.ascontiguousarray(filled[..., 1])]
+    if checked is not valid:
+        bad = _bad_cells(checked, params.window, params.window_type, params.factor, shape) \
+            if checked is not None else None
+    return comps, bad
 
 
 def _valid_pixels(reference, frame: np.ndarray, texture_threshold: float) -> np.ndarray | None:
