@@ -4,7 +4,7 @@ Cheap camcorders and real labs produce them: a frame taken while the lights flic
 the lens cap was on (dark), a frame blown out by a reflection or the strobe of another
 rig (saturated), and a frame the camera repeated because it dropped the real one
 (frozen: identical to the previous frame, which sensor noise never is). Each would put a
-false deflection field into the tomography (an all-black frame cost its frame 3.6 dB).
+false deflection field into the tomography (docs/tuning.md, "Frame quality").
 A camera that dropped a frame without repeating one leaves a time slot with no frame
 (a gap in the numbered file names or in a video's timestamps, found by
 :mod:`schlieren.storage.frames`): the slot is flagged :data:`DROPPED`, so frame indices
@@ -82,7 +82,7 @@ def frame_quality(frame: np.ndarray, previous: np.ndarray | None, *, reference_m
         saturation test.
     finite : bool
         The caller knows that ``frame`` holds no NaN or inf (grey levels decoded from
-        integer samples): floating-point frames skip the check (0.6 ms at 1440x1080).
+        integer samples): floating-point frames skip the finiteness scan.
 
     Returns
     -------
@@ -97,8 +97,8 @@ def frame_quality(frame: np.ndarray, previous: np.ndarray | None, *, reference_m
     p = None if previous is None else np.asarray(previous)
     if f.ndim == 2 and f.dtype in _CV_DTYPES and (p is None or p.dtype == f.dtype) and \
             (f.dtype.kind != "f" or finite or cv2.checkRange(f)[0]):
-        # OpenCV's sums accumulate in double without float64 copies of the frame (7.2 ->
-        # 0.7 ms at 1440x1080; one deflection task per camera-frame calls this)
+        # OpenCV's sums accumulate in double without float64 copies of the frame (one
+        # deflection task per camera-frame calls this; docs/tuning.md, "Speed")
         m, sd = cv2.meanStdDev(f)
         mean, std = float(m[0, 0]), float(sd[0, 0])
         lo, hi = (float(v) for v in cv2.minMaxLoc(f)[:2])

@@ -363,8 +363,8 @@ def auto_voxel_size(cameras, vmin, vmax, *, px_per_voxel: float = AUTO_PX_PER_VO
 
     A voxel should span about ``px_per_voxel`` image pixels (the median footprint over the
     cameras at the box centre): finer voxels than the flow can resolve only add unknowns,
-    coarser ones throw away the resolution the cameras have (on weak, fine-structured
-    flows, 2.5 mm voxels at 3.8 px each lost 4 dB against 1.25 mm ones). Two budgets bound
+    coarser ones throw away the resolution the cameras have (docs/tuning.md, "Voxel and
+    flow grid"). Two budgets bound
     it from below: at most ``max_voxels`` voxels in the box, and at most ``max_crossings``
     ray-voxel crossings (flow-grid rays of every camera times the voxels across the box),
     which sets the size of the projection matrix (about 4 bytes x 2 per crossing). The

@@ -110,7 +110,7 @@ def hull_projection(cameras: list[Camera], grid: Grid, flow_grid: FlowGrid, *,
 
 def _distance_to_mask(mask: np.ndarray) -> np.ndarray:
     """Euclidean distance (flow pixels) from every pixel centre to the nearest mask pixel
-    centre, float32 (OpenCV's exact transform: 4-5x faster than scipy's at 480x360)."""
+    centre, float32 (OpenCV's exact transform, faster than scipy's; docs/tuning.md, "Speed")."""
     return cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
 
 

@@ -49,8 +49,8 @@ __all__ = [
 
 
 #: :class:`MaskParams` ``grow_factor`` acts only where the noise lifts the deflection
-#: criterion above this many times its floor ``deflection_threshold`` (between the
-#: realistic family's lossless frames, 1.2-1.5, and its lossy video, 4.7-6.3).
+#: criterion above this many times its floor ``deflection_threshold``: between the ratios
+#: of lossless frames and of lossy video (docs/tuning.md, "Masks and hull").
 GROW_NOISE_RATIO = 2.0
 
 
@@ -229,8 +229,7 @@ def potential_summary(potential: np.ndarray, *, smooth_sigma: float = 1.0,
 def sorted_quantiles(values: np.ndarray, probs: np.ndarray) -> np.ndarray:
     """``np.quantile(values, probs)`` (its default linear method) of an already sorted 1-D
     array, read off directly: numpy partitions around every requested index even when the
-    data are sorted, 4.5 ms for 2000 quantiles of a 64 x 48 flow grid (1.7 ms at 480 x 360)
-    instead of 0.05 ms."""
+    data are sorted, which costs far more than the lookup (docs/tuning.md, "Speed")."""
     m = np.asarray(values, dtype=np.float64)
     pos = np.asarray(probs, dtype=np.float64) * (m.size - 1)
     lo = np.clip(np.floor(pos).astype(np.int64), 0, m.size - 1)

@@ -4,8 +4,8 @@ Relative RMS error of the refractivity over the whole box, normalised by the tru
 range in that frame, and ``PSNR = 20 log10(1 / RMS)``. Truth on its own grid and time
 samples is resampled to the estimate's grid (trilinear) and times (linear).
 
-Ambient voxels dominate the whole box (a constant-ambient guess already scores 20-24 dB),
-so the *in-plume* figure is reported beside it: the same RMS, still normalised by the
+Ambient voxels dominate the whole box (a constant-ambient guess already scores well
+there; docs/tuning.md, "Metric"), so the *in-plume* figure is reported beside it: the same RMS, still normalised by the
 truth's range over the whole box, over the voxels where ``|truth - r_ambient|`` exceeds
 1 % of that range (:func:`plume_mask`).
 

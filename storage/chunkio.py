@@ -2,9 +2,9 @@
 
 Every task reads and writes single whole chunks (one camera-frame flow field, one frame's
 volume, one completion marker). Through zarr's API each such access is scheduled on
-zarr's I/O event-loop thread and waited for: about 1 ms per access in one process, and
-2-3 ms in a busy Dask worker, whose own event loop competes for the GIL. A run of 8
-cameras x 16 frames makes some 3,000 of them. This module encodes and decodes exactly
+zarr's I/O event-loop thread and waited for, which costs more than the access itself,
+most in a busy Dask worker, whose own event loop competes for the GIL, and a run makes
+thousands of them (docs/tuning.md, "Chunk I/O and object storage"). This module encodes and decodes exactly
 what zarr does for the arrays the store creates, in the calling thread:
 
 * the chunk file is ``<array>/c/<i>/<j>/...`` (default chunk key encoding, ``/``);

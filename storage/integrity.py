@@ -1,6 +1,6 @@
 """Chunk integrity of the result store: checksums, completion coverage and scans.
 
-The design (docs/design.md, "Integrity"):
+The design (docs/design.md, "Integrity, resume and preflight"):
 
 * **Checksums in the codec chain.** Every array the store creates ends its codecs with
   zarr's ``crc32c`` codec (``bytes``, ``zstd``, ``crc32c``), so zarr itself computes and
@@ -47,7 +47,7 @@ from schlieren.storage.errors import ChunkError
 from schlieren.storage.layout import MARKER_GROUP
 
 __all__ = ["INTEGRITY_VERSION", "CheckedStore", "Problem", "ScanResult", "scan_store", "chunk_error",
-           "marker_index", "open_dataset", "format_chunk"]
+           "marker_index", "open_dataset", "format_chunk", "not_kept_error", "dropped_of"]
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +64,33 @@ def chunk_error(location: str, array: str, coords, what: str) -> ChunkError:
     return ChunkError(f"chunk {format_chunk(coords)} {what}; `schlieren verify {location} --repair` "
                       "and a rerun recompute it (or `schlieren run ... --verify`)",
                       file=location, array=array, chunk=tuple(int(c) for c in coords), reason=what)
+
+
+def not_kept_error(location: str, array: str, coords, keep: str | None = None) -> ChunkError:
+    """The one-line error of a chunk the run's retention dropped (``schlieren run --keep``)."""
+    policy = f"--keep {keep}" if keep else "--keep"
+    return ChunkError(f"chunk {format_chunk(coords)} was not kept: the run's retention ({policy}) drops {array} "
+                      f"once the stages reading it are done; a run with --keep all (or --keep {array}) stores "
+                      "it again", file=location, array=array, chunk=tuple(int(c) for c in coords), reason="not kept")
+
+
+def _json_attr(attrs, name: str) -> dict | None:
+    """Root attribute ``name`` (stored as JSON text, netCDF-safe) as a dict, or None."""
+    info = attrs.get(name) if hasattr(attrs, "get") else None
+    if isinstance(info, str):
+        try:
+            info = json.loads(info)
+        except ValueError:
+            info = None
+    return info if isinstance(info, dict) else None
+
+
+def dropped_of(attrs) -> frozenset[str]:
+    """The arrays whose chunks the run's retention may have dropped (root attribute
+    ``retention``, :mod:`schlieren.storage.store.retention`): a missing chunk of theirs
+    under a set marker is "not kept", not lost."""
+    info = _json_attr(attrs, "retention") or {}
+    return frozenset(str(n) for n in info.get("dropped") or ())
 
 
 def marker_index(array_dims, array_chunks, marker_dims, coords) -> tuple[int, ...]:
@@ -140,13 +167,7 @@ def _meta_from_dict(m: dict) -> _Meta | None:
 
 def _integrity_attr(attrs) -> dict | None:
     """The ``integrity`` root attribute (stored as JSON text, netCDF-safe), or None."""
-    info = attrs.get("integrity") if hasattr(attrs, "get") else None
-    if isinstance(info, str):
-        try:
-            info = json.loads(info)
-        except ValueError:
-            info = None
-    return info if isinstance(info, dict) else None
+    return _json_attr(attrs, "integrity")
 
 
 def _chunk_key(key: str) -> tuple[str, tuple[int, ...]] | None:
@@ -191,6 +212,9 @@ class CheckedStore(WrapperStore):
         self._meta: dict[str, _Meta | None] = {}
         self._integrity: dict | None = None
         self._integrity_read = False
+        self._consolidated: dict = {}  # array -> its metadata in the root's consolidated copy
+        self._retention: dict = {}  # the root attribute ``retention``
+        self._gone: set[str] = set()  # arrays whose own zarr.json is missing (the array was deleted)
         # metadata fetches in flight, by key: zarr requests the chunks of a read together,
         # and each would otherwise fetch the array's zarr.json again before the first
         # answer is cached (one fetch per chunk of a multi-chunk read from an object store)
@@ -213,6 +237,7 @@ class CheckedStore(WrapperStore):
                     self._meta[name] = meta
         if root_attrs is not None and not self._integrity_read:
             self._integrity = _integrity_attr(root_attrs)
+            self._retention = _json_attr(root_attrs, "retention") or {}
             self._integrity_read = True
 
     async def _fetch_once(self, key: str, prototype):
@@ -231,6 +256,13 @@ class CheckedStore(WrapperStore):
         if name not in self._meta:
             buf = await self._fetch_once(f"{name}/zarr.json", prototype)
             meta = _parse_meta(buf.to_bytes() if buf is not None else None)
+            if meta is None and buf is None:
+                # no zarr.json: an array deleted from the store (``rm -rf STORE/temperature``)
+                # is still listed in the root's consolidated metadata, which readers use
+                await self._get_integrity(prototype)
+                meta = _meta_from_dict(self._consolidated.get(name) or {})
+                if meta is not None:
+                    self._gone.add(name)
             if meta is None:
                 return None  # not cached: the array may be created later
             self._meta[name] = meta
@@ -240,10 +272,13 @@ class CheckedStore(WrapperStore):
         if not self._integrity_read:
             buf = await self._fetch_once("zarr.json", prototype)
             try:
-                attrs = json.loads(buf.to_bytes()).get("attributes") or {} if buf is not None else {}
+                root = json.loads(buf.to_bytes()) if buf is not None else {}
             except ValueError:
-                attrs = {}
+                root = {}
+            attrs = root.get("attributes") or {}
             self._integrity = _integrity_attr(attrs)
+            self._retention = _json_attr(attrs, "retention") or {}
+            self._consolidated = dict(((root.get("consolidated_metadata") or {}).get("metadata")) or {})
             self._integrity_read = buf is not None
         return self._integrity
 
@@ -265,7 +300,9 @@ class CheckedStore(WrapperStore):
             done = _decode_marker(buf.to_bytes(), mmeta)
         except CorruptChunk as exc:
             raise chunk_error(self.location, mname, idx, exc.reason) from None
-        return missing_reason(stage) if done else None
+        if not done:
+            return None
+        return missing_reason(stage) + (" (the whole array is gone: its zarr.json too)" if name in self._gone else "")
 
     async def get(self, key, prototype, byte_range=None):
         buf = await self._store.get(key, prototype, byte_range)
@@ -281,6 +318,8 @@ class CheckedStore(WrapperStore):
         if buf is None:
             why = await self._required(name, meta, coords, prototype)
             if why is not None:
+                if name in dropped_of({"retention": self._retention}):
+                    raise not_kept_error(self.location, name, coords, self._retention.get("keep"))
                 raise chunk_error(self.location, name, coords, why)
             return None
         if meta.checksum:
@@ -371,6 +410,8 @@ class ScannedStore(Protocol):
     def integrity(self) -> dict | None: ...
     @property
     def remote(self) -> bool: ...
+    @property
+    def dropped_arrays(self) -> frozenset[str]: ...
     def check_metadata(self) -> list[tuple[str, str]]: ...
     def list_all_chunks(self) -> dict[str, set[tuple[int, ...]]] | None: ...
     def list_chunks(self, name: str) -> tuple[set[tuple[int, ...]], list[str]]: ...
@@ -412,12 +453,14 @@ def scan_store(store: ScannedStore, *, full: bool = False) -> ScanResult:
     # data arrays: a set marker needs every chunk of its producer's outputs
     producers = dict((info or {}).get("producers") or {})
     static = set((info or {}).get("static") or ())
+    dropped = store.dropped_arrays  # the run's retention deletes their chunks: missing is "not kept"
     for name in store.all_array_names():
         if name.startswith(f"{MARKER_GROUP}/"):
             continue
         have = listing(name)
         grid = store.chunk_grid(name)
-        _scan_missing(store, name, grid, have, producers.get(name), name in static, res)
+        if name not in dropped:
+            _scan_missing(store, name, grid, have, producers.get(name), name in static, res)
         if full:
             _scan_stored(store, name, grid, have, producers.get(name), name in static, res)
     return res

@@ -100,10 +100,10 @@ class ArraySpec:
 
 
 #: zstd level of the per camera-frame float fields (``flow_raw``, ``flow``, ``potential``: most
-#: of a run's bytes, written once and read several times). Level 3 shrinks them by only 7 %
-#: (noisy float32 mantissas) for about 1.4 ms per 1.4 MB chunk written and 0.9 ms per read at
-#: paper scale; zstd's fastest level stores them as they are (0.4 ms and 0.1 ms), still
-#: framed and checksummed like every other chunk.
+#: of a run's bytes, written once and read several times). Noisy float32 mantissas barely
+#: compress, so the default level's time buys almost nothing; zstd's fastest level stores
+#: them as they are, still framed and checksummed like every other chunk (docs/tuning.md,
+#: "Chunk I/O and object storage").
 FAST_ZSTD = -1
 
 

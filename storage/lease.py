@@ -2,7 +2,8 @@
 
 A run (and ``schlieren verify --repair``) holds ``<store>.lease`` (next to the store
 folder, not inside it: zarr and xarray warn about non-Zarr files in the hierarchy) while
-it writes. The file records the holder's host, pid, process start time and a random
+it writes. The store's path is resolved first (symbolic links followed): two paths to one
+store share its lease. The file records the holder's host, pid, process start time and a random
 token; the holder touches it every ``heartbeat`` seconds from a daemon thread. Another
 writer is refused with one line naming the holder, unless the lease is *stale*:
 
@@ -52,7 +53,9 @@ class LeaseError(StoreError):
 
 
 def lease_path(store_path: str | os.PathLike) -> Path:
-    p = Path(os.fspath(store_path)).absolute()
+    """``<store>.lease`` beside the store, its path resolved (symbolic links followed), so
+    that every path to one store names one lease."""
+    p = Path(os.path.realpath(os.fspath(store_path)))
     return p.with_name(p.name + ".lease")
 
 

@@ -8,12 +8,14 @@ from pathlib import Path
 import yaml
 
 from schlieren.storage.errors import SchlierenInputError
+from schlieren.storage.yaml_bounds import BoundedSafeLoader
 
 __all__ = ["read_params", "write_params_text", "ParamsLoader"]
 
 
-class ParamsLoader(yaml.SafeLoader):
-    """SafeLoader reading numbers as YAML 1.2 does: ``1e-6`` is a float, not the text "1e-6".
+class ParamsLoader(BoundedSafeLoader):
+    """SafeLoader reading numbers as YAML 1.2 does: ``1e-6`` is a float, not the text "1e-6";
+    documents that aliases expand beyond a size are refused (:mod:`schlieren.storage.yaml_bounds`).
 
     PyYAML follows YAML 1.1, whose floats need a dot (``1.0e-6``); a user's ``tol: 1e-6``
     would otherwise reach the strict parameter check as text and be refused.

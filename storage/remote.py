@@ -1,8 +1,9 @@
 """Whole-chunk traffic of a result store on object storage: a chunk cache and writes in the background.
 
 In a folder store a task's chunk read or write is a local file access
-(storage/chunkio.py). In an object store each is a request of 6-10 ms even against a
-server on the same machine (tens of ms against a cloud bucket), and a task makes several.
+(storage/chunkio.py). In an object store each is a request, far slower even against a
+server on the same machine (docs/tuning.md, "Chunk I/O and object storage"), and a task
+makes several.
 :class:`RemoteChunks` hides most of them, without changing what is stored (zarr still
 encodes and sends every chunk, the same bytes as in a folder store):
 

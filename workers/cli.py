@@ -16,6 +16,7 @@ import pkgutil
 import sys
 
 from schlieren.workers import commands as _commands
+from schlieren.workers.monitoring import PlainFormatter
 
 log = logging.getLogger("schlieren")
 
@@ -65,34 +66,12 @@ class _StderrHandler(logging.StreamHandler):
         pass
 
 
-class _HumanFormatter(logging.Formatter):
-    """``LEVEL logger: message``, plus what a task receipt is about (``-v``): stage, camera,
-    frame, seconds and the stage's own numbers, instead of a bare "task receipt"."""
-
-    FIELDS = ("camera", "frame", "seconds", "iterations", "residual", "voxels", "fraction", "max_px", "error")
-
-    def format(self, record: logging.LogRecord) -> str:
-        text = super().format(record)
-        stage = getattr(record, "stage", None)
-        if stage is None:
-            return text
-        parts = [f"stage {stage}"]
-        for name in self.FIELDS:
-            v = getattr(record, name, None)
-            if v is None:
-                continue
-            if isinstance(v, float):
-                v = f"{v:.4g}" + (" s" if name == "seconds" else "")
-            parts.append(f"{name} {v}")
-        return f"{text}: " + ", ".join(parts)
-
-
 def _configure_logging(verbose: int) -> None:
     logger = logging.getLogger("schlieren")
     logger.setLevel(logging.WARNING - 10 * min(verbose, 2))
     if not any(isinstance(h, _StderrHandler) for h in logger.handlers):
         h = _StderrHandler()
-        h.setFormatter(_HumanFormatter("%(levelname)s %(name)s: %(message)s"))
+        h.setFormatter(PlainFormatter())
         logger.addHandler(h)
     logger.propagate = False
 

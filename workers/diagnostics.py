@@ -26,7 +26,7 @@ def _frames(frames: list[int], limit: int = 8) -> str:
     return f"frame{'s' if len(frames) > 1 else ''} {text}" + (f" (and {more} more)" if more > 0 else "")
 
 
-def diagnose(receipts, *, n_voxels: int, motion_warning: float | None = None) -> list[str]:
+def diagnose(receipts, *, n_voxels: int, flash_frames=None, motion_warning: float | None = None) -> list[str]:
     """One-line warnings naming camera and frames, with a likely cause.
 
     Parameters
@@ -37,17 +37,23 @@ def diagnose(receipts, *, n_voxels: int, motion_warning: float | None = None) ->
         ``capture_flags``).
     n_voxels : int
         Voxels in the reconstruction box.
+    flash_frames : mapping of str to (int, int), optional
+        Camera -> first and last frame the strobe flash lit (the stored ``flash_frames``;
+        ``(-1, -1)``: none). Their large deflections are the flash, which the sync already
+        excludes from the reconstruction: no warning.
     motion_warning : float, optional
         Pixels: camera-frames whose background moved more than this against the
         reference are named (``capture.motion_warning``); None: no such warning.
     """
     receipts = list(receipts)
-    out = _flow_warnings(receipts, n_voxels)
+    out = _flow_warnings(receipts, n_voxels, flash_frames)
     out += _capture_warnings(receipts, motion_warning)
     return out
 
 
-def _flow_warnings(receipts, n_voxels: int) -> list[str]:
+def _flow_warnings(receipts, n_voxels: int, flash_frames=None) -> list[str]:
+    """The hull, mask and deflection warnings of :func:`diagnose`."""
+    flash = {str(c): (int(lo), int(hi)) for c, (lo, hi) in (flash_frames or {}).items()}
     full, empty = [], []
     masks: dict[str, list[int]] = defaultdict(list)
     large: dict[str, list[tuple[int, float]]] = defaultdict(list)
@@ -64,7 +70,9 @@ def _flow_warnings(receipts, n_voxels: int) -> list[str]:
         elif stage == "mask" and r.get("fraction", 0.0) > MASK_FULL:
             masks[r.get("camera", "?")].append(frame)
         elif stage == "deflection" and r.get("max_px", 0.0) > DEFLECTION_LARGE_PX:
-            large[r.get("camera", "?")].append((frame, float(r["max_px"])))
+            lo, hi = flash.get(str(r.get("camera")), (-1, -1))
+            if not (frame is not None and lo <= int(frame) <= hi):  # the flash is no bumped camera
+                large[r.get("camera", "?")].append((frame, float(r["max_px"])))
     out = []
     if full:
         out.append(f"{_frames(full)}: the visual hull fills more than {HULL_FULL:.0%} of the box: a camera moved "

@@ -15,10 +15,9 @@ so the worker that advanced a block carries it on with the block's restriction i
 
 The client then follows the futures' states, which the scheduler pushes to it, and
 fetches the receipts of finished tasks in batches (one ``gather`` per ``batch_interval``
-seconds rather than one round trip per task). On the benchmark session
-(benchmarks/scaling.py: 8 cameras x 16 frames, ~730 tasks) submitting task by task and
-fetching each receipt on its own cost the client process 3.0-3.4 s of CPU, on a machine
-whose two cores also run both workers.
+seconds rather than one round trip per task): submitting task by task and fetching each
+receipt on its own cost the client process CPU that the workers on the same machine need
+(docs/tuning.md, "Scheduling").
 """
 
 from __future__ import annotations

@@ -1,8 +1,10 @@
-"""Monitoring helpers: structured JSON log lines, task receipts, performance reports.
+"""Monitoring helpers: log formats, task receipts, performance reports.
 
-Log records become one JSON object per line (:class:`JsonFormatter`), carrying the task
-context fields (session, stage, camera, frame, index, key, seconds, iterations, residual,
-...) when they are passed in ``extra``. :func:`log_receipt` turns a task's small receipt
+Two formats, one per destination: on a console (the CLI's stderr, a local cluster's
+workers' stderr) plain lines ``LEVEL logger: message`` (:class:`PlainFormatter`); in
+files (``--log``, a cluster's worker log folder) one JSON object per line
+(:class:`JsonFormatter`), carrying the task context fields (session, stage, camera,
+frame, index, key, seconds, iterations, residual, ...) when they are passed in ``extra``. :func:`log_receipt` turns a task's small receipt
 dict into such a line. :func:`performance_report_cm` wraps
 ``distributed.performance_report`` so callers can write ``with performance_report_cm(path):``
 whether or not a report was asked for.
@@ -72,6 +74,31 @@ def _jsonable(value: Any) -> Any:
     return str(value)
 
 
+class PlainFormatter(logging.Formatter):
+    """``LEVEL logger: message``, plus what a task receipt is about (``-v``): stage, camera,
+    frame, seconds and the stage's own numbers, instead of a bare "task receipt"."""
+
+    FIELDS = ("camera", "frame", "seconds", "iterations", "residual", "voxels", "fraction", "max_px", "error")
+
+    def __init__(self, fmt: str = "%(levelname)s %(name)s: %(message)s"):
+        super().__init__(fmt)
+
+    def format(self, record: logging.LogRecord) -> str:
+        text = super().format(record)
+        stage = getattr(record, "stage", None)
+        if stage is None:
+            return text
+        parts = [f"stage {stage}"]
+        for name in self.FIELDS:
+            v = getattr(record, name, None)
+            if v is None:
+                continue
+            if isinstance(v, float):
+                v = f"{v:.4g}" + (" s" if name == "seconds" else "")
+            parts.append(f"{name} {v}")
+        return f"{text}: " + ", ".join(parts)
+
+
 class JsonFormatter(logging.Formatter):
     """Format a log record as one JSON object on one line.
 
@@ -136,6 +163,23 @@ def configure_json_logging(
     logger.addHandler(handler)
     logger.setLevel(level)
     logger.propagate = False
+    return handler
+
+
+def configure_worker_logging(
+    logger_name: str = "schlieren",
+    *,
+    level: int | str = logging.INFO,
+    path: str | os.PathLike[str] | None = None,
+    stream: TextIO | None = None,
+) -> logging.Handler:
+    """A worker process's logging: JSON lines appended to ``path`` (a log folder's file),
+    else plain lines (:class:`PlainFormatter`) on ``stream`` (default stderr, which for a
+    local cluster is the user's console). Idempotent like :func:`configure_json_logging`."""
+    if path is not None:
+        return configure_json_logging(logger_name, level=level, path=path)
+    handler = configure_json_logging(logger_name, level=level, stream=stream)
+    handler.setFormatter(PlainFormatter())
     return handler
 
 

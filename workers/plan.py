@@ -82,9 +82,9 @@ def _deps(st: Stage, index: tuple[int, ...], ext: Extents) -> list[tuple[str, tu
 
     ``same``: the dependency's dims shared with this stage fixed to this task's labels,
     the others over their whole range. ``window``: the same camera, frames within
-    ``frame_halo`` (a ``raw_frame`` dependency shifted by ``raw_offset``). Scanning every
-    index of the dependency stage per task (the former implementation) made the plan
-    quadratic in frames: about 35 s at 200 frames of 16 cameras.
+    ``frame_halo`` (a ``raw_frame`` dependency shifted by ``raw_offset``), not by scanning
+    every index of the dependency stage per task, which is quadratic in frames
+    (docs/tuning.md, "Scheduling").
     """
     labels = dict(zip(st.over, index))
     sizes = {"camera": ext.camera, "frame": ext.frame, "raw_frame": ext.raw_frame}
@@ -177,8 +177,8 @@ def make_plan(ext: Extents, token: str, *, done=None, stages: tuple[Stage, ...] 
         Consecutive frames of one camera per task for the cheap per-camera-frame stages
         (``Stage.batch``: deflection, resampling, potential, mask); one
         number for all or ``{stage: frames}`` (:func:`batch_sizes`).
-        Their per-frame work is 3-20 ms at 480x360, and each Dask task costs a few ms
-        more in the scheduler, the client and the worker. Completion markers stay per
+        Their per-frame work is comparable to what each Dask task costs in the
+        scheduler, the client and the worker (docs/tuning.md, "Scheduling"). Completion markers stay per
         frame, so resume and the store do not depend on the grouping.
     """
     sizes = batch_sizes(frames_per_task)

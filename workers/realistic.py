@@ -11,7 +11,8 @@ look like a lab's capture instead:
   cubic-spline upsampled twice (:func:`~schlieren.pipeline.synthetic.cfd.upsample_cfd`)
   and that one field is both traced and scored, so the rendered data carry the structure
   the score asks for (the tracer's central differences on the 2.5 mm grid itself removed
-  1-2.5 dB of it: ``benchmarks/realistic_forward_model.py``);
+  part of it: benchmarks/results/realistic_forward_model.md, docs/tuning.md "Synthetic
+  truth");
 * weak deflections: the excess temperature is scaled so that the 99.9th percentile of
   the deflection magnitude is :attr:`RealisticCase.peak_px` pixels (0.25 px at 640x480,
   0.375 px at 960x720 for the same flow);
@@ -135,7 +136,8 @@ class RealisticCase:
     upsample : int
         The CFD knots are cubic-spline upsampled this many times before rendering, and the
         truth is that field (:func:`~schlieren.pipeline.synthetic.cfd.upsample_cfd`); 1
-        traces the CFD grid itself (the family before 2026-11-27).
+        traces the CFD grid itself (the family's first renders: docs/realistic.md, "What a
+        case is").
     manifest_voxel : bool
         Write ``voxel`` into the manifest; by default the manifest leaves it out, as a
         user would, and the pipeline chooses it from the cameras' pixel footprint.

@@ -48,20 +48,16 @@ __all__ = ["run_session", "RunSummary", "prepare_store"]
 
 RAW_MARGIN = 2  # raw frames either side of the output range used by rolling-shutter resampling
 #: Image pixels per task the deflection aims for by default (its cost grows with the
-#: image: ~12 ms per 480x360 frame, ~75 ms per 1440x1080 one here): 8 frames per task at
-#: 480x360, 4 at 960x720, 2 at 1440x1080, 1 from 2560x1440 up. On benchmarks/scaling.py's
-#: 480x360 session (8 cameras x 16 frames) batching took the plan from 730 tasks to 150.
-#: A task also decodes the frame before its first (the frozen-frame test): at 1440x1080 two
-#: frames per task decode three frames instead of four (one task per frame decoded two
-#: each, the tasks of one camera's neighbouring frames landing on different workers) and
-#: the paper-scale session benchmark's deflection went from 2.71-2.91 to 2.58-2.84 s per
-#: time step (2 workers, runs alternated), its tasks from 348 to 252.
+#: image): 8 frames per task at 480x360, 4 at 960x720, 2 at 1440x1080, 1 from 2560x1440
+#: up, so that a task's work outweighs what Dask spends on it. A task also decodes the
+#: frame before its first (the frozen-frame test), so two frames per task decode three
+#: frames instead of four (docs/tuning.md, "Scheduling").
 PIXELS_PER_TASK = 3.1e6
 MAX_FRAMES_PER_TASK = 8
 
 
 #: Flow-grid cells per task the batched stages on the flow grid (resampling, potential,
-#: mask: 16-65 ms per 480x360 field here) aim for: 4 frames per task at 1440x1080 with
+#: mask) aim for: 4 frames per task at 1440x1080 with
 #: flow factor 3. Consecutive frames in one task also share work: an output instant's
 #: resampling reuses the motion of the frame pair it shares with the previous instant,
 #: and a mask the per-frame evidence its neighbours' masks computed.
@@ -92,10 +88,19 @@ def default_frames_per_task(image_size: tuple[int, int], flow_factor: int | None
 
 @dataclass
 class RunSummary:
+    """What a run did. Counts are of *steps*: one stage at one index (a camera and frame, a
+    frame, or the whole run), the unit a completion marker records; a task computes one
+    step or several consecutive frames of one camera (``frames_per_task``).
+
+    ``steps``: steps this run set out to compute, in ``tasks`` tasks; ``skipped``: steps
+    already complete in the store (not run again)."""
+
     store: str
     executor: str
     tasks: int = 0
     skipped: int = 0
+    steps: int = 0
+    task_steps: dict[str, int] = field(default_factory=dict)  # task key -> its steps
     failures: dict[str, str] = field(default_factory=dict)
     seconds: float = 0.0
     stage_seconds: dict[str, float] = field(default_factory=dict)
@@ -109,6 +114,11 @@ class RunSummary:
     @property
     def ok(self) -> bool:
         return not self.failures
+
+    @property
+    def steps_computed(self) -> int:
+        """Steps this run computed (those of its failed and not-run tasks left out)."""
+        return self.steps - sum(self.task_steps.get(k, 1) for k in self.failures if k in self.task_steps)
 
     def root_failures(self) -> dict[str, str]:
         return {k: v for k, v in self.failures.items() if not v.startswith("not run:")}
@@ -229,6 +239,21 @@ def excluded_frames(store: ResultStore, receipts: list[dict] | None = None) -> l
             for c, j in zip(*np.nonzero(problems))]
 
 
+def flash_spans(store: ResultStore) -> dict[str, tuple[int, int]]:
+    """Camera -> first and last frame the strobe flash lit (``(-1, -1)``: none; empty when
+    the sync has not run)."""
+    import numpy as np
+
+    from schlieren.storage.errors import ChunkError
+
+    try:
+        spans = np.asarray(store.array("flash_frames")[...])
+        names = [str(n) for n in np.asarray(store.array("camera")[...])]
+    except (ChunkError, StoreError):
+        return {}
+    return {n: (int(lo), int(hi)) for n, (lo, hi) in zip(names, spans) if np.isfinite([lo, hi]).all()}
+
+
 def store_lease(out_path, purpose: str = "run"):
     """The lease of the store (:func:`schlieren.storage.lease.lease_for`): a folder's lease
     file or an S3 store's lease object; a no-op context for other stores."""
@@ -255,7 +280,7 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
                 on_failure: Callable[[str, str], None] | None = None,
                 on_plan: Callable[[Plan], None] | None = None,
                 progress: bool = False, frames_per_task: int | None = None,
-                overwrite: bool = False, verify: bool = False) -> RunSummary:
+                overwrite: bool = False, verify: bool = False, keep=None) -> RunSummary:
     """Validate ``session_path``, then compute every missing chunk of ``out_path``.
 
     Parameters
@@ -283,11 +308,22 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
         Read every chunk of the existing store and check its checksum before trusting the
         markers (otherwise only a listing checks that the marked chunks exist). Damaged
         chunks are recomputed with everything downstream of them.
+    keep : str or list of str, optional
+        The intermediates the store keeps (:func:`~schlieren.workers.retention.arrays_to_drop`):
+        ``"all"`` (default), ``"results"`` (``flow_raw``, ``flow`` and ``potential`` are
+        dropped once the stages reading them are done) or the names of those to keep.
+        Results do not depend on it; it is not part of the run's fingerprint.
     """
     from schlieren.workers.preflight import WorkerSlots, preflight, workers_of_client
     from schlieren.workers.tasks import adopt_session
 
+    from schlieren.workers.retention import arrays_to_drop
+
     config = check_config(config or RunConfig())  # a bad value stops here, before the store exists
+    try:
+        arrays_to_drop(keep)
+    except ValueError as exc:
+        raise StoreError(str(exc), field="keep") from None
     session = session_path if isinstance(session_path, Session) else load_session(session_path, frames=frames)
     adopt_session(session_location(session), session)  # this process's task contexts reuse it
     cfg = bind_flow_factor(bind_medium(config, session.medium.n_ambient), session.cameras, session.grid)
@@ -304,23 +340,34 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
     with store_lease(out_path):
         return _run_leased(session, out_path, cfg, client=client, serial=serial, report=report,
                            on_receipt=on_receipt, on_failure=on_failure, on_plan=on_plan,
-                           frames_per_task=frames_per_task, overwrite=overwrite, verify=verify)
+                           frames_per_task=frames_per_task, overwrite=overwrite, verify=verify, keep=keep)
 
 
 def _run_leased(session, out_path, cfg, *, client, serial, report, on_receipt, on_failure, on_plan,
-                frames_per_task, overwrite, verify) -> RunSummary:
+                frames_per_task, overwrite, verify, keep) -> RunSummary:
     store, ext, token = _open_store(session, out_path, cfg, overwrite=overwrite)
     if frames_per_task is None:
         frames_per_task = default_frames_per_task(session.cameras[0].image_size, cfg.flow_factor)
     check = _verify(store, out_path, ext, full=verify)
+    dropper = _retention(store, ext, check, keep)
     if not isinstance(frames_per_task, dict):
         frames_per_task = int(frames_per_task)
     plan = make_plan(ext, token, done=_done_predicate(check.done, ext), frames_per_task=frames_per_task)
     if on_plan:
         on_plan(plan)
     summary = RunSummary(store=str(out_path), executor="serial" if (serial or client is None) else "dask",
-                         tasks=len(plan.tasks), skipped=plan.skipped, integrity=check)
+                         tasks=len(plan.tasks), skipped=plan.skipped, integrity=check,
+                         steps=sum(len(t.indices) for t in plan.tasks),
+                         task_steps={t.key: len(t.indices) for t in plan.tasks})
     t0 = time.time()
+    if dropper is not None:
+        dropper.start()
+        user_receipt = on_receipt
+
+        def on_receipt(r: dict) -> None:
+            dropper.receipt(r)
+            if user_receipt:
+                user_receipt(r)
     clock = _StageClock(summary.executor, on_receipt)
     receipts, failures = _execute(summary.executor, client, str(out_path), plan, report=report,
                                   on_receipt=clock, on_failure=on_failure)
@@ -333,11 +380,37 @@ def _run_leased(session, out_path, cfg, *, client, serial, report, on_receipt, o
     _record_stage_times(store, out_path, plan, summary, clock)
     from schlieren.workers.diagnostics import diagnose
 
-    summary.warnings = diagnose(receipts, n_voxels=math.prod(session.grid.shape),
+    summary.warnings = diagnose(receipts, n_voxels=math.prod(session.grid.shape), flash_frames=flash_spans(store),
                                 motion_warning=cfg.capture.motion_warning)
     for w in summary.warnings:
         log.warning("%s", w)
+    if dropper is not None and summary.ok:  # complete: the arrays left without chunks go
+        removed = dropper.finish()
+        store.set_retention(dropper.keep, dropper.drop)
+        log.info("retention %s: %d chunks dropped this run%s", dropper.keep, dropper.dropped,
+                 f"; {', '.join(removed)} removed" if removed else "")
     return summary
+
+
+def _retention(store: ResultStore, ext: Extents, check, keep):
+    """The run's :class:`~schlieren.workers.retention.Dropper` (None when nothing is or was
+    dropped: today's store, no attribute written), after clearing the markers of the
+    producers whose dropped chunks this run needs again."""
+    from schlieren.workers.retention import Dropper, arrays_to_drop, keep_text, to_regenerate
+
+    drop, before = arrays_to_drop(keep), store.dropped_arrays
+    if not drop and not before:
+        return None
+    regen = to_regenerate(store, ext, check.done, drop, before)
+    for stage, idx in sorted(regen):
+        store.unmark(stage, idx)
+        check.done.get(stage, set()).discard(idx)
+    if regen:
+        log.info("recomputing %d dropped intermediate chunk(s) that this run needs again", len(regen))
+    store.set_retention(keep_text(keep), drop | before)  # until the run completes: either may be missing
+    dropper = Dropper(store, ext, drop, _done_predicate(check.done, ext))
+    dropper.keep = keep_text(keep)
+    return dropper
 
 
 def _open_store(session, out_path, cfg, *, overwrite: bool) -> tuple[ResultStore, Extents, str]:

@@ -75,7 +75,7 @@ def _warp_rows_kernel(cp, rows, u, v, out):
 def _lk_residual_kernel(cp, frame, gx, gy, u, v, ex, ey):
     # e = frame - ref(q + d(q)) + g . d(q); returns gx * e, gy * e.
     # Per row: first the B-spline indices and weights (a loop LLVM vectorises), then the
-    # 4x4 gathers; ~30 % faster than evaluating _bspline_at pixel by pixel.
+    # 4x4 gathers: faster than evaluating _bspline_at pixel by pixel (docs/tuning.md, "Speed").
     H, W = frame.shape
     Wm = _F32(W - 1)
     Hm = _F32(H - 1)
@@ -400,8 +400,8 @@ def _prolong_row(s0, s1, b, out):
 @nb.njit(cache=True, nogil=True)
 def _prolong_kernel(u, v, uo, vo):
     # prolong_flow of float32 (u, v): cv2.warpAffine (INTER_LINEAR, BORDER_REPLICATE) at the
-    # source position (c / 2, r / 2), times 2, in one pass (the two warps and the two
-    # products took 7 ms of a paper-scale deflection task, this 0.3 ms). OpenCV
+    # source position (c / 2, r / 2), times 2, in one pass instead of two warps and two
+    # products (docs/tuning.md, "Speed"). OpenCV
     # interpolates as a lerp along x, then along y: i0 = p00 + a (p01 - p00),
     # i1 = p10 + a (p11 - p10), i0 + b (i1 - i0); with a, b in {0, 1/2} every product is
     # exact, so this is OpenCV's result bit for bit (tests/pipeline/test_flow.py checks it

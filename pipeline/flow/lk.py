@@ -157,22 +157,19 @@ def _lk_cells(coef, frame, gx, gy, u, v, *, window, window_type, iterations, reg
     separably), then ``d_cell = T_cell^-1 b_cell``: LK at the cell's centre with the
     window to first order inside each cell. The full-resolution work drops from five
     window filters and a solve to one pass of block moments: the window filtering runs on
-    f^2 times fewer points with f times fewer taps. With the window constant over each
-    cell (the block mean of the weights alone, a staircase) the flow was 1.6 % worse in the
-    plume at paper scale (RMS error 0.02266 against 0.02231 per pixel; the line: 0.02182)
-    and the phantom 0.2 dB. ``u``, ``v`` (H, W) are the per-pixel warps of the residual
+    f^2 times fewer points with f times fewer taps. The line, not the window held
+    constant over each cell (the block mean of the weights alone, a staircase), because
+    the staircase's flow is measurably worse (docs/tuning.md, "LK solved per flow cell").
+    ``u``, ``v`` (H, W) are the per-pixel warps of the residual
     (the coarser level's flow); the result is (rows, cols) = (H // f, W // f). ``keep``
     receives ``gx``, ``gy``, the block moments ``mom`` and the window sums ``T`` of
     ``g g^T`` (reused by :func:`_texture_bias`).
 
     The coarser pyramid levels, which only initialise the finest, are solved on f x f
     cells of their own pixels too (:func:`_pyramid_flow`; their cell flow is interpolated
-    back to their pixels before it is prolonged). Measured with the staircase window, at
-    1440x1080 with a 25 px window: the stage 69 instead of 79 ms, the flow's in-plume
-    end-point error against the rendered truth 0.01784 px (per-pixel coarse levels
-    0.01804, the per-pixel solve 0.01778; with the line window now 0.01722). With a 9 px
-    window at 640x480 (which ``cell_solve: auto`` leaves per pixel) it rose from 0.0187
-    to 0.0190 px.
+    back to their pixels before it is prolonged): cheaper than per-pixel coarse levels and
+    no less accurate where the window spans several cells; ``cell_solve: auto`` keeps
+    narrow windows per pixel (measurements: docs/tuning.md, "LK solved per flow cell").
     """
     H, W = frame.shape
     rows, cols = H // f, W // f
@@ -239,9 +236,9 @@ def _texture_bias(gx: np.ndarray, gy: np.ndarray, u: np.ndarray, v: np.ndarray, 
     mom : ndarray, shape (3, rows, cols, 3), optional
         The block moments of ``g g^T`` (computed here when not given).
     linear : bool
-        The flow comes from :func:`_lk_cells` (its window, linear inside each cell: at
-        paper scale the flow's RMS error in the plume 0.02182 -> 0.02170 px against the
-        constant-per-block model).
+        The flow comes from :func:`_lk_cells`: model its window, linear inside each cell,
+        rather than constant per block (the matched model; docs/tuning.md, "LK solved per
+        flow cell").
     T : ndarray, shape (rows, cols, 3), optional
         With ``linear``: the window sums of ``g g^T`` that :func:`_lk_cells` solved with
         (computed here when not given).

@@ -184,14 +184,15 @@ def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowPara
     ``FlowGrid((W, H), params.factor)`` *after* the flow, smoothed and filtered for
     outliers. The normalised median test and the smoothing run on the flow grid: the LK
     flow is correlated over its window (``window`` > ``factor``), so its outliers are
-    window-sized, not single pixels, and filtering the 9x smaller grid is far cheaper.
+    window-sized, not single pixels, and filtering the ``factor**2`` times smaller grid is
+    far cheaper.
     ``smoothing_sigma`` is given in full-resolution pixels (``sigma / factor`` on the grid).
 
     With ``texture_correction`` (LK), the first-order bias of the LK window mean is
     subtracted after the outlier test (:func:`_texture_bias`): where the deflection varies
     across the window, LK returns its structure-tensor weighted mean, centred on the
-    texture's weighted centroid rather than on the pixel. On the buoyant-plume phantom this
-    was the largest error term (benchmarks/flow.py); it costs about 10 % of the stage.
+    texture's weighted centroid rather than on the pixel: the largest error term on the
+    buoyant-plume phantom (benchmarks/results/flow.md; its cost: docs/tuning.md, "Flow").
     Finally, with ``adaptive_sigma`` > 0, :func:`_adaptive_smoothing` smooths more where
     the flow is smooth (weak, slowly varying deflections: mostly noise) and keeps the
     ``smoothing_sigma`` result across structure.

@@ -259,8 +259,8 @@ def pcg(A, f: np.ndarray, precond, *, x0: np.ndarray | None = None, tol: float,
     Stops when ``||f - A u|| <= tol ||f||`` (scipy's ``cg`` criterion with ``atol = 0``).
     The vector operations are serial numba loops, not BLAS calls: on a small shared
     machine a multithreaded BLAS ``dot`` on a 10^5-vector costs milliseconds of thread
-    wake-up (measured 7 ms against 19 us single-threaded), more than the multigrid
-    V-cycle itself; the result is also independent of the BLAS thread count.
+    wake-up, more than the multigrid V-cycle itself (docs/tuning.md, "Poisson"); the
+    result is also independent of the BLAS thread count.
 
     Parameters
     ----------

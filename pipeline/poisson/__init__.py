@@ -5,8 +5,7 @@ Dirichlet condition ``r = r_ambient`` outside (paper: ``n = n_air`` outside the 
 Beyond the paper: where the hull touches a face of the reconstruction box (a plume
 rising from a source on the floor or leaving through the top) the flow is not ambient
 beyond the face, so by default the differences crossing the box faces are dropped
-there (natural boundary, ``box_boundary="neumann"``); on the project's developed plume
-this lifts the integration of the true gradient from 35.8 to 53.7 dB.
+there (natural boundary, ``box_boundary="neumann"``; docs/tuning.md, "Poisson").
 
 Modules: :mod:`~schlieren.pipeline.poisson.tensor` (the Appendix's diffusion tensor and the
 sign constraint), :mod:`~schlieren.pipeline.poisson.assembly` (the discretised eq. 8),

@@ -16,9 +16,8 @@ face is the number of active fine faces crossing it / 4 (exactly the rediscretis
 Laplacian where the blocks are full), and the Dirichlet part of a coarse diagonal is half
 the sum of its children's (the uncorrected Galerkin value). A plain rediscretisation
 moves the Dirichlet boundary outwards by half a coarse cell per level; the V-cycle then
-over-corrects the smooth modes and *diverges* as a stationary iteration (factor 1.9 per
-cycle even on a full box), which costs CG 15-24 instead of 9-10 iterations on the
-plume hull (benchmarks/poisson.py).
+over-corrects the smooth modes and *diverges* as a stationary iteration (even on a full
+box), which costs CG more iterations (docs/tuning.md, "Poisson").
 
 Smoothing: red-black Gauss-Seidel, red then black before the coarse correction and
 black then red after it (the V-cycle is symmetric, as CG requires). Starting from zero,
@@ -96,13 +95,11 @@ class LaplaceMultigrid:
     Notes
     -----
     Works on the bounding box of the mask (plus one inactive layer), so the cost scales
-    with the hull, not with the grid. As a CG preconditioner it needs 9-10 iterations
-    for a 1e-6 residual on the 134k-voxel plume hull of benchmarks/poisson.py, with
-    natural or Dirichlet box faces (12-13 for 1e-8), against 180-240 for Jacobi-PCG; a
-    V-cycle costs about 2.3 ms there, the setup about 6 ms, and the whole solve is
-    5.2-5.9x faster than Jacobi-PCG with the default alpha = 0.8 (4.1-4.5x for plain
-    Poisson, whose 7-point operator makes each Jacobi iteration cheaper). Vectors
-    passed to :meth:`apply` are ordered like ``mask[mask]`` (C order).
+    with the hull, not with the grid. As a CG preconditioner it needs an order of
+    magnitude fewer iterations than Jacobi-PCG, with natural or Dirichlet box faces, and
+    its setup is cheap enough to rebuild per frame (benchmarks/results/poisson.md;
+    docs/tuning.md, "Poisson"). Vectors passed to :meth:`apply` are ordered like
+    ``mask[mask]`` (C order).
     """
 
     def __init__(self, mask: np.ndarray, h: float, *, smooth: int = 1, coarse_size: int = 300,

@@ -14,19 +14,14 @@ refractivity range). With ``max|g_hat| = M`` the exponent at a sharp edge is abo
 ``1 / (k M^3)``. With the default ``value_scale = 255`` (an 8-bit volume, like the
 paper's fuel-injection data set) the exponent is large almost everywhere on our plumes,
 so ``D ~ alpha I`` (equivalent to plain Poisson) except at the sharpest edges. With
-16-bit units (65535) the anisotropy is active at the plume's edges, and on the
-project's plume (benchmarks/tomography.py, 16 cameras, 48 x 48 x 96) alpha = 0.8 then
-*loses* about 1 dB against plain Poisson on tomographic gradients (paper: gains about
-1 dB), and 1.5 dB on exact gradients; that is why the inert 8-bit units are the default.
-``alpha = 1``
-gives plain Poisson.
+16-bit units (65535) the anisotropy is active at the plume's edges. ``alpha = 1`` gives
+plain Poisson.
 
 Default ``alpha = 1`` (plain Poisson), chosen by measurement, not by the paper's 0.8: with
-the 8-bit units the tensor is ``alpha I`` in 99.5 % of hull voxels, which is plain Poisson
-under another name; where it is active (16-bit units, 4096 or 65535) it lost 0.05-0.1 dB
-with alpha 0.8 and 0.45 dB with alpha 0.5 on the realistic benchmark family (CFD plume,
-16 cameras, 640x480, 1.4 mm voxels: 40.24 dB plain), and about 1 dB on the project's
-smooth plume. The tensor stays available (``alpha < 1`` with ``value_scale`` 65535).
+the 8-bit units the tensor is almost everywhere ``alpha I``, plain Poisson under another
+name, and where it is active (16-bit units) it lost against plain Poisson on the
+project's plume and on the realistic family (docs/tuning.md, "Poisson"). The tensor
+stays available (``alpha < 1`` with ``value_scale`` 65535).
 
 :func:`sign_constraint` projects the integrated refractivity onto fields of one sign
 (``PoissonParams.sign``, beyond the paper).
@@ -54,15 +49,11 @@ def sign_constraint(r: np.ndarray, hull: np.ndarray, r_ambient: float, *, sign: 
 
     The projection onto fields of one sign (:class:`PoissonParams` ``sign``): a heated
     flow's refractivity never exceeds the ambient one, so positive lobes of its estimate
-    are the limited views' ringing. Measured on the realistic family's tune cases
-    (plume1; whole box / in plume dB, each case with its own pipeline estimate): 16
-    cameras 43.08 / 28.66 -> 43.43 / 28.72, 8 cameras 41.47 / 26.95 -> 41.77 / 27.00,
-    8 cameras H.264 36.18 / 21.33 -> 36.31 / 21.38; the wrong-sign voxels were 1-2 % of
-    the box and held 1.5-3 % of the summed ``|r - r_ambient|``. The sign-constrained
-    least-squares integration (pinning those voxels at ambient and integrating again, or
-    projected iterations towards the constrained optimum) lost instead (43.08 -> 42.93 and
-    42.3-43.4): the data then pull the whole plume towards ambient, so the constraint is
-    applied as a projection after the unconstrained solve.
+    are the limited views' ringing. The sign-constrained least-squares integration
+    (pinning those voxels at ambient and integrating again, or projected iterations
+    towards the constrained optimum) is worse: the data then pull the whole plume towards
+    ambient, so the constraint is applied as a projection after the unconstrained solve
+    (measurements: benchmarks/results/realistic_no_sign.md, docs/tuning.md "Poisson").
 
     Parameters
     ----------

@@ -27,8 +27,8 @@ _MOTION_CACHE = cachetools.LRUCache(maxsize=8)
 
 
 def _digest(a: np.ndarray) -> bytes:
-    # SHA-256 runs on the CPU's SHA extensions: 0.7 ms per paper-scale flow field against
-    # BLAKE2b's 1.3 ms (four digests per resampled frame: 9 % of the resample task)
+    # SHA-256, not BLAKE2b: it runs on the CPU's SHA extensions, and a resampled frame
+    # takes four digests (docs/tuning.md, "Speed")
     a = np.ascontiguousarray(a, dtype=np.float32)
     return hashlib.sha256(memoryview(a).cast("B")).digest() + repr(a.shape).encode()
 

@@ -319,9 +319,8 @@ def upsample_cfd(result: CFDResult, factor: int) -> CFDResult:
     (``scipy.ndimage.zoom`` with ``grid_mode=True``); the faces extend the field as
     constant (``mode="nearest"``). The excess is not clipped at 0 again: the spline under-
     and overshoots a little near sharp edges, and clipping would add a kink, structure finer
-    than the simulation's grid holds, which the rendered data would then have to carry (on
-    the family's plume seen by 16 cameras the pipeline scores 0.8 dB lower, 44.42 / 29.44
-    against 45.23 / 30.25 dB whole box / in plume, against a clipped truth).
+    than the simulation's grid holds, which the rendered data would then have to carry
+    (the pipeline scores lower against a clipped truth: docs/tuning.md, "Synthetic truth").
     """
     from scipy import ndimage
 

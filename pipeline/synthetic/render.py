@@ -22,9 +22,9 @@ truth's own definition). Image rows between lattice rows take ``delta`` from the
 interpolation across lattice rows ``stride`` line times apart (46 us for stride 3 at
 1.54e-5 s): a 1 m/s flow moves 0.05 mm, a fiftieth of a 2.5 mm voxel, in that time, so the
 time part of that interpolation error is far below its spatial part. The spatial part,
-measured against rays traced at every pixel of a 1440x1080 camera through the plume
-(``benchmarks/render.py``), is about 0.002 px RMS (0.3 % of the signal), 0.02 px at most
-near the sharp plume base.
+measured against rays traced at every pixel of a 1440x1080 camera through the plume, is
+a fraction of a percent of the signal, largest near the sharp plume base
+(``benchmarks/render.py``; benchmarks/results/render.md).
 """
 
 from __future__ import annotations

@@ -9,9 +9,9 @@ import numpy as np
 
 @nb.njit(parallel=True, cache=True)
 def _clip_kernel(o, d, lo, hi, s0, s1):
-    """One pass per ray (the numpy form made a dozen (M, 3) temporaries: 1.1 s for the 2.8M
-    rays of a paper-scale session). An axis-parallel ray inside a slab is unbounded along
-    that axis, outside it misses."""
+    """One pass per ray (the numpy form made a dozen (M, 3) temporaries; docs/tuning.md,
+    "Speed"). An axis-parallel ray inside a slab is unbounded along that axis, outside it
+    misses."""
     for r in nb.prange(o.shape[0]):
         t0 = 0.0
         t1 = np.inf
@@ -116,9 +116,8 @@ def _project_pass(a, b, s0, s1, nx, ny, nz, ds_target, bounds, counts, starts, l
     samples in one cell are summed first and entered into the row once per run, when the
     ray leaves the cell (the row's node lookups are the build's cache misses). This gives
     the same entries as adding every sample's weights one by one (entries in order of
-    first appearance, as before, so the products sum in the same order); measured on the paper-scale
-    session's geometry (16 x 270 x 480 rays, 432000 voxels, single thread) 2.4x faster
-    than the per-sample build, with bit-identical values.
+    first appearance, so the products sum in the same order and the values are
+    bit-identical), in a fraction of the time (docs/tuning.md, "Speed").
     """
     nnodes = nx * ny * nz
     nchunks = bounds.shape[0] - 1

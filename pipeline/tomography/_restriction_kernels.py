@@ -12,7 +12,7 @@ import numpy as np
 @nb.njit(parallel=True, cache=True)
 def _count_kept(indptr, indices, rows, keep, counts):
     """Entries of each of ``rows`` in the columns ``keep`` (uint8 0/1) marks; four
-    independent partial counts per row (0.15 -> 0.12 s over 193M entries on 2 cores)."""
+    independent partial counts per row (shorter dependency chains; docs/tuning.md, "Speed")."""
     for k in nb.prange(rows.shape[0]):
         r = rows[k]
         p = indptr[r]
@@ -49,9 +49,8 @@ def _row_setup(indptr, indices, data, r, b, x, with_x, acc):
     """One row's share of ``diag(S^T S)``, ``S^T b`` and (if ``with_x``) ``S^T S x``.
 
     ``acc[j]`` holds the three products of column ``j`` side by side (float32: one cache
-    line per entry instead of three arrays' worth; 183 -> 156 ms over 69M entries): ``acc[j,
-    0]`` the squared sum, ``1:4`` ``S^T b``, ``4:7`` ``S^T S x`` (``x`` float32 as in
-    :func:`_normal3`).
+    line per entry instead of three arrays' worth): ``acc[j, 0]`` the squared sum, ``1:4``
+    ``S^T b``, ``4:7`` ``S^T S x`` (``x`` float32 as in :func:`_normal3`).
     """
     b0 = np.float32(b[r, 0])
     b1 = np.float32(b[r, 1])

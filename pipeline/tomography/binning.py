@@ -128,7 +128,7 @@ def bin_cells(a: np.ndarray, b: int, *, min_valid: float = 0.5) -> np.ndarray:
     flat = np.ascontiguousarray(a.reshape(C, h, w, -1))
     out = np.empty((C, h // b, w // b, flat.shape[-1]), np.float64)
     # one pass in a compiled kernel (the numpy version made four float64 temporaries of
-    # the whole stack: 0.19 s of a paper-scale tomography task's 1.2 s; the kernel 0.02 s)
+    # the whole stack; docs/tuning.md, "Speed")
     _bin_kernel(flat, b, float(min_valid) * b * b, out)
     return out.reshape((C, h // b, w // b) + a.shape[3:])
 

@@ -43,9 +43,9 @@ def large_empty(size: int, dtype) -> np.ndarray:
     """``np.empty(size, dtype)`` for a large 1-D buffer, backed by transparent huge pages
     where the kernel offers them on request (``madvise`` mode; a no-op elsewhere).
 
-    The first write to fresh memory faults one page at a time: 4 KiB pages made writing a
-    new 300 MB buffer take 0.6 s on this project's VMs, 2 MiB pages 0.02 s. Below
-    32 MiB, or without ``MADV_HUGEPAGE``, this is plain ``np.empty``.
+    The first write to fresh memory faults one page at a time, and 4 KiB pages make the
+    first pass over a large new buffer far slower than 2 MiB pages (docs/tuning.md,
+    "Speed"). Below 32 MiB, or without ``MADV_HUGEPAGE``, this is plain ``np.empty``.
     """
     dtype = np.dtype(dtype)
     size = int(size)
@@ -149,13 +149,14 @@ def build_projection(origins: np.ndarray, dirs: np.ndarray, shape_zyx, origin_xy
     nchunks = max(1, min(m, 8 * nb.get_num_threads()))
     bounds = np.linspace(0, m, nchunks + 1).astype(np.int64)
     # One pass into buffers sized by a bound on each row's length, then the chunks moved
-    # together (a count pass first took a third of the build: 1.1 of 3.3 s on the
-    # paper-scale session). The bound: a row's entries are the distinct nodes of the cells
+    # together (a count pass first took a third of the build; docs/tuning.md, "Speed").
+    # The bound: a row's entries are the distinct nodes of the cells
     # its samples visit; the first cell has 8, and a step into a cell that differs in k
     # indices adds at most 8 - 2^(3-k) <= 4k new ones, so a row has at most
     # 8 + 4 x (cell-index changes along x, y, z); along a straight ray each index is
     # monotone, so its changes are at most |floor(exit) - floor(entry)| (+1 of slack per
-    # axis for rounding). 1.7x the entries there; pages never written cost no memory.
+    # axis for rounding). The bound exceeds the entries (docs/tuning.md, "Speed"), but
+    # pages never written cost no memory.
     cap = _row_caps(a, b, s0, s1)
     csum = np.zeros(m + 1, np.int64)
     np.cumsum(cap, out=csum[1:])
@@ -191,8 +192,8 @@ def prune_rows(S: sp.csr_matrix, fraction: float) -> sp.csr_matrix:
     The kept entries of a row are scaled so that its sum is unchanged: the row's sum is
     the ray's length through the basis (a constant field keeps its exact line integral).
     The entries a ray only grazes (a node just under one voxel from it) are the row's
-    smallest; on the paper-scale session's rays 5 % of the row's largest drops 17 % of
-    the entries and 1 % of the row sums.
+    smallest (what the default ``tomography.prune`` drops and gains: docs/tuning.md,
+    "Projection pruning").
 
     Parameters
     ----------
@@ -219,8 +220,8 @@ def csr_view(data: np.ndarray, indices: np.ndarray, indptr: np.ndarray, shape) -
 
     scipy's constructor copies ``data`` and ``indices`` when they view less than half of
     their buffer (``_prune_array``), which pruning a projection built into
-    :func:`large_empty`'s bounded buffers just crosses: 0.6 s of the paper-scale session's
-    4.2 s geometry task went into copying 260 MB into fresh 4 KiB pages. The buffer's
+    :func:`large_empty`'s bounded buffers just crosses, and the copy into fresh pages cost a
+    sizeable share of the geometry task (docs/tuning.md, "Speed"). The buffer's
     unused tail stays mapped while the matrix lives (the geometry task saves it and lets
     it go). Checked here: the arrays' lengths against ``shape`` and ``indptr``'s ends.
     """

@@ -23,7 +23,7 @@ def _d_out_rays(geom: TomoGeometry, flows_flat: np.ndarray, rays: np.ndarray) ->
     """``d_out_hat`` for a subset of rays; ``flows_flat`` has shape (n_rays, 2).
 
     One numba pass per ray (the vectorised numpy form made about a dozen (n, 3)
-    temporaries and cost ~0.2-0.4 s per frame at paper scale).
+    temporaries; docs/tuning.md, "Speed"). Paper sec. 5's approximate exit direction.
     """
     C, h, w = geom.flow_shape
     rays = np.ascontiguousarray(rays, dtype=np.int64)

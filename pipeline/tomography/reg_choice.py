@@ -23,15 +23,11 @@ __all__ = ["RegularisationChoice", "choose_reg_weight", "rhs_noise", "rhs_snr", 
 log = logging.getLogger(__name__)
 
 #: Smallest weight the run's regularisation stage searches (``choose_reg_weight``'s
-#: ``smallest``; the function's own default, 1e-4, serves converged solves). The search
-#: solves each weight to convergence, but a run's frames get at most ``tomography.max_iter``
-#: (25) CG iterations, which stop before fitting what a smaller weight would let in: on the
-#: realistic family's 16-camera rigs at the flow grid's factor 2 the data residual stays
-#: above the discrepancy target down to 1e-4 (11 solves, 40 s of a 3-frame run instead of
-#: 7 s), while the run's volumes are equal from 0.004 down (plume1 16 cameras 44.16 / 29.35
-#: dB whole box / in plume at 0.0039, 44.16 / 29.36 at 1.2e-4; H.264 29.13 / 14.12 and
-#: 29.11 / 14.09), and Table 1's rigs that ended below it gain (half ring 8 cameras, 0.00049
-#: -> 0.0039: 45.53 -> 45.56 dB; full ring 15 cameras, 0.00195 -> 0.0039: 47.25 -> 47.27).
+#: ``smallest``; the function's own default serves converged solves). The search solves
+#: each weight to convergence, but a run's frames stop at ``tomography.max_iter`` CG
+#: iterations, before fitting what a smaller weight would let in: below this weight the
+#: run's volumes no longer change while the search's solves grow costly (docs/tuning.md,
+#: "Tomography weight").
 RUN_SMALLEST_WEIGHT = 2.0 ** -8
 
 
@@ -64,8 +60,8 @@ def rhs_snr(rhs: np.ndarray, seen: np.ndarray, noise: np.ndarray) -> np.ndarray:
     ``sqrt(max(mean(b^2) - sigma^2, 0)) / sigma`` over the finite rays of ``seen`` (e.g.
     inside a flow mask), ``sigma`` from :func:`rhs_noise`: the RMS of the signal the rays
     carry, its noise removed, in units of the noise. A receipt (the regularisation stage
-    logs and records it): on the realistic family the 16-camera PNG cases have 7.7-10
-    (x, y), the 8-camera ones 15-20, the H.264 ones 2-4 (``TomoParams.flow_window_scale``).
+    logs and records it; the values on the realistic family: docs/tuning.md, "Tomography
+    weight").
 
     Returns
     -------
@@ -117,18 +113,17 @@ def choose_reg_weight(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.nda
     the residual is below the target, downwards while it is above (each solve warm-started
     from the last, converged to ``tol`` = 1e-3, and started from the last one's ``S^T S x``
     without a setup pass). Where the residual crosses the target, that is the bracket a
-    search down from ``largest`` finds, in fewer solves: the weights chosen on the realistic
-    family lie between 0.025 and 0.24, and a cold solve at a large weight is the slowest
-    (37 iterations at 4 on the paper-scale session benchmark).
+    search down from ``largest`` finds, in fewer solves: ``start`` sits near the weights
+    real data choose, and a cold solve at a large weight is the slowest (docs/tuning.md,
+    "Tomography weight").
 
     If, going down, the residual levels off above the target (model error dominates, or the
     noise outside the masks understates the misfit inside), so that dividing the weight by
     ``factor`` lowers it by less than ``plateau`` (2 %), the search stops and returns the
     larger weight of that step (only steps below ``start`` are looked at; a residual that
-    levels off above it is as level below): less regularisation no longer buys a better fit (on the
-    paper-scale session benchmark, whose noise-free renders leave the target 68x below the
-    reachable misfit, that ends the search at 0.0156 instead of the smallest weight; its
-    volumes are 51.50 / 51.37 dB at those weights). ``smallest`` bounds the search.
+    levels off above it is as level below): less regularisation no longer buys a better fit
+    (e.g. noise-free renders, whose target lies far below the reachable misfit; docs/tuning.md,
+    "Tomography weight"). ``smallest`` bounds the search.
 
     Parameters
     ----------
@@ -158,8 +153,8 @@ def choose_reg_weight(geom: TomoGeometry, rhs_or_flows: np.ndarray, hull: np.nda
     """
     tau = float(params.reg_tau if tau is None else tau)
     # The smoothness weight is chosen without the curl term: with it, the discrepancy
-    # principle trades smoothness for integrability (on the realistic family's tune cases
-    # the weight fell 12-35x, -0.4 dB on 16 cameras); the curl term is then added on top.
+    # principle trades smoothness for integrability and chooses far too small a weight
+    # (docs/tuning.md, "Curl coupling"); the curl term is then added on top.
     params = dataclasses.replace(params, curl_weight=0.0)
     noise = _checked_search(noise, largest, smallest, factor, start)
     data = np.asarray(rhs_or_flows)

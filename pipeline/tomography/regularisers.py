@@ -93,7 +93,7 @@ class SquaredLaplacian:
     """``(L^T L)^2`` kept as its factor ``M = L^T L`` (the set's 7-point Laplacian).
 
     Applied as two products with ``M`` (2 x 7 entries per row instead of the 25 of the
-    formed square, and no sparse matrix product per frame: 30 ms at paper scale).
+    formed square, and no sparse matrix product per frame; docs/tuning.md, "Speed").
     ``M`` is symmetric, so ``diag(M^2)`` is the row sums of ``M``'s squared entries.
     """
 
@@ -102,7 +102,7 @@ class SquaredLaplacian:
 
     def diagonal(self) -> np.ndarray:
         # every row holds its diagonal entry, so no row is empty (reduceat needs that);
-        # 1 ms instead of 21 for scipy's elementwise product at paper scale
+        # far cheaper than scipy's elementwise product (docs/tuning.md, "Speed")
         M = self.M
         if M.shape[0] == 0:
             return np.zeros(0)
@@ -195,7 +195,7 @@ def curl_normal(inset: np.ndarray) -> CurlNormal:
     symmetric positive semi-definite and couples the three components; its null space is
     the curl-free fields, which the per-component null spaces of a few-view tomography
     mostly are not (see ``TomoParams.curl_weight``). Applied matrix-free (a plaquette list
-    per frame: 2 ms instead of 0.22 s for the sparse product at paper scale).
+    per frame instead of a sparse matrix product; docs/tuning.md, "Speed").
 
     Parameters
     ----------

@@ -125,12 +125,11 @@ _SCRATCH = threading.local()
 def _scratch(name: str, size: int, dtype) -> np.ndarray:
     """A per-thread reusable buffer of at least ``size`` elements (grown when needed).
 
-    The restricted matrix of a paper-scale frame is ~0.5 GB: writing it into fresh memory
-    every frame costs a page fault per 4 KiB (about a third of a second here). A buffer that
-    has to grow comes from :func:`large_empty` (huge pages where granted) with 25 % headroom,
-    as the shared restrictions' buffers do (:func:`shared_restriction`: on the session
-    benchmark's growing plume a block's restriction 14 % larger than the last one's faulted
-    its fresh buffer for 0.6 s of its 0.8 s).
+    The restricted matrix of a paper-scale frame is large: writing it into fresh memory
+    every frame costs a page fault per 4 KiB. A buffer that has to grow comes from
+    :func:`large_empty` (huge pages where granted) with 25 % headroom, as the shared
+    restrictions' buffers do (:func:`shared_restriction`: a growing plume's next block
+    would otherwise fault a fresh buffer; docs/tuning.md, "Speed").
     """
     buf = getattr(_SCRATCH, name, None)
     if buf is None or buf.size < size or buf.dtype != np.dtype(dtype):
@@ -190,8 +189,8 @@ def _normal3(indptr, indices, data, x, n, nchunks):
 
     ``x`` is float32 (n, 3); the row products and the per-block partial sums are float32
     (the matrix itself is float32, so this keeps about 6 significant digits, far below
-    the solver's tolerance) and the blocks are summed in float64. Measured at paper scale
-    (69M non-zeros, 2 cores): 0.138 s per product in float64, 0.079 s like this.
+    the solver's tolerance) and the blocks are summed in float64: the product is bound by
+    its multiply-add chain, which float32 shortens (docs/tuning.md, "Speed").
     """
     return _scatter_blocks_f32(indptr, indices, data, x, x, n, nchunks, True, _ALL_ROWS)
 
@@ -205,8 +204,7 @@ def _scatter_blocks_f32(indptr, indices, data, x, y, n, nchunks, fused, live):
     (``nchunks`` float32 copies of the result, summed at the end). On one thread (the
     workers, the serial executor) they run one after another into one reused buffer, each
     added to the result as it is done: the same sums in the same order (bit-identical), with
-    a working set of one buffer instead of ``nchunks`` (paper-scale session matrix, 70 % of
-    its rows live: 170 -> 130 ms).
+    a working set of one buffer instead of ``nchunks`` (docs/tuning.md, "Speed").
     """
     kernel = _scatter_blocks_f32_serial if nb.get_num_threads() == 1 else _scatter_blocks_f32_parallel
     return kernel(indptr, indices, data, x, y, n, nchunks, fused, live)
@@ -325,8 +323,8 @@ def shared_restriction(S: sp.csr_matrix, support: np.ndarray, key, *, rhs=None, 
     by this thread for later calls with the same ``key`` (the :data:`SHARED_RESTRICTIONS`
     most recently used ones, each in its own buffers; an evicted one's buffers are reused).
 
-    The frames of a warm-start block differ little (the family's hulls: union 2-3 % above
-    each frame's), so their systems are restricted once to the block's union and then
+    The frames of a warm-start block differ little (docs/tuning.md, "Speed"), so their
+    systems are restricted once to the block's union and then
     selected inside it (:class:`SubsetOperator`); the restriction is deterministic, so a
     thread that has not seen the block builds the same operator.
 

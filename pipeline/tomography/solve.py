@@ -23,11 +23,12 @@ solved by conjugate gradients on the Jacobi-scaled normal equations (the CGLS it
 one fused pass over ``S`` per iteration applies ``S^T S`` to the three components),
 stopped when the normal residual has dropped by ``tol`` or, optionally, by the
 discrepancy principle. Warm start from the previous frame's gradient (on the full grid).
-The regularisation weight (0.1) and the stop were chosen on the accuracy table of
-benchmarks/tomography.py (16 cameras, plume at t = 0): with 0.05 px deflection noise
-plain CG semi-converges (48.5 dB after 10 iterations, 38.6 dB after 80) while the
-regularised solve is stable (50.6 dB at its tolerance stop, 17 iterations); on
-noise-free deflections it costs 1.0 dB (58.9 -> 57.8 dB).
+Why regularise: on noisy deflections plain CG on eq. 5 semi-converges (its error grows
+with the iterations), while the regularised solve is stable at its tolerance stop, at a
+small cost on noise-free data (benchmarks/results/tomography.md; docs/tuning.md,
+"Tomography"). The weight a run uses is chosen from the data
+(:mod:`~schlieren.pipeline.tomography.reg_choice`); ``TomoParams.reg_weight`` is the
+fixed fallback.
 
 Modules: the regularisers (:mod:`~schlieren.pipeline.tomography.regularisers`), the flow's
 averaging in the data term (:mod:`~schlieren.pipeline.tomography.blur`), the normal
@@ -147,8 +148,8 @@ def valid_rays(data: np.ndarray) -> np.ndarray | None:
     """
     data = np.asarray(data)
     # the channel sum is finite exactly when every channel is (NaN and inf propagate; the
-    # values are deflections in pixels or O(1e-3) right-hand sides, far from overflow):
-    # 4x faster than isfinite().all(axis=-1) over a trailing axis of 2 or 3
+    # values are deflections in pixels or O(1e-3) right-hand sides, far from overflow),
+    # and far cheaper than isfinite().all(axis=-1) over a trailing axis of 2 or 3
     total = data[..., 0].copy()
     for k in range(1, data.shape[-1]):
         total += data[..., k]

@@ -88,11 +88,20 @@ def _decode_image(path, *, camera_name: str | None, field: str | None, fetch=Non
             raise SessionError("file not found", file=p, camera=camera_name, field=field) from None
         except OSError as exc:
             raise SessionError(f"cannot read the file ({exc})", file=p, camera=camera_name, field=field) from None
-        img = cv2.imdecode(np.frombuffer(blob, dtype=np.uint8), cv2.IMREAD_UNCHANGED) if blob else None
+        try:
+            img = cv2.imdecode(np.frombuffer(blob, dtype=np.uint8), cv2.IMREAD_UNCHANGED) if blob else None
+        except cv2.error:  # e.g. a header declaring more pixels than OpenCV's limit
+            img = None
     elif not os.path.isfile(p):
         raise SessionError("file not found", file=p, camera=camera_name, field=field)
     else:
-        img = cv2.imread(p, cv2.IMREAD_UNCHANGED)  # any depth, any channels, as stored
+        try:
+            img = cv2.imread(p, cv2.IMREAD_UNCHANGED)  # any depth, any channels, as stored
+        except cv2.error:  # e.g. a header declaring more pixels than OpenCV's limit
+            size = image_header(p)
+            what = f" its header declares {size[0]}x{size[1]} pixels;" if size else ""
+            raise SessionError(f"cannot decode the image:{what} corrupt, or larger than any camera frame", file=p,
+                               camera=camera_name, field=field) from None
     if img is None or img.size == 0:
         raise SessionError("cannot decode the image (corrupt or unsupported format)", file=p,
                            camera=camera_name, field=field)
@@ -104,7 +113,10 @@ def image_header(path: str | os.PathLike, head: bytes | None = None) -> tuple[in
 
     Uses Pillow's lazy opener (reads a few bytes). None means the file is not an image
     that Pillow recognises (missing, garbage, unsupported): callers decide whether to
-    fall back to a full decode.
+    fall back to a full decode. A header declaring more pixels than Pillow's
+    decompression-bomb limit still gives its size (a PNG's, read from its ``IHDR``), so
+    that the caller refuses it as any other wrong size, or raises :class:`SessionError`
+    naming the file.
     """
     try:
         from PIL import Image, UnidentifiedImageError
@@ -119,8 +131,29 @@ def image_header(path: str | os.PathLike, head: bytes | None = None) -> tuple[in
         src = io.BytesIO(head) if head is not None else p
         with Image.open(src) as im:
             return int(im.size[0]), int(im.size[1])
+    except Image.DecompressionBombError:
+        size = _png_size(head if head is not None else _read_head(p))
+        if size is None:
+            raise SessionError("the image header declares more pixels than any camera frame has (Pillow's "
+                               "decompression-bomb limit): a corrupt or hostile file", file=p) from None
+        return size
     except (OSError, UnidentifiedImageError, ValueError, SyntaxError):
         return None
+
+
+def _read_head(path: str, n: int = 32) -> bytes:
+    try:
+        with open(path, "rb") as f:
+            return f.read(n)
+    except OSError:
+        return b""
+
+
+def _png_size(head: bytes) -> tuple[int, int] | None:
+    """``(width, height)`` from a PNG's ``IHDR`` chunk (its first 24 bytes), or None."""
+    if len(head) >= 24 and head.startswith(b"\x89PNG\r\n\x1a\n") and head[12:16] == b"IHDR":
+        return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    return None
 
 
 _PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"

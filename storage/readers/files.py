@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 from collections import OrderedDict
 from pathlib import Path
 
@@ -17,6 +18,11 @@ class ImageFiles(ImageSequence):
 
     The files are taken in natural name order (``img2`` before ``img10``); frame ``i`` is
     the ``i``-th. A folder takes every image file in it (:data:`IMAGE_EXTENSIONS`).
+
+    When every name is the same but for one number (``00003.png``, ``00004.png``,
+    ``00006.png``: :func:`numbering`), the numbers are capture indices as in a printf
+    pattern: frame ``i`` is number ``first + i``, and a number missing between two files
+    is a frame the camera dropped (:attr:`dropped`), so later frames keep their times.
     """
 
     def __init__(self, spec: str | os.PathLike, *, camera_name: str | None = None):
@@ -49,12 +55,52 @@ class ImageFiles(ImageSequence):
             raise SessionError(what, file=self.path, camera=camera_name, field="frames[0]")
         self.files = sorted(files, key=_natural_key)
         self._dropped = ()
+        self._slots: dict[int, str] | None = None
+        self._naming: tuple[str, int, str, int] | None = None  # head, width, tail, first number
         self.first, self._count = 0, len(self.files)
+        numbers = numbering(self.files)
+        if numbers is not None:
+            by_number, head, width, tail = numbers
+            first = min(by_number)
+            self._count = max(by_number) - first + 1
+            self._slots = {n - first: f for n, f in by_number.items()}
+            self._naming = (head, width, tail, first)
+            self._dropped = tuple(i for i in range(self._count) if i not in self._slots)
+            self.files = [self._slots[i] for i in sorted(self._slots)]
         self._size = None
         self._raw_dtype = None
 
     def file_of(self, i: int) -> str:
-        return self.files[int(i)]
+        if self._slots is None:
+            return self.files[int(i)]
+        f = self._slots.get(int(i))
+        if f is None:  # a dropped frame: the name it would have
+            head, width, tail, first = self._naming
+            f = f"{head}{first + int(i):0{width}d}{tail}"
+        return f
 
     def __repr__(self) -> str:
         return f"ImageFiles({self.path!r}, n={self._count})"
+
+
+_NUMBERED = re.compile(r"\A(.*?)(\d+)(\D*)\Z")
+
+
+def numbering(files: list[str]):
+    """``({number: file}, head, width, tail)`` if every file's name is one text around one
+    number (the last run of digits: ``cam0/frame_00041.png``), else None. Number ``n``'s
+    name is ``f"{head}{n:0{width}d}{tail}"`` (zero-padded like the others when they all
+    share one width, else ``width`` 0)."""
+    parts = [_NUMBERED.match(f) for f in files]
+    if not parts or any(m is None for m in parts):
+        return None
+    heads = {m.group(1) for m in parts}
+    tails = {m.group(3) for m in parts}
+    if len(heads) != 1 or len(tails) != 1:
+        return None
+    by_number = {int(m.group(2)): f for m, f in zip(parts, files)}
+    if len(by_number) != len(files):  # 7.png and 007.png
+        return None
+    widths = {len(m.group(2)) for m in parts}
+    width = widths.pop() if len(widths) == 1 else 0
+    return by_number, heads.pop(), width, tails.pop()

@@ -28,7 +28,7 @@ class MultiPageTiff(FrameSource):
 
             with Image.open(self._file) as im:
                 self._count = int(getattr(im, "n_frames", 1))
-        except (OSError, ValueError, SyntaxError) as exc:
+        except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as exc:
             raise SessionError(f"cannot read the TIFF file ({exc})", file=self.path,
                                camera=camera_name) from None
 
@@ -46,7 +46,7 @@ class MultiPageTiff(FrameSource):
             with Image.open(self._file) as im:
                 im.seek(i)
                 page = np.array(im)
-        except (OSError, ValueError, EOFError, SyntaxError) as exc:
+        except (OSError, ValueError, EOFError, SyntaxError, Image.DecompressionBombError) as exc:
             raise SessionError(f"cannot decode page {i} of the TIFF file ({exc})", file=self.path,
                                camera=self.camera_name, field=f"frames[{i}]") from None
         if page.ndim == 3 and page.shape[2] in (3, 4):

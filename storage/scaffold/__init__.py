@@ -33,8 +33,9 @@ from schlieren.storage.scaffold.sources import (
     find_videos,
     probe_source,
     probe_video,
+    source_kind,
     write_reference_frames,
 )
 
-__all__ = ["VideoInfo", "probe_video", "probe_source", "find_sources", "find_videos", "write_reference_frames",
+__all__ = ["VideoInfo", "probe_video", "probe_source", "source_kind", "find_sources", "find_videos", "write_reference_frames",
            "scaffold_session", "SESSION_FORMAT", "MANIFEST_NAME"]

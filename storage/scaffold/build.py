@@ -13,12 +13,14 @@ from typing import Mapping, Sequence
 import numpy as np
 import yaml
 
-from schlieren.pipeline.geometry import Camera, Grid, Medium
+from schlieren.pipeline.geometry import Camera, Grid, Medium, auto_voxel_size
 from schlieren.storage.calibration_io import CalibrationFile, read_calibration
 from schlieren.storage.errors import SchlierenInputError
 from schlieren.storage.readers.kinds import frames_kind
 from schlieren.storage.readers.opening import open_frames
-from schlieren.storage.scaffold.sources import VideoInfo, probe_source, write_reference_frames
+from schlieren.storage.scaffold.sources import VideoInfo, probe_source, source_kind, write_reference_frames
+from schlieren.storage.session.checks import centre_inside, frames_beside_strobe, strobe_overlap
+from schlieren.storage.session.models import camera_name_problem
 
 log = logging.getLogger(__name__)
 
@@ -31,7 +33,7 @@ _FPS_RTOL = 1e-3
 def scaffold_session(session_dir: str | os.PathLike, videos: Mapping[str, str],
                      calibration: str | os.PathLike | CalibrationFile, *,
                      reference_frames: tuple[int, int], volume_min: Sequence[float],
-                     volume_max: Sequence[float], voxel_size: float,
+                     volume_max: Sequence[float], voxel_size: float | None = None,
                      frame_rate: float | None = None, frames: tuple[int, int] | None = None,
                      strobe_frames: tuple[int, int] | None = None,
                      time_offsets: float | Mapping[str, float] | None = None,
@@ -40,7 +42,8 @@ def scaffold_session(session_dir: str | os.PathLike, videos: Mapping[str, str],
                      medium: Medium | None = None, name: str | None = None,
                      copy_videos: bool = False, count_frames: bool = False,
                      overwrite: bool = False, interlaced: str | Mapping[str, str] | None = None) -> Path:
-    """Check the videos against the calibration and write ``SESSION_DIR/session.yaml``.
+    """Check the cameras' frames (videos or image sequences) against the calibration and
+    write ``SESSION_DIR/session.yaml``.
 
     Parameters
     ----------
@@ -55,12 +58,15 @@ def scaffold_session(session_dir: str | os.PathLike, videos: Mapping[str, str],
         Half-open range of frames without flow, averaged into each camera's reference.
     volume_min, volume_max : sequence of 3 floats
         Reconstruction box corners (world x, y, z), metres.
-    voxel_size : float
-        Metres.
+    voxel_size : float, optional
+        Metres. Default: none in the manifest, so that the session reader chooses it from
+        the cameras' pixel footprint (docs/session.md, ``volume.voxel_size``).
     frame_rate : float, optional
         Frames per second; default: the videos' (which must agree).
     frames : (int, int), optional
-        Half-open range of frames to process.
+        Half-open range of frames to process; it may not overlap ``strobe_frames``.
+        Default: every frame, or with ``strobe_frames`` the frames after the strobe window
+        (before it, when it ends the recording).
     strobe_frames : (int, int), optional
         Frames where to look for the sync flash (``sync.strobe.search_frames``).
     time_offsets : float or mapping, optional
@@ -100,16 +106,22 @@ def scaffold_session(session_dir: str | os.PathLike, videos: Mapping[str, str],
     if manifest_path.exists() and not overwrite:
         raise SchlierenInputError("a session manifest already exists (use --force to replace it)",
                                   file=str(manifest_path))
+    for n, spec in videos.items():
+        why = camera_name_problem(n)
+        if why is not None:
+            raise SchlierenInputError(f"{why}; name the frames NAME=PATH", file=spec, field="name")
     calib, order = _calibrated_cameras(videos, calibration)
     infos = _probe_sources(videos, order, calib, count_frames)
     frame_rate = _frame_rate(infos, order, frame_rate)
     n_frames = infos[order[0]].frame_count
     reference_frames, frames, strobe_frames = _frame_ranges(n_frames, reference_frames, frames, strobe_frames)
     offsets, lines, fields = _timing(order, strobe_frames, time_offsets, line_times, interlaced)
-    vmin, vmax, grid = _volume(volume_min, volume_max, voxel_size)
-    cameras, entries = _cameras(calib, order, grid, background_distance)
+    vmin, vmax = _volume(volume_min, volume_max, voxel_size)
+    cameras, entries = _cameras(calib, order, vmin, vmax, background_distance)
+    grid = _grid(vmin, vmax, voxel_size, cameras)
     plan = _Plan(root, manifest_path, calib, order, dict(videos), float(frame_rate), n_frames, reference_frames,
-                 frames, strobe_frames, offsets, lines, fields, vmin, vmax, float(voxel_size), grid, cameras, entries)
+                 frames, strobe_frames, offsets, lines, fields, vmin, vmax,
+                 None if voxel_size is None else float(voxel_size), grid, cameras, entries)
     _write_session(plan, copy_videos=copy_videos, medium=medium, name=name)
     log.info("wrote %s", manifest_path)
     return manifest_path
@@ -134,7 +146,7 @@ class _Plan:
     fields: dict[str, str]
     vmin: np.ndarray
     vmax: np.ndarray
-    voxel_size: float
+    voxel_size: float | None  # None: the session reader chooses it (the grid holds its choice)
     grid: Grid
     cameras: list[Camera]
     entries: list[tuple[dict, dict]]  # (calibration entry, background) per camera
@@ -146,17 +158,17 @@ class _Plan:
 def _calibrated_cameras(videos: Mapping[str, str], calibration) -> tuple[CalibrationFile, list[str]]:
     """The calibration, and the cameras with frames in calibration order (each in it)."""
     if not videos:
-        raise SchlierenInputError("no videos given", field="videos")
+        raise SchlierenInputError("no camera frames given (videos or image sequences)", field="videos")
     calib = calibration if isinstance(calibration, CalibrationFile) else read_calibration(calibration)
     names = list(videos)
     for n in names:
         if n not in calib.names:
             raise SchlierenInputError(f"no camera of that name in the calibration (it has "
-                                      f"{', '.join(calib.names)}); name the video NAME=PATH",
+                                      f"{', '.join(calib.names)}); name the frames NAME=PATH",
                                       file=videos[n], camera=n)
     missing = [n for n in calib.names if n not in videos]
     if missing:
-        log.warning("calibrated camera(s) without a video are left out: %s", ", ".join(missing))
+        log.warning("calibrated camera(s) without frames are left out: %s", ", ".join(missing))
     order = [n for n in calib.names if n in videos]  # calibration order
     return calib, order
 
@@ -168,21 +180,31 @@ def _probe_sources(videos: Mapping[str, str], order: list[str], calib: Calibrati
     first = order[0]
     for n in order:
         info, entry = infos[n], calib.camera(n)
+        what = source_kind(info.path)
         if list(info.size) != list(entry["image_size"]):
             raise SchlierenInputError(
-                f"video frames are {info.width}x{info.height} pixels but the calibration's image_size "
+                f"the {what}'s frames are {info.width}x{info.height} pixels but the calibration's image_size "
                 f"is {entry['image_size'][0]}x{entry['image_size'][1]}", file=info.path, camera=n,
                 field="image_size")
         if info.size != infos[first].size:
-            raise SchlierenInputError(f"video frames are {info.width}x{info.height} pixels but camera "
+            raise SchlierenInputError(f"the {what}'s frames are {info.width}x{info.height} pixels but camera "
                                       f"{first}'s are {infos[first].width}x{infos[first].height}; "
                                       "every camera needs the same size", file=info.path, camera=n,
                                       field="image_size")
         if info.frame_count != infos[first].frame_count:
-            raise SchlierenInputError(f"the video has {info.frame_count} frames but camera {first}'s has "
-                                      f"{infos[first].frame_count}; trim the videos to the same frames",
-                                      file=info.path, camera=n, field="frames")
+            raise SchlierenInputError(_count_mismatch(what, info, first, infos[first]), file=info.path, camera=n,
+                                      field="frames")
     return infos
+
+
+def _count_mismatch(what: str, info: VideoInfo, first: str, other: VideoInfo) -> str:
+    """The frame counts of two cameras differ: how to make them agree without shifting
+    the timing (frames missing between others are dropped frames, kept in their slots)."""
+    text = f"the {what} has {info.frame_count} frames but camera {first}'s has {other.frame_count}"
+    if what == "video":
+        return text + "; cut the longer videos at their end so every camera has the same frames"
+    return (text + " (counted to the last numbered file; a file missing between others is a dropped frame "
+            "and keeps its slot); remove the extra files at the end of the longer sequences")
 
 
 def _frame_rate(infos: dict[str, VideoInfo], order: list[str], frame_rate: float | None) -> float:
@@ -212,15 +234,24 @@ def _frame_rate(infos: dict[str, VideoInfo], order: list[str], frame_rate: float
 
 
 def _frame_ranges(n_frames: int, reference_frames, frames, strobe_frames):
-    """The reference, processed and strobe frame ranges, each inside the ``n_frames``."""
+    """The reference, processed and strobe frame ranges, each inside the ``n_frames``; the
+    processed frames apart from the strobe window (by default the frames beside it)."""
     reference_frames = _check_range(reference_frames, n_frames, "reference_frames")
-    if frames is not None:
-        frames = _check_range(frames, n_frames, "frames")
-        if frames[0] < reference_frames[1] and reference_frames[0] < frames[1]:
-            log.warning("the processed frames %s overlap the reference frames %s", list(frames),
-                        list(reference_frames))
     if strobe_frames is not None:
         strobe_frames = _check_range(strobe_frames, n_frames, "sync.strobe.search_frames")
+    if frames is not None:
+        frames = _check_range(frames, n_frames, "frames")
+        if strobe_frames is not None and strobe_overlap(frames, strobe_frames) is not None:
+            raise SchlierenInputError(strobe_overlap(frames, strobe_frames).replace("sync.strobe.search_frames",
+                                                                                    "the --strobe-frames"),
+                                      field="sync.strobe.search_frames")
+    elif strobe_frames is not None:
+        frames = frames_beside_strobe(n_frames, strobe_frames)
+        log.info("frames %s processed: those after (or before) the strobe window %s", list(frames),
+                 list(strobe_frames))
+    if frames is not None and frames[0] < reference_frames[1] and reference_frames[0] < frames[1]:
+        log.warning("the processed frames %s overlap the reference frames %s", list(frames),
+                    list(reference_frames))
     return reference_frames, frames, strobe_frames
 
 
@@ -251,24 +282,35 @@ def _timing(order: list[str], strobe_frames, time_offsets, line_times, interlace
     return offsets, lines, fields
 
 
-def _volume(volume_min, volume_max, voxel_size) -> tuple[np.ndarray, np.ndarray, Grid]:
-    """The box corners and its grid (``min < max``, a positive voxel no larger than the box)."""
+def _volume(volume_min, volume_max, voxel_size) -> tuple[np.ndarray, np.ndarray]:
+    """The box corners (``min < max``), a given voxel positive and no larger than the box."""
     vmin = np.asarray(volume_min, dtype=np.float64).ravel()
     vmax = np.asarray(volume_max, dtype=np.float64).ravel()
     if vmin.shape != (3,) or vmax.shape != (3,) or not np.all(vmax > vmin):
         raise SchlierenInputError("the volume needs min < max in x, y and z (metres)", field="volume")
-    if not voxel_size > 0:
-        raise SchlierenInputError("the voxel size must be positive (metres)", field="volume.voxel_size")
-    grid = Grid(tuple(vmin), tuple(vmax), float(voxel_size))
-    if min(grid.shape) < 1:
-        raise SchlierenInputError(f"the voxel size {voxel_size} m is larger than the volume", field="volume")
-    return vmin, vmax, grid
+    if voxel_size is not None:
+        if not voxel_size > 0:
+            raise SchlierenInputError("the voxel size must be positive (metres)", field="volume.voxel_size")
+        if min(Grid(tuple(vmin), tuple(vmax), float(voxel_size)).shape) < 1:
+            raise SchlierenInputError(f"the voxel size {voxel_size} m is larger than the volume", field="volume")
+    return vmin, vmax
 
 
-def _cameras(calib: CalibrationFile, order: list[str], grid: Grid, background_distance):
+def _grid(vmin: np.ndarray, vmax: np.ndarray, voxel_size: float | None, cameras: list[Camera]) -> Grid:
+    """The grid of the given voxel, or of the one the session reader will choose from the
+    cameras' pixel footprint (:func:`~schlieren.pipeline.geometry.auto_voxel_size`)."""
+    if voxel_size is None:
+        voxel_size, info = auto_voxel_size(cameras, vmin, vmax)
+        log.info("voxel %.2f mm chosen from the cameras' pixel footprint (%.2f px per voxel, limited by %s)",
+                 1e3 * voxel_size, info["px_per_voxel"], info["limited_by"])
+    return Grid(tuple(vmin), tuple(vmax), float(voxel_size))
+
+
+def _cameras(calib: CalibrationFile, order: list[str], vmin: np.ndarray, vmax: np.ndarray, background_distance):
     """Every camera with its background plane (from the calibration or ``background_distance``,
-    in front of it); some camera must see the volume centre."""
+    in front of it), its centre outside the volume; some camera must see the volume centre."""
     bg_dist = _per_camera(background_distance, order, "background.distance")
+    centre = 0.5 * (vmin + vmax)
     entries, cameras = [], []
     for n in order:
         e = calib.camera(n)
@@ -291,12 +333,15 @@ def _cameras(calib: CalibrationFile, order: list[str], grid: Grid, background_di
         if cam.background_distance() <= 0:
             raise SchlierenInputError("the background plane is behind the camera", file=calib.path,
                                       camera=n, field="background")
+        inside = centre_inside(cam, vmin, vmax)
+        if inside is not None:
+            raise SchlierenInputError(inside, file=calib.path, camera=n, field="t")
         cameras.append(cam)
         entries.append((e, bg))
-    seeing = [c.name for c in cameras if _sees_point(c, grid.center)]
+    seeing = [c.name for c in cameras if _sees_point(c, centre)]
     if not seeing:
         raise SchlierenInputError("no camera sees the volume centre "
-                                  f"{np.round(grid.center, 4).tolist()} (check --volume and the world frame "
+                                  f"{np.round(centre, 4).tolist()} (check --volume and the world frame "
                                   "of the calibration)", file=calib.path, field="volume")
     for c in cameras:
         if c.name not in seeing:
@@ -386,8 +431,9 @@ def _manifest(plan: _Plan, cam_docs: list[dict], external: bool, medium: Medium 
     }
     if frames is not None:
         manifest["frames"] = [int(frames[0]), int(frames[1])]
-    manifest["volume"] = {"min": [float(v) for v in plan.vmin], "max": [float(v) for v in plan.vmax],
-                          "voxel_size": plan.voxel_size}
+    manifest["volume"] = {"min": [float(v) for v in plan.vmin], "max": [float(v) for v in plan.vmax]}
+    if plan.voxel_size is not None:  # else the session reader chooses it from the cameras
+        manifest["volume"]["voxel_size"] = plan.voxel_size
     manifest["medium"] = {"n_ambient": med.n_ambient, "T_ambient": med.T_ambient,
                           "p_ambient": med.p_ambient, "gladstone_dale": med.gladstone_dale}
     if strobe_frames is not None:
@@ -405,7 +451,10 @@ def _header(plan: _Plan) -> list[str]:
     header = [f"# Written by `schlieren init` from {os.path.abspath(calib.path)}",
               f"# {len(order)} cameras, {n_frames} frames each at {frame_rate:.6g} fps; reference = frames "
               f"[{reference_frames[0]}, {reference_frames[1]}) of each camera's frames",
-              f"# grid {grid.shape[2]} x {grid.shape[1]} x {grid.shape[0]} voxels (x, y, z)"]
+              f"# grid {grid.shape[2]} x {grid.shape[1]} x {grid.shape[0]} voxels (x, y, z)"
+              + ("" if plan.voxel_size is not None else
+                 f" of {1e3 * grid.voxel_size:.2f} mm, chosen by the session reader from the cameras' "
+                 "pixel footprint (no voxel_size)")]
     for n in order:
         e = calib.camera(n)
         if "rms" in e:
@@ -420,7 +469,7 @@ def _check_range(rng, n: int, what: str, *, file: str | None = None) -> tuple[in
         raise SchlierenInputError(f"{what} [{a}, {b}) must be a non-empty range of frames from 0",
                                   file=file, field=what)
     if b > n:
-        raise SchlierenInputError(f"{what} [{a}, {b}) goes beyond the {n} frames of the videos",
+        raise SchlierenInputError(f"{what} [{a}, {b}) goes beyond the {n} frames of the cameras",
                                   file=file, field=what)
     return a, b
 
@@ -431,7 +480,7 @@ def _per_camera(value, names, what: str) -> dict:
     if isinstance(value, Mapping):
         unknown = [k for k in value if k not in names]
         if unknown:
-            raise SchlierenInputError(f"{what} given for a camera without a video (cameras: "
+            raise SchlierenInputError(f"{what} given for a camera without frames (cameras: "
                                       f"{', '.join(names)})", camera=unknown[0], field=what)
         return {k: float(v) for k, v in value.items()}
     return {n: float(value) for n in names}
@@ -448,18 +497,19 @@ def _rel_inside(path: str, root: Path) -> str | None:
 def _place_frames(spec: str, root: Path, camera: str, copy: bool, created: list) -> tuple[str, bool]:
     """The manifest's ``frames`` for a camera's source: relative inside ``root``, copied into
     ``root/<camera>/`` when ``copy``, else absolute (external). Returns ``(spec, external)``."""
+    kind = frames_kind(spec)
+    folder = "/" if kind == "folder" else ""  # a folder stays one in the manifest (relative to it)
     rel = _rel_inside(spec, root)
     if rel is not None:
-        return rel, False
+        return rel.rstrip("/") + folder, False
     if not copy:
-        return os.path.abspath(spec), True
-    kind = frames_kind(spec)
+        return os.path.abspath(spec).rstrip("/") + folder, True
     if kind in ("video", "tiff"):
         dest = root / camera / Path(spec).name
         files, new_spec = [spec], dest
     else:  # an image sequence: its files into <camera>/frames/, same names
         src = open_frames(spec, camera_name=camera)
-        files = [src.file_of(i) for i in range(len(src))]
+        files = [src.file_of(i) for i in src.present()]  # not the frames the camera dropped
         dest = root / camera / "frames"
         new_spec = dest / ("" if kind == "folder" else Path(spec).name)
     for p in (root / camera, dest if kind not in ("video", "tiff") else None):

@@ -101,6 +101,13 @@ def probe_source(spec: str | os.PathLike, *, camera: str | None = None,
     return VideoInfo(os.fspath(spec), len(fs), int(w), int(h), 0.0)
 
 
+def source_kind(spec: str | os.PathLike) -> str:
+    """What a frames specification is, in words for messages: ``"video"``,
+    ``"multi-page TIFF"`` or ``"image sequence"``."""
+    kind = frames_kind(spec)
+    return {"video": "video", "tiff": "multi-page TIFF"}.get(kind, "image sequence")
+
+
 def _image_name(path: str) -> str:
     """Camera name of an image sequence: its folder (``cam00/frames/`` -> ``cam00``)."""
     folder = Path(os.path.abspath(path))
@@ -200,8 +207,9 @@ def write_reference_frames(video: str | os.PathLike, frames: tuple[int, int], ou
     """Write frames ``[A, B)`` of a camera's frames losslessly as ``out_dir/%05d.png`` (from 00000).
 
     ``video`` is any frames specification (:func:`find_sources`); 8- and 16-bit frames
-    are written as PNG, float frames as ``%05d.tif``. Stale numbered files of an earlier
-    run in ``out_dir`` are removed first.
+    are written as PNG, float frames as ``%05d.tif``. Frames the camera dropped (a gap in
+    numbered files) are left out, the others numbered on without a gap. Stale numbered
+    files of an earlier run in ``out_dir`` are removed first.
 
     Returns
     -------
@@ -222,13 +230,17 @@ def write_reference_frames(video: str | os.PathLike, frames: tuple[int, int], ou
     p = os.fspath(video)
     if frames_kind(p) != "video":
         src = open_frames(p, camera_name=camera)
-        for k in range(a, b):
+        present = [k for k in range(a, b) if k not in set(src.dropped)]
+        if not present:
+            raise SchlierenInputError(f"the camera dropped every reference frame {a}..{b - 1}", file=p,
+                                      camera=camera, field="reference_frames")
+        for j, k in enumerate(present):
             raw = src.read_raw(k)
             ext = ".png" if raw.dtype in (np.uint8, np.uint16) else ".tif"
-            dest = out / f"{k - a:05d}{ext}"
+            dest = out / f"{j:05d}{ext}"
             if not cv2.imwrite(str(dest), raw):
                 raise SchlierenInputError("cannot write the reference frame", file=str(dest), camera=camera)
-        return b - a
+        return len(present)
     cap = cv2.VideoCapture(p)
     try:
         if not cap.isOpened():

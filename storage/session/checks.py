@@ -53,6 +53,27 @@ def _check_range(rng: tuple[int, int], n: int | None, *, file: str, field: str, 
                            file=file, field=field)
 
 
+def strobe_overlap(rng: tuple[int, int], strobe: tuple[int, int], what: str = "frames") -> str | None:
+    """Why the frames to process ``rng`` may not meet the strobe window ``strobe`` (both
+    half-open), or None when they are apart: a frame the flash lit cannot be reconstructed
+    (the sync excludes it from the resampling)."""
+    (a, b), (s0, s1) = rng, strobe
+    if a >= s1 or s0 >= b:
+        return None
+    fix = f"[{s1}, {b})" if b > s1 else (f"[{a}, {s0})" if a < s0 else "frames outside it")
+    return (f"the {what} [{a}, {b}) overlap sync.strobe.search_frames [{s0}, {s1}): a frame the flash "
+            f"lit cannot be reconstructed; process frames outside the strobe window (e.g. {fix})")
+
+
+def frames_beside_strobe(n: int, strobe: tuple[int, int] | None) -> tuple[int, int]:
+    """The default frames to process of ``n`` frames: all of them without a strobe window,
+    else the frames after it (before it, when it ends the recording)."""
+    if strobe is None:
+        return 0, n
+    s0, s1 = strobe
+    return (s1, n) if s1 < n else (0, s0)
+
+
 def _human_bytes(n: float) -> str:
     for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
         if n < 1024 or unit == "PiB":
@@ -139,6 +160,23 @@ def _check_background_beyond_volume(i: int, cam: Camera, grid: Grid, file: str) 
     if depth > 0 and s <= depth:
         raise SessionError(f"the background plane ({s:.4g} m along the optical axis) is not behind the "
                            f"volume centre ({depth:.4g} m)", file=file, camera=cam.name, field=fld)
+
+
+def centre_inside(cam: Camera, vmin, vmax) -> str | None:
+    """Why camera ``cam`` cannot image the box ``[vmin, vmax]``: its centre lies in it
+    (rays would start inside the reconstruction), or None."""
+    C = np.asarray(cam.center, dtype=np.float64)
+    if np.all(C >= np.asarray(vmin)) and np.all(C <= np.asarray(vmax)):
+        return (f"the camera centre {np.round(C, 4).tolist()} m (-R^T t) lies inside the volume "
+                f"{[round(float(v), 4) for v in vmin]} .. {[round(float(v), 4) for v in vmax]}: a camera must "
+                "look at the flow from outside the box (check t, and the volume's world frame)")
+    return None
+
+
+def _check_centre_outside(i: int, cam: Camera, grid: Grid, file: str) -> None:
+    why = centre_inside(cam, grid.vmin, grid.vmax)
+    if why is not None:
+        raise SessionError(why, file=file, camera=cam.name, field=f"cameras[{i}].t")
 
 
 def _sees_volume(cam: Camera, grid: Grid) -> bool:

@@ -32,9 +32,10 @@ class _qualified:
     ``frames[3]`` becomes ``cameras[1].frames[3]``; no field becomes ``cameras[1].frames``.
     """
 
-    def __init__(self, i: int, base: str):
+    def __init__(self, i: int, base: str, camera: str | None = None):
         self.prefix = f"cameras[{i}]"
         self.base = base
+        self.camera = camera
 
     def __enter__(self):
         return self
@@ -48,7 +49,7 @@ class _qualified:
         elif not f.startswith("cameras["):
             f = f"{self.prefix}.{self.base}{f[len('frames'):]}" if f.startswith("frames[") else \
                 f"{self.prefix}.{f}"
-        raise SessionError(exc.message, file=exc.file, camera=exc.camera, field=f) from None
+        raise SessionError(exc.message, file=exc.file, camera=exc.camera or self.camera, field=f) from None
 
 
 def _per_camera(fn: Callable[[int], Any], n: int, concurrent: bool) -> list:
@@ -75,6 +76,11 @@ def _check_camera_files(i: int, cam: Camera, source: CameraSource, *, contained=
     if len(fs) == 0:
         raise SessionError("the video holds no frames", file=source.frames, camera=cam.name,
                            field=f"cameras[{i}].frames")
+    if isinstance(fs, ImageSequence):  # its header first: never decode a frame of an absurd size
+        size = image_header(fs.file_of(0))
+        if size is not None and size != (W, H):
+            raise SessionError(f"frame 0 is {size[0]}x{size[1]} pixels but image_size is [{W}, {H}]",
+                               file=fs.file_of(0), camera=cam.name, field=f"cameras[{i}].image_size")
     first = fs.read(0)
     if (first.shape[1], first.shape[0]) != (W, H):
         raise SessionError(f"frame 0 is {first.shape[1]}x{first.shape[0]} pixels but image_size is "
@@ -154,7 +160,8 @@ def _check_reference(i: int, cam: Camera, source: CameraSource) -> None:
         vid.close()
     else:  # an image sequence (pattern, glob, folder) or a multi-page TIFF
         seq = open_frames(ref, camera_name=cam.name)
-        if seq.dropped:  # references are not a capture with drops: a lost file
+        if seq.dropped and source.reference_kind == "sequence":  # a printf pattern's lost file (a folder's
+            # or glob's files are averaged as they are)
             k = seq.dropped[0]
             raise SessionError(f"reference file {seq.file_of(k)} is missing while later reference files exist",
                                file=seq.file_of(k), camera=cam.name, field=f"frames[{k}]")

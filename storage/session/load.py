@@ -27,10 +27,13 @@ from schlieren.storage.session.checks import (
     _camera_from_model,
     _check_background,
     _check_background_beyond_volume,
+    _check_centre_outside,
     _check_range,
     _check_volume,
     _sees_volume,
+    frames_beside_strobe,
     parse_frame_range,
+    strobe_overlap,
 )
 from schlieren.storage.session.files import (
     _check_camera_files,
@@ -91,6 +94,8 @@ def load_session(path: str | os.PathLike, *, frames: tuple[int, int] | None = No
     medium = Medium(**m.medium.model_dump())
     strobe = _strobe_window(m, mfile)
     rng, what = _frame_range(m, frames, mfile)
+    if rng is not None and strobe is not None and strobe_overlap(rng, strobe, what) is not None:
+        raise SessionError(strobe_overlap(rng, strobe, what), file=mfile, field="sync.strobe.search_frames")
     cameras, sources = _cameras_and_sources(m, root, mfile)
     if grid is None:   # no voxel_size in the manifest: from the cameras' pixel footprint
         grid = _check_volume(m.volume, mfile, cameras)
@@ -257,8 +262,10 @@ def _cameras_and_sources(m: ManifestModel, root: Path | str, mfile: str) -> tupl
 
 
 def _check_cameras_see_volume(cameras: list[Camera], grid: Grid, mfile: str) -> None:
-    """Some camera sees the volume (a warning for each that does not); every background
-    plane lies behind the volume."""
+    """No camera centre inside the volume; some camera sees the volume (a warning for each
+    that does not); every background plane lies behind the volume."""
+    for i, cam in enumerate(cameras):
+        _check_centre_outside(i, cam, grid, mfile)
     seeing = [cam.name for cam in cameras if _sees_volume(cam, grid)]
     if not seeing:
         raise SessionError("no camera sees any part of the volume (check volume, R and t)", file=mfile,
@@ -305,12 +312,12 @@ def _check_files(cameras: list[Camera], sources: list[CameraSource], root: Path 
     remote = location.is_url(root)  # each check waits for requests: the cameras' together
     opened = _open_cameras(cameras, sources, root, mfile, allow_external=allow_external, remote=remote)
     n_avail = len(opened[0])
-    if rng is None:
-        rng = (0, n_avail)
-    _check_range(rng, n_avail, file=mfile, field="frames", what=what)
     if strobe is not None:
         _check_range(strobe, n_avail, file=mfile, field="sync.strobe.search_frames",
                      what="search_frames")
+    if rng is None:  # every frame, or those after (before) the strobe window
+        rng = frames_beside_strobe(n_avail, strobe)
+    _check_range(rng, n_avail, file=mfile, field="frames", what=what)
     wanted = set(range(*rng)) | (set(range(*strobe)) if strobe else set())
     found = _FileChecks(rng, n_avail, opened=opened)
     _check_contents(cameras, sources, found, sorted(wanted), decode_all=decode_all, remote=remote)
@@ -324,7 +331,7 @@ def _open_cameras(cameras: list[Camera], sources: list[CameraSource], root: Path
         cam, src = cameras[i], sources[i]
         check = None if allow_external else (
             lambda fs: _check_files_contained(i, cam, src, fs, range(len(fs)), root, mfile))
-        with _qualified(i, "frames"):
+        with _qualified(i, "frames", cam.name):
             return _check_camera_files(i, cam, src, contained=check)
 
     n_avail: int | None = None
@@ -348,9 +355,9 @@ def _check_contents(cameras: list[Camera], sources: list[CameraSource], found: _
 
     def check_content(i: int) -> None:
         cam, src, fs = cameras[i], sources[i], found.opened[i]
-        with _qualified(i, "frames"):
+        with _qualified(i, "frames", cam.name):
             _check_frames_content(i, cam, fs, wanted, decode_all=decode_all)
-        with _qualified(i, "reference"):
+        with _qualified(i, "reference", cam.name):
             _check_reference(i, cam, src)
         inner = getattr(fs, "frames", fs)  # the video under interlaced fields
         if isinstance(inner, VideoFrames):
@@ -360,7 +367,7 @@ def _check_contents(cameras: list[Camera], sources: list[CameraSource], found: _
         if hasattr(fs, "close"):
             fs.close()
     # videos are decoded whole for their timestamps (dropped frames): the cameras together
-    # (OpenCV's decoder releases the GIL; 1.4x on 2 cores for 1440x1080 H.264)
+    # (OpenCV's decoder releases the GIL; docs/tuning.md, "Speed")
     videos = any(src.frames_kind == "video" for src in sources)
     _per_camera(check_content, len(cameras), remote or videos)
     if dropped:

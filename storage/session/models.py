@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import difflib
 import numbers
+import re
 import typing
 from typing import Any
 
@@ -19,6 +20,27 @@ from schlieren.storage.errors import SessionError
 
 DIST_LENGTHS = (4, 5, 8, 12, 14)
 ORTHONORMAL_TOL = 1e-6
+
+#: A camera name: 1 to 64 ASCII letters, digits, ``_``, ``.`` or ``-``, starting with a
+#: letter or digit. Names label the store's ``camera`` coordinate, messages and file names.
+CAMERA_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}\Z")
+CAMERA_NAME_RULE = ("1 to 64 letters, digits, '_', '.' or '-', starting with a letter or digit "
+                    "(it names files and the store's camera coordinate)")
+
+
+def camera_name_problem(name: object) -> str | None:
+    """Why ``name`` is not a valid camera name (:data:`CAMERA_NAME`), or None."""
+    if not isinstance(name, str):
+        return f"a camera name must be text, got {type(name).__name__}"
+    if CAMERA_NAME.match(name):
+        return None
+    return f"camera name {short_name(name)} is not allowed: use {CAMERA_NAME_RULE}"
+
+
+def short_name(name: str, limit: int = 24) -> str:
+    """``name`` quoted for a message, cut to ``limit`` characters (with its length if cut)."""
+    shown = repr(name[:limit])
+    return shown if len(name) <= limit else f"{shown[:-1]}...{shown[-1]} ({len(name)} characters)"
 
 
 def _as_array(v: Any, shapes: tuple[tuple[int, ...], ...], what: str) -> list:
@@ -155,6 +177,16 @@ class CameraModel(_Model):
     time_offset: float | None = None
     interlaced: typing.Literal["top_first", "bottom_first"] | None = None
 
+    @field_validator("name", mode="before")
+    @classmethod
+    def _name(cls, v):
+        if isinstance(v, int) and not isinstance(v, bool):  # `name: 7` in YAML
+            v = str(v)
+        why = camera_name_problem(v)
+        if why is not None:
+            raise ValueError(why)
+        return v
+
     @field_validator("image_size", mode="before")
     @classmethod
     def _size(cls, v):
@@ -272,7 +304,7 @@ def _camera_name_at(raw: dict, loc: tuple) -> str | None:
         cams = raw.get("cameras")
         if isinstance(cams, list) and loc[1] < len(cams) and isinstance(cams[loc[1]], dict):
             name = cams[loc[1]].get("name")
-            return str(name) if name is not None else f"#{loc[1]}"
+            return str(name) if camera_name_problem(name) is None else f"#{loc[1]}"
     return None
 
 

@@ -1,7 +1,8 @@
 """The manifest's YAML read as plain data (``yaml.safe_load`` semantics, stricter).
 
-A tag that would construct a Python object is refused, dates stay strings, and a key
-given twice is an error naming both lines; every value must be JSON data (the manifest is
+A tag that would construct a Python object is refused, dates stay strings, a key
+given twice is an error naming both lines, and a document whose aliases expand it beyond
+a million values (a "billion laughs" bomb) is refused before it is built; every value must be JSON data (the manifest is
 saved in the store's attributes).
 """
 
@@ -15,10 +16,12 @@ import yaml
 
 from schlieren.storage import location
 from schlieren.storage.errors import SessionError
+from schlieren.storage.yaml_bounds import BoundedSafeLoader
 
 
-class _ManifestLoader(yaml.SafeLoader):
-    """SafeLoader that keeps dates as strings and refuses duplicate keys."""
+class _ManifestLoader(BoundedSafeLoader):
+    """SafeLoader that keeps dates as strings, refuses duplicate keys and documents that
+    aliases expand beyond a size (:mod:`schlieren.storage.yaml_bounds`)."""
 
 
 _ManifestLoader.yaml_implicit_resolvers = {

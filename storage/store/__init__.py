@@ -29,5 +29,7 @@ root attributes as JSON) and :mod:`.group` (the zarr group, every read checked).
 
 from schlieren.storage.store.attrs import JSON_ATTRS, decode_attrs, fingerprint, to_json
 from schlieren.storage.store.result_store import ResultStore, remove_store
+from schlieren.storage.store.template import check_store_target
 
-__all__ = ["ResultStore", "fingerprint", "to_json", "decode_attrs", "JSON_ATTRS", "remove_store"]
+__all__ = ["ResultStore", "fingerprint", "to_json", "decode_attrs", "JSON_ATTRS", "remove_store",
+           "check_store_target"]

@@ -99,15 +99,34 @@ def now() -> str:
 
 
 def differences(old: Any, new: Any, where: str = "") -> list[str]:
-    """Dotted names of the values that differ between two nested mappings, ``name: old -> new``."""
+    """Dotted names of the values that differ between two nested mappings, ``name: old -> new``.
+
+    Lists of equal length are compared item by item (``cameras[2].K[0][0]``); long values
+    are shown around their first difference, so that the two sides never read the same.
+    """
     if isinstance(old, Mapping) and isinstance(new, Mapping):
         out = []
         for k in list(old) + [k for k in new if k not in old]:
             out += differences(old.get(k), new.get(k), f"{where}.{k}" if where else str(k))
         return out
+    if isinstance(old, (list, tuple)) and isinstance(new, (list, tuple)):
+        if len(old) != len(new):
+            return [f"{where}: {len(old)} items -> {len(new)} items"]
+        out = []
+        for i, (a, b) in enumerate(zip(old, new)):
+            out += differences(a, b, f"{where}[{i}]")
+        return out
     if old == new or to_json(old) == to_json(new):
         return []
-    def short(v):
-        r = json.dumps(to_json(v)) if v is not None else "(none)"
-        return r if len(r) <= 40 else r[:37] + "..."
-    return [f"{where}: {short(old)} -> {short(new)}"]
+    a, b = (json.dumps(to_json(v)) if v is not None else "(none)" for v in (old, new))
+    return [f"{where}: {_around_difference(a, b)} -> {_around_difference(b, a)}"]
+
+
+def _around_difference(text: str, other: str, width: int = 40, before: int = 15) -> str:
+    """``text`` cut to about ``width`` characters around where it first differs from ``other``."""
+    if len(text) <= width:
+        return text
+    i = next((k for k, (x, y) in enumerate(zip(text, other)) if x != y), min(len(text), len(other)))
+    start = max(0, min(i - before, len(text) - width))
+    end = start + width
+    return ("..." if start else "") + text[start:end] + ("..." if end < len(text) else "")

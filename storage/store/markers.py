@@ -115,11 +115,11 @@ class MarkersMixin:
 
         Every task asks this before it runs, so in a folder store a single position is
         read straight from its marker chunk file (storage/chunkio.py): a chunk never
-        written holds the fill value 0 (not done). Through zarr's I/O thread a read costs
-        about 1 ms, several in a busy worker.
+        written holds the fill value 0 (not done), without a hop through zarr's I/O thread
+        (docs/tuning.md, "Chunk I/O and object storage").
 
-        In an object store one request per position (8-10 ms against a local S3 server)
-        would cost more than many tasks: the first question about a stage lists the
+        In an object store one request per position would cost more than many tasks: the
+        first question about a stage lists the
         marker's chunks once (a set marker is a stored chunk; an unset one holds the fill
         value and is not stored), and later questions in this process are answered from
         that listing plus the markers set through this object. A marker set elsewhere since

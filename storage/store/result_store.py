@@ -2,8 +2,9 @@
 
 Opening a store, access to its arrays and attributes, aligned whole-chunk reads and
 writes (the three write paths in :mod:`.writes`), and the coordinator's attribute updates.
-Creating the template (:mod:`.template`), completion markers (:mod:`.markers`) and chunk
-listings for the integrity scans (:mod:`.chunks`) are mixed in from their own modules.
+Creating the template (:mod:`.template`), completion markers (:mod:`.markers`), chunk
+listings for the integrity scans (:mod:`.chunks`) and retention (:mod:`.retention`) are
+mixed in from their own modules.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from schlieren.storage.store.attrs import JSON_ATTRS, decode_attrs, encode_attrs
 from schlieren.storage.store.chunks import ChunksMixin
 from schlieren.storage.store.group import open_group, store_location
 from schlieren.storage.store.markers import MarkersMixin
+from schlieren.storage.store.retention import RetentionMixin
 from schlieren.storage.store.template import TemplateMixin
 from schlieren.storage.store.writes import (
     ObjectPuts,
@@ -41,7 +43,7 @@ from schlieren.storage.store.writes import (
 log = logging.getLogger(__name__)
 
 
-class ResultStore(TemplateMixin, MarkersMixin, ChunksMixin):
+class ResultStore(TemplateMixin, MarkersMixin, ChunksMixin, RetentionMixin):
     """A run's Zarr v3 group: template creation, aligned writes, completion markers.
 
     Use :meth:`create` (coordinator) or :meth:`open` (tasks, readers); do not call the
@@ -285,7 +287,7 @@ class ResultStore(TemplateMixin, MarkersMixin, ChunksMixin):
         if a is None:
             why = self._required(name, coords)
             if why is not None:
-                raise chunk_error(self._location, name, coords, why)
+                raise self._not_kept(name, coords) or chunk_error(self._location, name, coords, why)
         return a
 
     def _required(self, name: str, coords) -> str | None:

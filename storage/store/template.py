@@ -126,8 +126,8 @@ class TemplateMixin:
         """Create the template at an object-store URL: built in memory, uploaded in one batch.
 
         Through zarr's API each array costs several sequential requests (existence checks
-        of the node and its parents, then the metadata): some 370 for the result layout,
-        4 s against a local S3 server. The same objects are built here in a MemoryStore
+        of the node and its parents, then the metadata): hundreds for the result layout
+        (docs/tuning.md, "Chunk I/O and object storage"). The same objects are built here in a MemoryStore
         and uploaded concurrently, between a first root metadata (``template_complete``
         false, so a run killed meanwhile resumes through :meth:`_create_missing`) and the
         final one, which also holds every array's metadata (zarr's consolidated metadata:
@@ -167,16 +167,7 @@ class TemplateMixin:
             if not found:
                 return None
         elif isinstance(path, (str, os.PathLike)):
-            p = Path(path)
-            if not p.exists():
-                return None
-            if p.is_file():
-                raise StoreError("the path exists and is a file, not a result store; not overwriting it",
-                                 file=loc)
-            if not (p / "zarr.json").is_file():
-                if any(p.iterdir()):
-                    raise StoreError("the folder exists, is not empty and is not a result store; not "
-                                     "overwriting it", file=loc)
+            if not check_store_target(path):
                 return None
         try:
             group = open_group(path, mode="r+", zarr_format=3)
@@ -274,6 +265,30 @@ class TemplateMixin:
                 same = False
             if not same:
                 arr[...] = want
+
+
+def check_store_target(path) -> bool:
+    """Whether the folder ``path`` holds a store (a ``zarr.json``) to open; False for a
+    missing or empty folder (a new store goes there). Anything else is refused, before
+    any work: a file, or a folder that is not empty and holds no store.
+
+    Raises
+    ------
+    StoreError
+        Naming the path; nothing is touched.
+    """
+    p = Path(path)
+    if not p.exists():
+        return False
+    loc = store_location(path)
+    if p.is_file():
+        raise StoreError("the path exists and is a file, not a result store; not overwriting it", file=loc)
+    if (p / "zarr.json").is_file():
+        return True
+    if any(p.iterdir()):
+        raise StoreError("the folder exists, is not empty and is not a result store; not overwriting it",
+                         file=loc)
+    return False
 
 
 def _root_attrs(attrs: Mapping[str, Any], loc: str) -> dict:

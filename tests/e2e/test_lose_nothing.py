@@ -104,6 +104,30 @@ def test_a_rerun_notices_a_lost_chunk_and_recomputes_everything_downstream(copy_
     assert_same_store(serial_store, out)
 
 
+def test_a_deleted_array_is_named_by_every_reader_and_recomputed_by_a_rerun(copy_of, serial_store, tiny_session,
+                                                                            tmp_path):
+    """`rm -rf STORE/temperature` while its markers are set: open and export stop with one
+    line naming the array (never NaN with exit 0); verify sees it; a rerun recomputes it."""
+    import schlieren
+    from schlieren.storage.errors import StoreError
+
+    out = copy_of()
+    shutil.rmtree(out / "temperature")
+    with pytest.raises(StoreError) as info:
+        ds = schlieren.open(out)
+        ds.temperature.values
+    assert info.value.field == "temperature" and "\n" not in str(info.value), str(info.value)
+    _one_line_error(_cli("export", out, "--format", "raw", "--quantity", "temperature", "--out", tmp_path / "exp"),
+                    f"file {out}", "field temperature")
+    assert not list((tmp_path / "exp").glob("*.raw")) if (tmp_path / "exp").exists() else True
+    ds = schlieren.open(out)  # the other arrays read as before
+    np.testing.assert_array_equal(ds.refractivity.values, zarr.open_group(str(serial_store))["refractivity"][...])
+    assert _cli("verify", out).returncode == 1
+    summary = run_session(tiny_session.session, out, serial=True)
+    assert summary.ok and {r["stage"] for r in summary.receipts} == {"integrate"}, summary.receipts
+    assert_same_store(serial_store, out)
+
+
 def _damage_metadata(out: Path) -> None:
     """A truncated array zarr.json, a flipped byte in another, a marker's deleted."""
     meta = out / "flow" / "zarr.json"

@@ -143,7 +143,7 @@ def test_sigkill_then_rerun_resumes_from_the_bucket_and_matches(s3_server, s3_se
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert f"store: {out}" in proc.stderr and "already complete" in proc.stderr
-    skipped = int(proc.stderr.split(" tasks run, ")[1].split(" already complete")[0])
+    skipped = int(proc.stderr.split(" already complete")[0].rsplit(", ", 1)[1])
     assert skipped >= before
     assert_same_store(serial_store, out)
     assert_same_chunk_bytes(serial_store, out)

@@ -135,7 +135,7 @@ def test_binned_rays_recover_an_analytic_field_nearly_as_well_as_one_ray_per_cel
     ray and once from the block means on the binned rays (a quarter of the rows). The
     binned model (the ray through each block's centre) misses the sub-block variation of the
     basis functions' line integrals: measured 49.15 dB from every cell, 48.90 binned; with
-    structure at the voxel (sigma 2 voxels) 53.3 vs 52.5 dB, noise-free (design.md)."""
+    structure at the voxel (sigma 2 voxels) 53.3 vs 52.5 dB, noise-free (docs/tuning.md, "Rays per flow cell")."""
     grid = Grid((-0.04, -0.04, 0.0), (0.04, 0.04, 0.08), 0.0025)  # 32^3
     size = (384, 288)
     cams = ring_cameras(8, grid, image_size=size)

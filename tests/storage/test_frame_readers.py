@@ -433,3 +433,55 @@ def test_image_incomplete_finds_truncated_files(tmp_path, ext):
         assert image_header(cut) == (64, 48)  # the header alone looks fine
     why = image_incomplete(cut)
     assert why is not None and {".png": "PNG", ".jpg": "JPEG", ".tif": "TIFF"}[ext] in why
+
+
+# ---------------------------------------------------------------------------------------
+# issue 36: numbered folders, images whose header declares an absurd size
+# ---------------------------------------------------------------------------------------
+@pytest.mark.parametrize("spec", ["folder", "glob"])
+def test_a_numbered_folder_with_a_gap_is_a_dropped_frame(tmp_path, grey8, spec):
+    pattern = write_sequence(tmp_path / "f", grey8, first=3)
+    Path(pattern % 5).unlink()
+    src = open_frames(str(tmp_path / "f") + "/" if spec == "folder" else str(tmp_path / "f" / "*.png"),
+                      camera_name="cam01")
+    assert len(src) == 7 and src.dropped == (2,) and src.present() == [0, 1, 3, 4, 5, 6]
+    np.testing.assert_array_equal(src.read(3), grey8[3])  # after the gap: still its own slot
+    with pytest.raises(DroppedFrame) as info:
+        src.read(2)
+    assert info.value.file.endswith("00005.png") and info.value.field == "frames[2]"
+
+
+def test_folders_without_one_numbering_keep_name_order(tmp_path, grey8):
+    d = tmp_path / "f"
+    d.mkdir()
+    for k, name in enumerate(["a1.png", "a3.png", "b7.png"]):
+        cv2.imwrite(str(d / name), grey8[k])
+    src = open_frames(str(d) + "/")
+    assert len(src) == 3 and src.dropped == ()
+    np.testing.assert_array_equal(src.read(2), grey8[2])
+
+
+def _png_declaring(path: Path, width: int, height: int) -> None:
+    import struct
+    import zlib
+
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    body = zlib.compress(b"\x00" * (width + 1) * 4)  # a few rows of pixels only
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0))
+                     + chunk(b"IDAT", body) + chunk(b"IEND", b""))
+
+
+def test_a_png_declaring_an_enormous_size_is_refused_in_one_line(make_builder):
+    """Frame 0 (decoded when the camera is opened), a later frame (its header read) and the
+    reference: each refused in one line naming the file and the camera, before any decoding."""
+    for where, field in (("frames/00000.png", "cameras[1].image_size"), ("frames/00004.png", "cameras[1].image_size"),
+                         ("reference.png", "cameras[1].reference")):
+        b = make_builder(where.replace("/", "_")).write()
+        _png_declaring(b.root / "cam01" / where, 100_000, 100_000)
+        with pytest.raises(SessionError) as info:
+            load_session(b.root)
+        err = info.value
+        assert err.camera == "cam01" and err.field == field and err.file.endswith(where.split("/")[-1])
+        assert "100000x100000" in str(err) and "\n" not in str(err)

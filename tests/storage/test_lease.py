@@ -160,3 +160,20 @@ def test_the_s3_holder_keeps_its_lease_and_notices_a_takeover(s3_server, caplog)
     finally:
         lease.release()
     assert _s3_lease_info(url)["host"] == "elsewhere.example"  # release never deletes another's lease
+
+
+def test_the_lease_is_keyed_by_the_resolved_path(tmp_path):
+    """Two runs on one store through a symbolic link (to the store, or to a folder above
+    it): the second is refused."""
+    store = tmp_path / "real" / "run.zarr"
+    store.mkdir(parents=True)
+    (tmp_path / "link.zarr").symlink_to(store)
+    (tmp_path / "alias").symlink_to(tmp_path / "real")
+    assert lease_path(tmp_path / "link.zarr") == lease_path(store) == lease_path(tmp_path / "alias" / "run.zarr")
+    with StoreLease(store):
+        for other in (tmp_path / "link.zarr", tmp_path / "alias" / "run.zarr"):
+            with pytest.raises(LeaseError, match="another run is writing this store"):
+                StoreLease(other).acquire()
+    with StoreLease(tmp_path / "link.zarr"):  # and the other way round
+        with pytest.raises(LeaseError):
+            StoreLease(store).acquire()

@@ -80,7 +80,7 @@ def test_scaffolded_session_loads_with_its_reference_frames(rig):
     session, videos, calib = rig
     found = find_videos([str(session / "cams" / "*.avi")])
     assert found == videos
-    path = scaffold_session(session, found, calib, reference_frames=(0, 4), frames=(4, 12),
+    path = scaffold_session(session, found, calib, reference_frames=(0, 4), frames=(8, 12),
                             strobe_frames=(4, 8), line_times=1.5e-5, **VOLUME)
     doc = yaml.safe_load(path.read_text())
     assert doc["format"] == "schlieren-session/1" and "allow_external_paths" not in doc
@@ -90,7 +90,7 @@ def test_scaffolded_session_loads_with_its_reference_frames(rig):
     s = load_session(session)
     assert s.camera_names == ["cam0", "cam1", "cam2"]
     assert s.frame_rate == pytest.approx(FPS)
-    assert s.frames == (4, 12) and s.n_frames_available == N_FRAMES
+    assert s.frames == (8, 12) and s.n_frames_available == N_FRAMES
     assert s.strobe_search == (4, 8)
     assert s.grid.shape == (20, 20, 20)
     calib_doc = yaml.safe_load(open(calib))
@@ -202,3 +202,104 @@ def test_probe_video_counts(rig):
     with pytest.raises(SchlierenInputError, match="cannot") as info:
         probe_video(videos["cam1"], camera="cam1")
     assert info.value.camera == "cam1" and info.value.file == videos["cam1"]
+
+
+# ---- image sequences, the automatic voxel and the strobe window (issue 36) -----------------
+def make_sequences(session, names=("cam0", "cam1", "cam2"), n=N_FRAMES, size=SIZE):
+    """One folder of numbered PNG frames per camera, ``session/<name>/frames/00000.png``..."""
+    out = {}
+    for i, name in enumerate(names):
+        d = session / name / "frames"
+        d.mkdir(parents=True)
+        rng = np.random.default_rng(i)
+        base = rng.integers(40, 200, (size[1], size[0]))
+        for k in range(n):
+            assert cv2.imwrite(str(d / f"{k:05d}.png"), np.clip(base + 3 * k, 0, 255).astype(np.uint8))
+        out[name] = str(d)
+    return out
+
+
+def test_a_folder_sequence_with_a_missing_file_is_a_dropped_frame(tmp_path):
+    """A file missing between numbered files of a folder is a frame the camera dropped
+    (its slot keeps the timing), not "14 frames but 15: trim the videos"."""
+    session = tmp_path / "s"
+    folders = make_sequences(session)
+    os.remove(session / "cam1" / "frames" / "00005.png")
+    os.remove(session / "cam2" / "frames" / "00002.png")  # inside the reference frames
+    calib = make_calibration(tmp_path / "calibration.yaml")
+    scaffold_session(session, folders, calib, reference_frames=(0, 4), frames=(4, 12), frame_rate=FPS,
+                     time_offsets=0.0, **VOLUME)
+    s = load_session(session)
+    assert s.n_frames_available == N_FRAMES and s.dropped_frames == {"cam1": (5,), "cam2": (2,)}
+    src = s.source("cam1").open_frames()
+    np.testing.assert_array_equal(src.read(6), cv2.imread(str(session / "cam1" / "frames" / "00006.png"), 0))
+    # cam2's reference: the three frames of 0:4 that exist
+    ref = read_reference(s.source("cam2"))
+    want = np.mean([cv2.imread(str(session / "cam2" / "frames" / f"{k:05d}.png"), 0).astype(np.float64)
+                    for k in (0, 1, 3)], axis=0)
+    np.testing.assert_allclose(ref, want, atol=1e-4)
+
+
+def test_image_sequences_are_not_called_videos(tmp_path):
+    session = tmp_path / "s"
+    folders = make_sequences(session)
+    os.remove(session / "cam1" / "frames" / f"{N_FRAMES - 1:05d}.png")  # the last one: a shorter recording
+    calib = make_calibration(tmp_path / "calibration.yaml")
+    with pytest.raises(SchlierenInputError) as info:
+        scaffold_session(session, folders, calib, reference_frames=(0, 4), frame_rate=FPS, time_offsets=0.0,
+                         **VOLUME)
+    text = str(info.value)
+    assert info.value.camera == "cam1" and info.value.field == "frames"
+    assert "image sequence has 11 frames" in text and "video" not in text, text
+    with pytest.raises(SchlierenInputError) as info:
+        scaffold_session(session, folders, calib, reference_frames=(0, 40), frame_rate=FPS, time_offsets=0.0,
+                         **VOLUME)
+    assert "video" not in str(info.value), str(info.value)
+
+
+def test_init_without_voxel_size_uses_the_automatic_voxel(rig, tmp_path, capsys):
+    from schlieren.pipeline.geometry import auto_voxel_size
+    from schlieren.workers.cli import main
+
+    session, videos, calib = rig
+    code = main(["init", str(session), "--videos", str(session / "cams" / "*.avi"), "--calibration", str(calib),
+                 "--reference-frames", "0:4", "--frames", "8:12", "--strobe-frames", "4:8",
+                 "--volume=-0.1,-0.1,0.0,0.1,0.1,0.2"])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    doc = yaml.safe_load((session / "session.yaml").read_text())
+    assert "voxel_size" not in doc["volume"]
+    s = load_session(session)
+    voxel, _ = auto_voxel_size(s.cameras, (-0.1, -0.1, 0.0), (0.1, 0.1, 0.2))
+    assert s.grid.voxel_size == pytest.approx(voxel)
+    assert "chosen from the cameras" in out.out
+
+
+def test_a_strobe_window_overlapping_the_processed_frames_is_refused(rig):
+    session, videos, calib = rig
+    with pytest.raises(SchlierenInputError, match="overlap") as info:
+        scaffold_session(session, videos, calib, reference_frames=(0, 4), frames=(6, 12), strobe_frames=(4, 8),
+                         **VOLUME)
+    assert info.value.field == "sync.strobe.search_frames" and "\n" not in str(info.value)
+    assert not (session / "session.yaml").exists()
+    # without --frames, the frames processed are those after the strobe window
+    scaffold_session(session, videos, calib, reference_frames=(0, 4), strobe_frames=(4, 8), **VOLUME)
+    assert yaml.safe_load((session / "session.yaml").read_text())["frames"] == [8, 12]
+    assert load_session(session).frames == (8, 12)
+
+
+def test_init_refuses_a_camera_inside_the_volume_and_a_bad_name(tmp_path):
+    session = tmp_path / "s"
+    folders = make_sequences(session)
+    calib_path = make_calibration(tmp_path / "calibration.yaml")
+    doc = yaml.safe_load(open(calib_path))
+    R = np.asarray(doc["cameras"][1]["R"])
+    doc["cameras"][1]["t"] = (-R @ np.array([0.0, 0.0, 0.1])).tolist()  # centre in the box
+    (tmp_path / "inside.yaml").write_text(yaml.safe_dump(doc))
+    kw = dict(reference_frames=(0, 4), frame_rate=FPS, time_offsets=0.0, **VOLUME)
+    with pytest.raises(SchlierenInputError, match="inside the volume") as info:
+        scaffold_session(session, folders, str(tmp_path / "inside.yaml"), **kw)
+    assert info.value.camera == "cam1" and info.value.field == "t"
+    with pytest.raises(SchlierenInputError, match="camera name") as info:
+        scaffold_session(session, {"cam 0": folders["cam0"]}, calib_path, **kw)
+    assert len(str(info.value)) < 400

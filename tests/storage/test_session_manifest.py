@@ -746,3 +746,108 @@ def test_missing_voxel_size_is_chosen_from_the_pixel_footprint(session_builder):
     b.manifest["volume"]["voxel_size"] = 0.01
     b.save()
     assert load_session(b.root).grid.voxel_size == 0.01
+
+
+# ---------------------------------------------------------------------------------------
+# issue 36: the strobe window, hostile YAML, camera names and positions
+# ---------------------------------------------------------------------------------------
+def _strobe(b, window, frames=None):
+    for cam in b.manifest["cameras"]:
+        cam.pop("time_offset", None)
+    b.manifest["sync"] = {"strobe": {"search_frames": list(window)}}
+    if frames is not None:
+        b.manifest["frames"] = list(frames)
+    b.save()
+
+
+def test_a_strobe_window_overlapping_the_processed_frames_is_refused(session_builder):
+    b = session_builder
+    _strobe(b, (0, 3), frames=(2, 6))
+    err = expect_error(b.root, file=b.path, field="sync.strobe.search_frames", match="overlap")
+    assert "[2, 6)" in err.message and "[0, 3)" in err.message
+    _strobe(b, (0, 3), frames=(3, 6))
+    assert load_session(b.root).frames == (3, 6)
+    expect_error(b.root, file=b.path, field="sync.strobe.search_frames", match="overlap", frames=(1, 4))
+
+
+def test_without_frames_a_strobe_window_leaves_the_frames_beside_it(session_builder):
+    b = session_builder
+    _strobe(b, (0, 3))
+    assert load_session(b.root).frames == (3, 6)
+    _strobe(b, (3, 6))  # a flash at the end of the recording
+    assert load_session(b.root).frames == (0, 3)
+    _strobe(b, (1, 4))  # frames on both sides: those after it
+    assert load_session(b.root).frames == (4, 6)
+
+
+def _alias_bomb(levels: int = 9, width: int = 9) -> str:
+    lines = ['a0: &a0 ["lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol"]']
+    for i in range(1, levels):
+        lines.append(f"a{i}: &a{i} [{', '.join([f'*a{i - 1}'] * width)}]")
+    return "\n".join(lines) + "\n"
+
+
+@pytest.fixture
+def deadline():
+    """Fail (instead of hanging) when the test body runs longer than 20 s."""
+    import signal
+
+    def expired(*_):
+        raise TimeoutError("still running after 20 s")
+
+    old = signal.signal(signal.SIGALRM, expired)
+    signal.alarm(20)
+    yield
+    signal.alarm(0)
+    signal.signal(signal.SIGALRM, old)
+
+
+def test_a_yaml_alias_bomb_is_refused_at_once(session_builder, deadline):
+    import time
+
+    b = session_builder
+    text = b.path.read_text() + _alias_bomb().replace("a", "x_a")
+    b.save(text)
+    t0 = time.perf_counter()
+    err = expect_error(b.root, file=b.path, match="aliases")
+    assert time.perf_counter() - t0 < 5 and len(str(err)) < 400
+
+
+def test_a_params_file_with_an_alias_bomb_is_refused_by_the_same_rule(tmp_path, deadline):
+    from schlieren.storage.errors import SchlierenInputError
+    from schlieren.storage.params_io import read_params
+
+    p = tmp_path / "params.yaml"
+    p.write_text(_alias_bomb())
+    with pytest.raises(SchlierenInputError, match="aliases") as info:
+        read_params(p)
+    assert info.value.file == str(p)
+
+
+@pytest.mark.parametrize("name", ["x" * 1_000_000, "cam 1", "cam/1", "", "-cam", "ca\tm", "c" * 65])
+def test_a_camera_name_must_be_a_short_printable_identifier(session_builder, name):
+    b = session_builder
+    b.camera(1)["name"] = name
+    b.save()
+    with pytest.raises(SessionError) as info:
+        load_session(b.root)
+    text = str(info.value)
+    assert info.value.field == "cameras[1].name" and len(text) < 400 and "\n" not in text, text[:500]
+    assert info.value.file == str(b.path.resolve())
+
+
+@pytest.mark.parametrize("name", ["cam-01", "left_cam.2", "C" * 64, "0"])
+def test_short_camera_names_are_accepted(session_builder, name):
+    b = session_builder
+    b.camera(1)["name"] = name
+    b.save()
+    assert load_session(b.root, check_files=False).camera_names[1] == name
+
+
+def test_a_camera_inside_the_volume_is_refused(session_builder):
+    b = session_builder
+    R = np.asarray(b.camera(0)["R"])
+    inside = np.array([0.01, 0.0, 0.05])  # the box is [-0.05, 0.05] x [-0.05, 0.05] x [0, 0.1]
+    b.camera(0)["t"] = (-R @ inside).tolist()
+    b.save()
+    expect_error(b.root, file=b.path, camera="cam00", field="cameras[0].t", match="inside the volume")

@@ -11,6 +11,7 @@ from pathlib import Path
 from hypothesis import given, settings
 from hypothesis import strategies as st
 import pytest
+from graph_cycles import find_cycle
 
 import schlieren.storage
 from schlieren.storage.errors import SessionError
@@ -79,38 +80,6 @@ def _module_files() -> dict[str, Path]:
     return files
 
 
-def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
-    """One import cycle of ``graph`` (a list of modules, first = last), or None."""
-    state: dict[str, int] = {}  # 1: on the current path, 2: done
-    path: list[str] = []
-
-    def visit(v: str) -> list[str] | None:
-        state[v] = 1
-        path.append(v)
-        for w in sorted(graph[v]):
-            if state.get(w) == 1:
-                return path[path.index(w):] + [w]
-            if w not in state:
-                found = visit(w)
-                if found:
-                    return found
-        path.pop()
-        state[v] = 2
-        return None
-
-    for v in sorted(graph):
-        if v not in state:
-            found = visit(v)
-            if found:
-                return found
-    return None
-
-
-def test_the_cycle_finder_finds_cycles():
-    assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
-    assert _cycle({"a": {"b"}, "b": {"c"}, "c": set()}) is None
-
-
 def test_storage_modules_import_no_cycle():
     """No storage module imports, even lazily or for type checking only, a module that imports
     it back (e.g. the store and its integrity checks: integrity.scan_store takes any store with
@@ -119,7 +88,7 @@ def test_storage_modules_import_no_cycle():
     assert set(files) == set(storage_modules())
     graph = {name: _storage_imports(path, set(files)) - {name} for name, path in files.items()}
     assert "schlieren.storage.integrity" in graph["schlieren.storage.store.result_store"]  # the checker sees edges
-    assert _cycle(graph) is None, " -> ".join(_cycle(graph))
+    assert find_cycle(graph) is None, " -> ".join(find_cycle(graph))
 
 
 @settings(max_examples=200, deadline=None)

@@ -260,3 +260,12 @@ def test_distributeds_failed_cancel_after_a_ctrl_c_is_not_printed(monkeypatch):
         signal.signal(signal.SIGINT, before)
         log.removeHandler(handler)
     assert len(got) == 2 and "sync.<locals>.cancel" in got[0] and "something else" in got[1], got
+
+
+def test_flash_lit_frames_get_no_deflection_warning():
+    """The strobe flash lights frames the sync already excludes: their large deflections
+    are the flash, not a bumped camera."""
+    receipts = [{"stage": "deflection", "camera": "cam03", "frame": f, "max_px": 46.0} for f in (3, 4)] + \
+               [{"stage": "deflection", "camera": "cam01", "frame": 3, "max_px": 40.0}]
+    w = diagnose(receipts, n_voxels=100, flash_frames={"cam03": (3, 4), "cam01": (-1, -1)})
+    assert len(w) == 1 and w[0].startswith("camera cam01, frame 3: deflections up to 40 px"), w

@@ -16,7 +16,8 @@ truth (:func:`schlieren.workers.synth.synthesize`) and processed by the full pip
     Poisson): the full-system error of the paper's row three.
 ``approximate_aniso`` (one rig)
     ``approximate`` integrated with the Appendix's tensor active (alpha 0.8, 16-bit units),
-    to measure what the anisotropic integration gains (paper: about +1 dB).
+    to measure what the anisotropic integration gains (the paper reports a gain; ours:
+    docs/tuning.md, "Poisson").
 ``poisson_bound`` (once)
     Sec. 6: the truth's gradient from an "unknown" discretisation (central differences on
     the fine truth grid, block-averaged to the reconstruction grid) integrated by the

@@ -24,17 +24,17 @@ THREAD_ENV: dict[str, str] = {
     "NUMBA_NUM_THREADS": "1",
     "VECLIB_MAXIMUM_THREADS": "1",
     "NUMEXPR_NUM_THREADS": "1",
-    # numba's OpenMP pool must not spin-wait between kernels (measured: up to 15x slower
-    # fused tomography kernels on a loaded node with the default active policy)
+    # numba's OpenMP pool must not spin-wait between kernels: on a loaded node the default
+    # active policy slows the fused tomography kernels badly (docs/tuning.md, "Cluster settings")
     "OMP_WAIT_POLICY": "passive",
 }
 
 #: glibc allocator settings for worker processes. Distributed's default
 #: ``MALLOC_TRIM_THRESHOLD_=65536`` also freezes glibc's dynamic mmap threshold, so every
-#: array over 128 KiB is mmapped and page-faulted afresh: measured here, it made the
-#: whole pipeline 38 % slower in a worker than in the serial loop (12.5 s -> 17.2 s on
-#: benchmarks/scaling.py's session). Large arrays from the heap (mmap threshold at glibc's
-#: 32 MiB maximum) and trimming only past 256 MiB restore the serial speed (12.5 s).
+#: array over 128 KiB is mmapped and page-faulted afresh, which made the whole pipeline
+#: markedly slower in a worker than in the serial loop. Large arrays from the heap (mmap
+#: threshold at glibc's 32 MiB maximum) and trimming only past 256 MiB restore the serial
+#: speed (docs/tuning.md, "Cluster settings").
 MALLOC_ENV: dict[str, str] = {
     "MALLOC_TRIM_THRESHOLD_": "268435456",
     "MALLOC_MMAP_THRESHOLD_": "33554432",
@@ -51,15 +51,15 @@ DASK_SETTINGS: dict[str, Any] = {
     "distributed.scheduler.allowed-failures": 3,
     # queue root tasks on the scheduler, ceil(1.5 x threads) per worker: a killed worker
     # loses little, and a worker always holds its next task (at 1.0 a single-threaded
-    # worker idled for a scheduler round trip after each of ~700 small tasks: +1.5 s on
-    # the 8-camera x 16-frame scaling session, benchmarks/scaling.py)
+    # worker idles for a scheduler round trip after each small task; docs/tuning.md,
+    # "Cluster settings")
     "distributed.scheduler.worker-saturation": 1.5,
     "distributed.dashboard.link": "{scheme}://{host}:{port}/status",
     # Monitoring cadence. Every node's event loop wakes for these and takes its
     # process's GIL; on a machine whose cores all run tasks, that CPU comes out of the
     # tasks. Dask's defaults (profile sample every 10 ms, tick every 20 ms, system
-    # monitor every 500 ms) cost a 2-worker local cluster 1.8 s of CPU per idle 20 s and
-    # about 2.9 s per 15 s run of benchmarks/scaling.py; these cost 0.8 s and 1.8 s. The
+    # monitor every 500 ms) wake far more often than ours (their CPU cost: docs/tuning.md,
+    # "Cluster settings"). The
     # dashboard keeps every page: our tasks run 0.1 s to minutes, so a 50 ms profile
     # sample still lands several times in each, and the system page updates every second.
     "distributed.worker.profile.interval": "50ms",

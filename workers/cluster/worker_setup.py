@@ -22,7 +22,7 @@ from distributed.diagnostics.plugin import WorkerPlugin
 
 from schlieren.workers.cluster.options import ClusterOptions
 from schlieren.workers.cluster.settings import THREAD_ENV, TOMO
-from schlieren.workers.monitoring import configure_json_logging
+from schlieren.workers.monitoring import configure_worker_logging
 
 
 class SchlierenWorkerSetup(WorkerPlugin):
@@ -37,7 +37,8 @@ class SchlierenWorkerSetup(WorkerPlugin):
     * zarr's ``async.concurrency`` and ``threading.max_workers`` (per process, so
       ``workers x concurrency`` stays bounded);
     * the ``schlieren`` logger writes JSON lines (:class:`~schlieren.workers.monitoring.JsonFormatter`)
-      to stderr or to ``log_dir/<worker name>.jsonl``.
+      to ``log_dir/<worker name>.jsonl``, or plain lines to stderr (a local cluster's
+      stderr is the user's console: one format there, the CLI's).
 
     Registering it again is a no-op (``idempotent = True``).
     """
@@ -83,9 +84,9 @@ class SchlierenWorkerSetup(WorkerPlugin):
         if self.log_dir:
             name = str(getattr(worker, "name", None) or getattr(worker, "address", "worker"))
             safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
-            configure_json_logging("schlieren", level=self.log_level, path=Path(self.log_dir) / f"{safe}.jsonl")
+            configure_worker_logging("schlieren", level=self.log_level, path=Path(self.log_dir) / f"{safe}.jsonl")
         else:
-            configure_json_logging("schlieren", level=self.log_level)
+            configure_worker_logging("schlieren", level=self.log_level)
         logging.getLogger(__name__).debug("worker %s set up: %s thread(s)", getattr(worker, "address", "?"), n)
 
 

@@ -19,6 +19,8 @@ def _fmt(x: float, spec: str) -> str:
 
 
 def handler(args) -> int:
+    import sys
+
     from rich.console import Console
     from rich.table import Table
 
@@ -37,7 +39,8 @@ def handler(args) -> int:
     o, p = res["overall"], res["plume"]
     table.add_row("all", "", _fmt(100 * o["rms"], ".3f"), _fmt(o["psnr"], ".2f"), _fmt(100 * p["rms"], ".3f"),
                   _fmt(p["psnr"], ".2f"), "", f"{o['frames']} frames", style="bold")
-    Console().print(table)
+    # to a file or a pipe: the whole table on lines as long as it needs (rich would squeeze it to 80 columns)
+    (Console() if sys.stdout.isatty() else Console(width=10_000, soft_wrap=False)).print(table)
     if args.json:
         write_json(args.json, res)
     return 0

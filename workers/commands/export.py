@@ -6,10 +6,11 @@ from schlieren.storage.export import FORMATS, QUANTITIES
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser("export", help="export volumes for ParaView and renderers (vti, raw+mhd, nrrd)",
+    p = sub.add_parser("export", help="export volumes for ParaView, renderers and OME-Zarr viewers "
+                                      "(vti, raw+mhd, nrrd, ome-zarr)",
                        description="Write one volume quantity per frame with its world origin and spacing "
-                                   "(metres). Prints the files to open: the .pvd (vti), the .mhd headers "
-                                   "(raw) or the .nrrd files.")
+                                   "(metres): vti, raw (+mhd), nrrd or ome-zarr. Prints the files to open: the "
+                                   ".pvd (vti), the .mhd headers (raw), the .nrrd files or the OME-Zarr group.")
     p.add_argument("store", help="result store (Zarr folder)")
     p.add_argument("--format", required=True, choices=FORMATS)
     p.add_argument("--quantity", default="refractivity", choices=list(QUANTITIES))

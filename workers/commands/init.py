@@ -70,14 +70,19 @@ def _per_camera_text(items, flag: str, names):
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser("init", help="write a session.yaml from camera videos and a calibration file",
+    p = sub.add_parser("init", help="write a session.yaml from camera videos or image sequences and a "
+                                    "calibration file",
                        description=__doc__.split("\n", 1)[1].strip().replace("``", ""),
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("session_dir", metavar="SESSION_DIR", help="session folder (created if missing)")
-    p.add_argument("--videos", "--images", nargs="+", required=True, metavar="[NAME=]PATH", dest="videos",
-                   help="each camera's frames: a video (or a quoted glob of videos, camera = file stem), an "
-                        "image sequence as a printf pattern (cam00/frames/%%05d.png), a quoted glob "
-                        "('cam00/*.tif') or a folder (camera = the folder's name), or a multi-page TIFF")
+    p.add_argument("--videos", nargs="+", action="extend", default=[], metavar="[NAME=]PATH", dest="videos",
+                   help="each camera's video (or a quoted glob of videos, or a folder of videos; camera = file "
+                        "stem), or a multi-page TIFF")
+    p.add_argument("--images", nargs="+", action="extend", default=[], metavar="[NAME=]PATH", dest="videos",
+                   help="each camera's image sequence: a printf pattern (cam00/frames/%%05d.png), a quoted glob "
+                        "('cam00/*.tif') or a folder of images (camera = the folder's name; a folder named "
+                        "frames or images gives its parent's). A file missing between numbered files is a "
+                        "frame the camera dropped. --videos and --images take the same forms and may be mixed")
     p.add_argument("--calibration", nargs="+", required=True, metavar="[NAME=]FILE",
                    help="calibration.yaml from schlieren calibrate, a JSON file of the same form, Kalibr "
                         "camchain.yaml, or one OpenCV FileStorage YAML/XML per camera (camera = file stem)")
@@ -89,12 +94,15 @@ def add_parser(sub) -> None:
     p.add_argument("--volume", required=True, metavar="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX",
                    help="reconstruction box in world metres (z up); write --volume=-0.1,... when "
                         "it starts with a minus sign")
-    p.add_argument("--voxel-size", type=float, required=True, metavar="M", help="voxel edge, metres")
+    p.add_argument("--voxel-size", type=float, default=None, metavar="M",
+                   help="voxel edge, metres (default: none in session.yaml: the run chooses it from the cameras' "
+                        "pixel footprint, 2 image pixels per voxel, docs/session.md)")
     p.add_argument("--frame-rate", type=float, default=None, metavar="FPS",
                    help="frames per second (default: the videos', which must agree)")
     p.add_argument("--frames", default=None, metavar="A:B", help="half-open range of frames to process")
     p.add_argument("--strobe-frames", default=None, metavar="A:B",
-                   help="frames where every camera sees the sync flash (sync.strobe.search_frames)")
+                   help="frames where every camera sees the sync flash (sync.strobe.search_frames); they may not "
+                        "overlap --frames, which then defaults to the frames after them")
     p.add_argument("--time-offset", action="append", default=[], metavar="[NAME=]SECONDS",
                    help="camera time offsets instead of a strobe (one value for all, or per camera)")
     p.add_argument("--line-time", action="append", default=[], metavar="[NAME=]SECONDS",
@@ -102,7 +110,8 @@ def add_parser(sub) -> None:
     p.add_argument("--background-distance", action="append", default=[], metavar="[NAME=]METRES",
                    help="background distance for cameras whose calibration has no background plane")
     p.add_argument("--name", default=None, help="session name (default: the folder's name)")
-    p.add_argument("--copy-videos", action="store_true", help="copy videos from outside SESSION_DIR into it")
+    p.add_argument("--copy-videos", action="store_true",
+                   help="copy the frames (video or image files) from outside SESSION_DIR into it")
     p.add_argument("--count-frames", action="store_true",
                    help="count frames by decoding every video (exact, slow) instead of trusting "
                         "the container")
@@ -117,7 +126,9 @@ def handler(args) -> int:
     from schlieren.workers.cli import CLIError
 
     vol = _floats(args.volume, 6, "--volume")
-    if args.voxel_size <= 0:
+    if not args.videos:
+        raise CLIError("give each camera's frames: --videos or --images")
+    if args.voxel_size is not None and args.voxel_size <= 0:
         raise CLIError("--voxel-size must be positive (metres)")
     videos = find_sources(args.videos, base=args.session_dir)
     names = list(videos)
@@ -135,7 +146,9 @@ def handler(args) -> int:
         name=args.name, copy_videos=args.copy_videos, count_frames=args.count_frames,
         overwrite=args.force)
     session = load_session(path)  # the reader `schlieren run` uses: fail here, not later
+    voxel = "" if args.voxel_size is not None else \
+        f" of {1e3 * session.grid.voxel_size:.2f} mm (chosen from the cameras' pixel footprint)"
     print(f"wrote {path}: {len(session.cameras)} cameras, {session.n_frames_available} frames at "
           f"{session.frame_rate:g} fps, frames {list(session.frames)} to process, grid "
-          f"{' x '.join(str(s) for s in session.grid.shape[::-1])} voxels (x, y, z)")
+          f"{' x '.join(str(s) for s in session.grid.shape[::-1])} voxels (x, y, z){voxel}")
     return 0

@@ -41,10 +41,28 @@ def add_common_run_args(p: argparse.ArgumentParser) -> None:
                    help="frames of one camera per task in the cheap 2D stages (default: the deflection about "
                         "3.1 megapixels per task, 8 frames at 480x360, 2 at 1440x1080; results and resume do not "
                         "depend on it)")
+    add_keep_arg(p)
     p.add_argument("--verify", action="store_true",
                    help="before resuming, read every chunk of the existing store and check its checksum "
                         "(a rerun always checks that the chunks of every completed task exist); damaged "
                         "chunks are recomputed with everything downstream")
+
+
+def _keep(text: str) -> str:
+    """An argparse ``type`` for ``--keep`` (checked here, so a typo stops before any work)."""
+    from schlieren.workers.retention import arrays_to_drop
+
+    try:
+        arrays_to_drop(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("--keep ")) from None
+    return text
+
+
+def add_keep_arg(p: argparse.ArgumentParser) -> None:
+    from schlieren.workers.retention import KEEP_HELP
+
+    p.add_argument("--keep", default="all", metavar="WHAT", type=_keep, help=KEEP_HELP)
 
 
 def add_log_arg(p: argparse.ArgumentParser) -> None:
@@ -119,6 +137,7 @@ def execute(session: str, out: str, frames, args, *, console=None):
     cfg = load_params(getattr(args, "params", None))
     # validate everything before a cluster is even started
     loaded = load_session(session, frames=frames)
+    check_out(out)
     with open_run_log(getattr(args, "log", None), loaded.name) as run_log, client_for(args) as (client, info):
         link = None
         if client is not None:
@@ -134,10 +153,20 @@ def execute(session: str, out: str, frames, args, *, console=None):
                                   on_failure=fan_out(prog.failure, run_log.failure),
                                   on_plan=prog.plan, frames_per_task=args.frames_per_task,
                                   overwrite=getattr(args, "overwrite", False),
-                                  verify=bool(getattr(args, "verify", False)))
+                                  verify=bool(getattr(args, "verify", False)), keep=getattr(args, "keep", None))
             log_finished(run_log, summary)
         summary.dashboard = link
     return summary
+
+
+def check_out(out: str) -> None:
+    """Refuse an ``--out`` that exists and is no result store (a file, a folder of other
+    things) before any cluster starts; a URL is checked when the store is opened."""
+    from schlieren.storage import location
+    from schlieren.storage.store import check_store_target
+
+    if not location.is_url(location.normalize(out)):
+        check_store_target(out)
 
 
 def open_run_log(path, session_name: str):
@@ -154,7 +183,7 @@ def open_run_log(path, session_name: str):
 def log_finished(run_log, summary) -> None:
     """The closing line of ``--log``: counts, wall time and executor of the run."""
     run_log.finished(store=summary.store, executor=summary.executor, tasks=summary.tasks,
-                     skipped=summary.skipped, seconds=round(summary.seconds, 3),
+                     steps=summary.steps_computed, skipped=summary.skipped, seconds=round(summary.seconds, 3),
                      failed=len(summary.root_failures()),
                      not_run=len(summary.failures) - len(summary.root_failures()))
 
@@ -172,7 +201,10 @@ def print_summary(summary, *, stream=None) -> None:
         shown = "; ".join(f"{cam} frame {f} ({', '.join(why)})" for cam, f, why in bad[:20])
         more = f"; and {len(bad) - 20} more" if len(bad) > 20 else ""
         print(f"excluded from the reconstruction: {shown}{more}", file=stream)
-    print(f"store: {summary.store}  ({summary.tasks} tasks run, {summary.skipped} already complete, "
+    # steps: one stage at one camera and frame (what a completion marker records); a task
+    # computes one step or several frames of one camera, so only steps add up across runs
+    print(f"store: {summary.store}  ({summary.steps_computed} steps computed in {summary.tasks} "
+          f"task{'' if summary.tasks == 1 else 's'}, {summary.skipped} already complete; "
           f"{summary.seconds:.1f} s, {summary.executor} executor)", file=stream)
     if summary.failures:
         print(f"FAILED: {len(roots)} task(s) failed, {len(summary.failures) - len(roots)} not run "

@@ -53,6 +53,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--verify", action="store_true",
                    help="before resuming, read every chunk of the existing store and check its checksum "
                         "(as `schlieren run --verify`); damaged chunks are recomputed with everything downstream")
+    from schlieren.workers.commands.run import add_keep_arg
+
+    add_keep_arg(p)
     p.add_argument("--dry-run", action="store_true", help="print the job script / manifest and exit")
     p.set_defaults(func=handler)
 
@@ -134,14 +137,15 @@ def handler(args: argparse.Namespace) -> int:
 
     # the run entry points belong to the executor; imported here so this module loads without them
     from schlieren.storage.session import load_session
-    from schlieren.workers.commands.run import (fan_out, load_params, log_finished, open_run_log, parse_frames,
-                                                print_summary)
+    from schlieren.workers.commands.run import (check_out, fan_out, load_params, log_finished, open_run_log,
+                                                parse_frames, print_summary)
     from schlieren.workers.progress import StageProgress
     from schlieren.workers.run import run_session
 
     frames = parse_frames(args.frames)
     run_config = load_params(args.params)
     session = load_session(args.session, frames=frames)  # bad input refused before any job starts
+    check_out(args.out)
     with open_run_log(args.log, session.name) as run_log:
         try:
             cluster = make_batch_cluster(args.cluster, config)
@@ -170,6 +174,7 @@ def handler(args: argparse.Namespace) -> int:
                     frames_per_task=args.frames_per_task,
                     overwrite=bool(args.overwrite),
                     verify=bool(args.verify),
+                    keep=getattr(args, "keep", None),
                 )
             log_finished(run_log, summary)
             summary.dashboard = info.dashboard_link

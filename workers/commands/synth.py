@@ -13,29 +13,46 @@ _size = image_size(16)
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("synth", help="write a synthetic session and its ground truth",
                               description="Render a synthetic BOS capture (paper sec. 6) and its ground truth.")
-    p.add_argument("out_dir", metavar="OUT_DIR")
-    p.add_argument("--cameras", type=int_at_least(2), default=16)
-    p.add_argument("--ring", choices=["half", "full"], default="half")
-    p.add_argument("--phantom", choices=["plume", "tealights", "blob"], default="plume")
-    p.add_argument("--frames", type=positive_int, default=8, help="frames to process (N)")
-    p.add_argument("--size", type=_size, default=(1440, 1080), help="WIDTHxHEIGHT (default 1440x1080)")
-    p.add_argument("--flow-factor", type=int, default=3)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--noise", type=float, default=1.5, help="sensor noise, 8-bit grey levels")
-    p.add_argument("--bit-depth", type=int, choices=[8, 16], default=8)
+    p.add_argument("out_dir", metavar="OUT_DIR",
+                   help="folder receiving session.yaml, the cameras' frames and references, and truth.zarr")
+    p.add_argument("--cameras", type=int_at_least(2), default=16, metavar="N",
+                   help="cameras on the ring around the volume (default 16)")
+    p.add_argument("--ring", choices=["half", "full"], default="half",
+                   help="cameras over half a circle (the paper's rig) or a full one (default half)")
+    p.add_argument("--phantom", choices=["plume", "tealights", "blob"], default="plume",
+                   help="the flow rendered: a rising buoyant plume, three tealight plumes or a static "
+                        "Gaussian blob (default plume)")
+    p.add_argument("--frames", type=positive_int, default=8, metavar="N",
+                   help="frames to process (N); a flash and margin frames are rendered around them (default 8)")
+    p.add_argument("--size", type=_size, default=(1440, 1080), metavar="WxH",
+                   help="image size in pixels, WIDTHxHEIGHT (default 1440x1080)")
+    p.add_argument("--flow-factor", type=int, default=3, metavar="N",
+                   help="downsampling of the truth's deflections to the flow grid (default 3)")
+    p.add_argument("--seed", type=int, default=0, help="random seed of rig jitter, background and noise (default 0)")
+    p.add_argument("--noise", type=float, default=1.5, metavar="GREY",
+                   help="sensor noise, standard deviation in 8-bit grey levels (default 1.5)")
+    p.add_argument("--bit-depth", type=int, choices=[8, 16], default=8, help="bits per pixel of the frames (default 8)")
     p.add_argument("--video", action="store_true", help="lossless FFV1 video per camera instead of PNGs")
     p.add_argument("--no-strobe", action="store_true", help="write time_offset per camera instead of a flash")
-    p.add_argument("--distortion", action="store_true")
-    p.add_argument("--voxel-size", type=float, default=None, help="truth voxel (m), default recon voxel / 2")
-    p.add_argument("--recon-voxel", type=float, default=0.0025)
-    p.add_argument("--frame-rate", type=float, default=60.0)
-    p.add_argument("--line-time", type=float, default=1.54e-5)
-    p.add_argument("--supersample", type=int, default=3)
-    p.add_argument("--height-jitter", type=float, default=0.0)
+    p.add_argument("--distortion", action="store_true", help="mild radial and tangential lens distortion on every "
+                                                             "camera")
+    p.add_argument("--voxel-size", type=float, default=None, metavar="M",
+                   help="truth (phantom) voxel in metres (default: --recon-voxel / 2)")
+    p.add_argument("--recon-voxel", type=float, default=0.0025, metavar="M",
+                   help="the manifest's reconstruction voxel in metres (default 0.0025)")
+    p.add_argument("--frame-rate", type=float, default=60.0, metavar="FPS",
+                   help="frames per second of every camera (default 60)")
+    p.add_argument("--line-time", type=float, default=1.54e-5, metavar="S",
+                   help="rolling-shutter line time in seconds, 0 = global shutter (default 1.54e-5)")
+    p.add_argument("--supersample", type=int, default=3, metavar="N",
+                   help="sub-positions per pixel side when rendering (default 3)")
+    p.add_argument("--height-jitter", type=float, default=0.0, metavar="M",
+                   help="random camera height offsets, standard deviation in metres (default 0)")
     p.add_argument("--background-only", action="store_true",
                    help="only write a printable background OUT_DIR/background.png (see --print-size, --dpi)")
-    p.add_argument("--print-size", type=_size, default=(7016, 4961), help="printer pixels (default A4 at 600 dpi)")
-    p.add_argument("--dpi", type=float, default=600.0)
+    p.add_argument("--print-size", type=_size, default=(7016, 4961), metavar="WxH",
+                   help="printer pixels of --background-only (default 7016x4961: A4 at 600 dpi)")
+    p.add_argument("--dpi", type=float, default=600.0, help="printer resolution of --background-only (default 600)")
     p.set_defaults(func=handler)
 
 

@@ -54,8 +54,11 @@ def _flow_factor(page: ReportPage, rd: ReportReader, grid: Grid | None, cameras,
     store and the calibration cannot give residuals."""
     title = _TITLE
     if not rd.has("flow") or grid is None or shown is None or not (rd.has("gradient") or rd.has("refractivity")):
+        from schlieren.workers.report.sections import not_kept_note
+
         page.add(title, "<p class='missing'>Needs <code>flow</code> and a reconstructed <code>gradient</code> "
-                        "(or <code>refractivity</code>) in the store.</p>", "residuals")
+                        "(or <code>refractivity</code>) in the store."
+                        + (" " + not_kept_note(rd, "flow") if not_kept_note(rd, "flow") else "") + "</p>", "residuals")
         return None
     if not cameras:
         page.add(title, f"<p class='missing'>No usable camera calibration in the store"

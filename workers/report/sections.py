@@ -34,10 +34,22 @@ def _camera_names(rd: ReportReader, cameras, n) -> list[str]:
     return rd.camera_names(n)
 
 
+def not_kept_note(rd: ReportReader, name: str) -> str | None:
+    """Why array ``name`` is absent when the run's retention dropped it, else None."""
+    from schlieren.storage.integrity import dropped_of
+
+    if name not in dropped_of(rd.attrs):
+        return None
+    keep = (rd.attrs.get("retention") or {}).get("keep", "")
+    return (f"<code>{name}</code> was not kept: the run's <code>--keep {html.escape(str(keep))}</code> drops it "
+            "once the stages reading it are done (a run with <code>--keep all</code> stores it again).")
+
+
 def _deflection_section(page: ReportPage, rd: ReportReader, writer: ReportWriter, shown, cameras, max_cameras):
     title = "Deflections (paper Figure 4)"
     if not rd.has("flow") or shown is None:
-        page.add(title, "<p class='missing'>No <code>flow</code> in the store.</p>", "deflections")
+        page.add(title, f"<p class='missing'>{not_kept_note(rd, 'flow') or 'No <code>flow</code> in the store.'}</p>",
+                 "deflections")
         return
     n_cam = rd.shape("flow")[0]
     names = _camera_names(rd, cameras, n_cam)

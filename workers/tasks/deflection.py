@@ -142,7 +142,7 @@ def quality_vector(ctx: RunContext, c: int, f: int, img: np.ndarray) -> np.ndarr
         previous = None
     if dtype == np.uint8 and src.one_channel:
         # the 8-bit samples themselves (exact): their sums are the same integers, and OpenCV
-        # takes them 4x faster than float32 (1.9 -> 0.7 ms at 1440x1080, the conversions included)
+        # sums them faster than float32, conversions included (docs/tuning.md, "Speed")
         img = img.astype(np.uint8)
         previous = None if previous is None else previous.astype(np.uint8)
     # grey levels of integer samples are finite (no NaN check over the frame)

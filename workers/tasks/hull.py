@@ -17,8 +17,8 @@ __all__ = ["hull_task", "HULL_PROJECTION_BYTES"]
 
 #: Largest :func:`~schlieren.pipeline.hull.hull_projection` a process keeps for the hulls of
 #: a sequence (8 bytes per voxel and camera: 55 MB for 16 cameras on the paper-scale
-#: session's 432,000 voxels, where it takes the hull task from 247 to 43 ms); above
-#: it each hull projects its candidates itself.
+#: session's 432,000 voxels, where it makes the hull task several times faster;
+#: docs/tuning.md, "Speed"); above it each hull projects its candidates itself.
 HULL_PROJECTION_BYTES = 256 * 2 ** 20
 
 

@@ -59,8 +59,8 @@ def _discrepancy_weight(ctx: RunContext, window: np.ndarray, weight: float, out:
     # The weight is chosen with the image-space model whatever flow_window_space says: it
     # fits the cell data to their noise, which the discrepancy principle needs; the volume
     # model's misfit stays above it on 16 cameras (the search would end at its smallest
-    # weight). Measured on the realistic family's tune cases: volume solves with the weight
-    # chosen this way +0.03 to +0.18 dB over volume solves with their own choice.
+    # weight), and volume solves do better with the weight chosen this way (docs/tuning.md,
+    # "Flow-window model").
     blur = window_model(ctx, window, space="image")
     k = middle_frame(ctx.n_frames)  # the plan's "middle" dependency: these masks are done
     geom = cached_geometry(ctx.store_path, geometry_key(ctx))
