@@ -215,8 +215,11 @@ def test_quick_lab_case_end_to_end(tmp_path):
     assert lab["peak_px"] == pytest.approx(clean["peak_px"], rel=1e-6)    # the same flow at the same scale
     for r in (clean, lab):
         g = r["diagnostics"]
-        assert 0.0 <= g["mask_fill"] <= g["mask_fill_max"] <= 1.0 and 0.0 < g["hull_fill"] <= 1.0
+        assert 0.0 <= g["mask_fill"] <= g["mask_fill_max"] <= 1.0 and 0.0 <= g["hull_fill"] <= 1.0
         assert g["quiet_fraction"] > 0.2
+    assert clean["diagnostics"]["hull_fill"] > 0.0
+    # today's pipeline takes the camera's motion for flow: the masks cover most of the lab images
+    assert lab["diagnostics"]["mask_fill"] > 2 * clean["diagnostics"]["mask_fill"]
     # the camera moved by 0.1 px and more: the flow where nothing flows shows it
     assert lab["diagnostics"]["quiet_flow_median"] > 2 * clean["diagnostics"]["quiet_flow_median"]
     assert lab["diagnostics"]["quiet_flow_median"] > 0.05
