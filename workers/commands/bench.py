@@ -161,6 +161,7 @@ def _realistic(args) -> int:
             from schlieren.workers.cluster import ClusterOptions, open_client
 
             client, _info = stack.enter_context(open_client(ClusterOptions(workers=workers, dashboard_address=":0")))
+            _numba_follows_environment()
         result = rb.run_family(work, cases, config=config, client=client, label=args.label,
                                truth_rows=not args.no_truth_rows, progress=lambda m: console.print(m),
                                voxel=args.manifest_voxel, keep_stores=args.keep_stores or not args.label)
@@ -177,6 +178,23 @@ def _realistic(args) -> int:
         console.print(f"pipeline failures: {', '.join(failed)}")
         return 1
     return 0
+
+
+def _numba_follows_environment() -> None:
+    """Make this process's numba read the thread cap the local cluster's nannies just exported.
+
+    The nannies run in this process and put ``NUMBA_NUM_THREADS=1`` into its environment
+    (``workers/cluster/settings.py``), but numba reads the environment only when it compiles.
+    The benchmark runs numba kernels here too (rendering, the truth rows): if the first of
+    them runs from the disk cache, numba starts its pool at the old count, and the next
+    compile refuses the changed variable ("Cannot set NUMBA_NUM_THREADS to a different
+    value once the threads have been launched"). Reading it now starts the pool at the cap.
+    """
+    from numba.core import config
+    from numba.np.ufunc import parallel
+
+    if not parallel._is_initialized:
+        config.reload_config()
 
 
 def _has_bench_extra() -> bool:
@@ -213,6 +231,7 @@ def handler(args) -> int:
 
             client, _info = stack.enter_context(open_client(ClusterOptions(workers=cfg.workers,
                                                                            dashboard_address=":0")))
+            _numba_follows_environment()
             executor = f"local Dask cluster, {cfg.workers} workers x 1 thread"
         result = run_table1(work, cfg, client=client, progress=lambda m: console.print(m))
     wall = time.perf_counter() - t0
