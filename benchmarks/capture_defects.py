@@ -20,12 +20,18 @@ the fact (:func:`perturb_session`):
 * 25 defective pixels per camera: 15 hot (255), 5 dead (0), 5 stuck at a random grey
   level, in the reference frames and the frames.
 
-The true motion is stored beside the lab session (``motion_truth.json``). Each run then
+Other sessions (:data:`SESSIONS`) keep one defect each, in focus (``motion``, ``flicker``,
+``pixels``), or the defocus alone. The true motion, defective pixels and lamp are stored
+beside each perturbed session (``motion_truth.json``, ``defects_truth.json``,
+``lamp_truth.json``). Each run then
 reconstructs a session with a configuration and is scored against the truth: whole box and
 in-plume dB, the masks' and the hull's fill fractions, the motion the flow still shows on
 the static cells (median over camera-frames), the stored motion against the true one
 (RMS displacement error over the image), the defective pixels found, and the pipeline's
-time. Writes ``benchmarks/results/capture_defects.md`` and ``.json``.
+time; with the lamp drawn, the stored gain and offset profiles against the true ones.
+``--score-lab STORE`` scores stores of captures rendered with lab effects (the family's
+``-lab`` cases) against their ``lab.json`` the same way (:func:`score_lab_store`). Writes
+``benchmarks/results/capture_defects.md`` and ``.json``.
 """
 
 from __future__ import annotations
@@ -113,7 +119,9 @@ def perturb_session(clean: Path, lab: Path, spec: LabSpec = LabSpec(), *, seed: 
     """Write ``lab``: ``clean``'s session with the perturbations of ``spec`` (module docstring).
 
     Returns the true motion: ``{camera: {raw frame: motion vector}}`` (also written to
-    ``lab/motion_truth.json``) and the defective pixels (``lab/defects_truth.json``).
+    ``lab/motion_truth.json``), the defective pixels (``lab/defects_truth.json``) and the
+    lamp's gain, offset and banding phase per reference frame and frame
+    (``lab/lamp_truth.json``).
     """
     from schlieren.storage.session import load_session
 
@@ -124,7 +132,7 @@ def perturb_session(clean: Path, lab: Path, spec: LabSpec = LabSpec(), *, seed: 
     lab.mkdir(parents=True)
     shutil.copy(clean / "session.yaml", lab / "session.yaml")
     os.symlink((clean / "truth.zarr").resolve(), lab / "truth.zarr")
-    motions, defects = {}, {}
+    motions, defects, lamps = {}, {}, {}
     for cam in sess.cameras:
         src_dir = clean / cam.name
         W, H = cam.image_size
@@ -133,7 +141,7 @@ def perturb_session(clean: Path, lab: Path, spec: LabSpec = LabSpec(), *, seed: 
         pix = _defect_pixels(rng, H, W, spec)
         defects[cam.name] = {k: v.tolist() for k, v in pix.items()}
         walk = _motion_walk(rng, len(frames), spec)
-        cam_motion = {}
+        cam_motion, cam_lamp = {}, {"reference": [], "frames": {}}
         for kind, files in (("reference", refs), ("frames", frames)):
             (lab / cam.name / kind).mkdir(parents=True)
             for i, path in enumerate(files):
@@ -142,12 +150,18 @@ def perturb_session(clean: Path, lab: Path, spec: LabSpec = LabSpec(), *, seed: 
                 if kind == "frames" and spec.motion:
                     img, m = rigid_motion(img, *walk[i])
                     cam_motion[i] = m.tolist()
-                img = _optics_and_sensor(img, rng, spec, pix)
+                img, lamp = _optics_and_sensor(img, rng, spec, pix)
+                if kind == "frames":
+                    cam_lamp["frames"][i] = lamp
+                else:
+                    cam_lamp["reference"].append(lamp)
                 cv2.imwrite(str(lab / cam.name / kind / path.name), img)
         motions[cam.name] = cam_motion
+        lamps[cam.name] = cam_lamp
     (lab / "motion_truth.json").write_text(json.dumps(motions))
     (lab / "defects_truth.json").write_text(json.dumps(defects))
-    return {"motion": motions, "defects": defects}
+    (lab / "lamp_truth.json").write_text(json.dumps(lamps))
+    return {"motion": motions, "defects": defects, "lamp": lamps}
 
 
 def _motion_walk(rng, n: int, spec: LabSpec) -> list[tuple[float, float, float]]:
@@ -173,21 +187,42 @@ def _defect_pixels(rng, H: int, W: int, spec: LabSpec) -> dict:
     return {"rows": rows, "cols": cols, "kinds": kinds, "values": values}
 
 
-def _optics_and_sensor(img: np.ndarray, rng, spec: LabSpec, pix: dict) -> np.ndarray:
-    """Defocus, fresh sensor noise, flicker and banding, defective pixels, 8-bit quantisation."""
+def _optics_and_sensor(img: np.ndarray, rng, spec: LabSpec, pix: dict) -> tuple[np.ndarray, dict]:
+    """Defocus, fresh sensor noise, flicker and banding, defective pixels, 8-bit
+    quantisation; returns the image and the lamp drawn (gain, offset, banding phase)."""
     H, W = img.shape
     if spec.defocus > 0:
         img = ndimage.gaussian_filter(img, spec.defocus, mode="reflect")
         # white noise through the blur keeps 1 / (2 sqrt(pi) sigma) of its deviation
         kept = spec.noise / (2.0 * np.sqrt(np.pi) * spec.defocus)
         img = img + rng.normal(0.0, np.sqrt(max(spec.noise ** 2 - kept ** 2, 0.0)), img.shape)
+    lamp = {"gain": 1.0, "offset": 0.0, "phase": 0.0}
     if spec.photometric:
-        rows = np.arange(H)[:, None]
-        band = 1.0 + spec.banding * np.sin(2 * np.pi * spec.mains_hz * spec.line_time * rows + rng.uniform(0, 2 * np.pi))
-        img = (1.0 + spec.gain * rng.standard_normal()) * band * img + spec.offset * rng.standard_normal()
+        lamp["phase"] = float(rng.uniform(0, 2 * np.pi))
+        lamp["gain"] = float(1.0 + spec.gain * rng.standard_normal())
+        lamp["offset"] = float(spec.offset * rng.standard_normal())
+        img = lamp["gain"] * _banding(spec, lamp["phase"], np.arange(H))[:, None] * img + lamp["offset"]
     if len(pix["rows"]):
         img[pix["rows"], pix["cols"]] = pix["values"]
-    return np.clip(np.round(img), 0, 255).astype(np.uint8)
+    return np.clip(np.round(img), 0, 255).astype(np.uint8), lamp
+
+
+def _banding(spec: LabSpec, phase: float, rows) -> np.ndarray:
+    """The row banding's gain of a rolling shutter under ``spec.mains_hz`` light."""
+    return 1.0 + spec.banding * np.sin(2 * np.pi * spec.mains_hz * spec.line_time * np.asarray(rows, float) + phase)
+
+
+def true_photometric(lamp: dict, spec: LabSpec, knots: np.ndarray, raw_frame: int) -> tuple[np.ndarray, np.ndarray]:
+    """The gain and offset profiles at ``knots`` that map one camera's averaged reference
+    onto its frame ``raw_frame`` (:class:`schlieren.pipeline.capture.Photometric`): with
+    reference frames ``g_r b_r(row) I + o_r`` averaged to ``G(row) I + O``, the frame
+    ``g b(row) I + o`` is ``gain (ref - O) + o`` with ``gain = g b / G``."""
+    refs = lamp["reference"]
+    G = np.mean([r["gain"] * _banding(spec, r["phase"], knots) for r in refs], axis=0)
+    O = float(np.mean([r["offset"] for r in refs]))
+    f = lamp["frames"][str(raw_frame)]
+    gain = f["gain"] * _banding(spec, f["phase"], knots) / G
+    return gain, f["offset"] - gain * O
 
 
 # ------------------------------------------------------------------------------ runs
@@ -197,6 +232,10 @@ SESSIONS = {
     "lab": LabSpec(),
     "sharp": LabSpec(defocus=0.0),  # everything but the defocus (which no correction undoes)
     "defocus": LabSpec(motion=False, photometric=False, defects=False),  # the defocus alone
+    # each correctable defect alone, in focus
+    "motion": LabSpec(defocus=0.0, photometric=False, defects=False),
+    "flicker": LabSpec(defocus=0.0, motion=False, defects=False),
+    "pixels": LabSpec(defocus=0.0, motion=False, photometric=False),
 }
 _OFF = {"capture": {"motion_model": "none", "photometric": False, "defective_pixels": False}}
 #: name -> (session, params, description)
@@ -214,11 +253,17 @@ RUNS = {
     "sharp-off": ("sharp", _OFF, "lab capture without defocus, corrections off"),
     "sharp": ("sharp", {}, "lab capture without defocus, defaults"),
     "defocus": ("defocus", {}, "clean capture with the defocus alone, defaults"),
+    "motion": ("motion", {}, "camera motion alone, defaults"),
+    "motion-off": ("motion", _OFF, "camera motion alone, corrections off"),
+    "flicker": ("flicker", {}, "flicker and row banding alone, defaults"),
+    "flicker-off": ("flicker", _OFF, "flicker and row banding alone, corrections off"),
+    "pixels": ("pixels", {}, "hot, dead and stuck pixels alone, defaults"),
+    "pixels-off": ("pixels", _OFF, "hot, dead and stuck pixels alone, corrections off"),
 }
 
 
 def run_one(name: str, session: Path, truth: Path, store: Path, params: dict, *, motion_truth=None,
-            defects_truth=None) -> dict:
+            defects_truth=None, lamp_truth=None, spec: LabSpec | None = None) -> dict:
     """Reconstruct ``session`` serially with ``params`` and score it."""
     from schlieren.pipeline.stages import config_from_dict
     from schlieren.storage import bench_io
@@ -238,6 +283,8 @@ def run_one(name: str, session: Path, truth: Path, store: Path, params: dict, *,
     ev = evaluate(store, truth)
     res.update(psnr=ev["overall"]["psnr"], psnr_plume=ev["plume"]["psnr"], warnings=list(summary.warnings))
     res.update(_store_metrics(store, session, motion_truth, defects_truth))
+    if lamp_truth and spec is not None and spec.photometric:
+        res.update(_photometric_errors(store, session, lamp_truth, spec))
     return res
 
 
@@ -274,6 +321,32 @@ def _store_metrics(store: Path, session: Path, motion_truth, defects_truth) -> d
     return out
 
 
+def _photometric_errors(store: Path, session: Path, lamp_truth: dict, spec: LabSpec) -> dict:
+    """The stored gain and offset profiles (``photometric``) against the lamp drawn: RMS
+    over knots and processed camera-frames of the gain's error, of the offset's error in
+    grey levels, and of the true gain's departure from 1 (the size of what was removed)."""
+    from schlieren.storage.session import load_session
+    from schlieren.storage.store import ResultStore
+
+    st = ResultStore.open(store, mode="r")
+    sess = load_session(session)
+    a = st.attrs
+    raw_first, first, n = int(a["run"]["raw_first"]), int(a["run"]["frames"][0]), int(a["run"]["n_frames"])
+    knots = np.asarray(st.array("row_knot")[:], np.float64)
+    ph = np.asarray(st.array("photometric")[:], np.float64)
+    dg, do, g0, o0 = [], [], [], []
+    for c, cam in enumerate(sess.cameras):
+        for j in range(first - raw_first, first - raw_first + n):
+            gain, offset = true_photometric(lamp_truth[cam.name], spec, knots, raw_first + j)
+            dg.append(ph[c, j, 0] - gain)
+            do.append(ph[c, j, 1] - offset)
+            g0.append(gain - 1.0)
+            o0.append(offset)
+    rms = lambda v: float(np.sqrt(np.mean(np.square(v))))  # noqa: E731
+    return {"gain_error_rms": rms(dg), "offset_error_rms": rms(do), "gain_true_rms": rms(g0),
+            "offset_true_rms": rms(o0)}
+
+
 def _displacement_rms(dm: np.ndarray, image_size) -> float:
     """RMS over the image (every 8th pixel) of the displacement of motion vector ``dm``."""
     from schlieren.pipeline.capture import motion_displacement
@@ -295,6 +368,67 @@ def _defects_found(found: np.ndarray, sess, truth) -> dict:
         hit += int(np.count_nonzero(ok))
         missed += int(np.count_nonzero(~ok))
     return {"flagged": total, "found": hit, "missed": missed, "false": total - hit}
+
+
+# ------------------------------------------------------------------------------ rendered lab captures
+def score_lab_store(store: Path, session_dir: Path) -> dict:
+    """A store of a capture rendered with lab effects (``schlieren synth --lab``, the family's
+    ``-lab`` cases) against what its ``lab.json`` says was drawn: the stored motion's RMS
+    displacement error over the image (and the true motion's RMS), the gain and offset
+    profiles' RMS errors (and the true ones' departures), and the defective pixels found."""
+    from schlieren.storage.session import load_session
+    from schlieren.storage.store import ResultStore
+    from schlieren.pipeline.capture import motion_displacement
+    from schlieren.storage.synthetic_io import read_lab_truth
+
+    lab = read_lab_truth(session_dir)
+    st = ResultStore.open(store, mode="r")
+    sess = load_session(session_dir / "session.yaml")
+    a = st.attrs
+    raw_first, first, n = int(a["run"]["raw_first"]), int(a["run"]["frames"][0]), int(a["run"]["n_frames"])
+    motion = np.asarray(st.array("background_motion")[:], np.float64)
+    ph = np.asarray(st.array("photometric")[:], np.float64)
+    knots = np.asarray(st.array("row_knot")[:], np.float64)
+    found = np.asarray(st.array("defective_pixels")[:])
+    band, hz, line = float(lab["params"].get("banding", 0.0)), float(lab["params"].get("banding_frequency", 100.0)), \
+        float(lab["line_time"])
+    err, true, dg, do, g0, o0 = [], [], [], [], [], []
+    hit = missed = 0
+    for c, cam in enumerate(sess.cameras):
+        t = lab["cameras"][cam.name]
+        W, H = cam.image_size
+        y, x = np.mgrid[0:H:8, 0:W:8].astype(np.float64)
+        ref = {k: np.asarray(t["ref_" + k], np.float64) for k in ("gain", "offset", "phase")}
+        G = np.mean(ref["gain"][:, None] * (1.0 + band * np.sin(2 * np.pi * hz * line * knots[None] +
+                                                                 ref["phase"][:, None])), axis=0)
+        O = float(np.mean(ref["offset"]))
+        for j in range(first - raw_first, first - raw_first + n):
+            r = raw_first + j
+            Hi = np.linalg.inv(np.asarray(t["homography"][r], np.float64))  # frame pixel -> reference pixel
+            den = Hi[2, 0] * x + Hi[2, 1] * y + Hi[2, 2]
+            tx = (Hi[0, 0] * x + Hi[0, 1] * y + Hi[0, 2]) / den - x
+            ty = (Hi[1, 0] * x + Hi[1, 1] * y + Hi[1, 2]) / den - y
+            mx, my = motion_displacement(motion[c, j], x, y, cam.image_size)
+            err.append(float(np.sqrt(np.mean((mx - tx) ** 2 + (my - ty) ** 2))))
+            true.append(float(np.sqrt(np.mean(tx ** 2 + ty ** 2))))
+            gain = t["gain"][r] * (1.0 + band * np.sin(2 * np.pi * hz * line * knots + t["phase"][r])) / G
+            offset = t["offset"][r] - gain * O
+            dg.append(ph[c, j, 0] - gain)
+            do.append(ph[c, j, 1] - offset)
+            g0.append(gain - 1.0)
+            o0.append(offset)
+        pix = [tuple(p) for k in ("hot", "dead", "stuck") for p in t.get(k, [])]
+        if pix:
+            rows, cols = np.asarray(pix).T
+            ok = found[c, rows, cols] != 0
+            hit += int(np.count_nonzero(ok))
+            missed += int(np.count_nonzero(~ok))
+    rms = lambda v: float(np.sqrt(np.mean(np.square(v))))  # noqa: E731
+    total = int(np.count_nonzero(found))
+    return {"motion_error_rms": rms(err), "motion_error_max": float(np.max(err)), "motion_true_rms": rms(true),
+            "gain_error_rms": rms(dg), "offset_error_rms": rms(do), "gain_true_rms": rms(g0),
+            "offset_true_rms": rms(o0), "defects": {"flagged": total, "found": hit, "missed": missed,
+                                                    "false": total - hit}}
 
 
 # ------------------------------------------------------------------------------ flow start
@@ -368,19 +502,38 @@ def markdown(result: dict) -> str:
              "the lab session is the same capture with the perturbations of the benchmark's docstring "
              f"(seed {result['seed']}): {result['spec_text']}", "",
              "| run | whole box dB | in plume dB | mask fill | hull fill | motion left (median px) | "
-             "motion error RMS px | defective pixels found / missed / false | pipeline s | deflection CPU s |",
-             "|---|---:|---:|---:|---:|---:|---:|---|---:|---:|"]
+             "motion error RMS px | gain error RMS (true) | offset error RMS grey (true) | "
+             "defective pixels found / missed / false | pipeline s | deflection CPU s |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|"]
     for r in rows:
         if "failures" in r:
-            lines.append(f"| {r['describe']} | failed: {list(r['failures'].values())[:1]} | | | | | | | | |")
+            lines.append(f"| {r['describe']} | failed: {list(r['failures'].values())[:1]} | | | | | | | | | | |")
             continue
         d = r.get("defects", {})
         dtext = f"{d.get('found', '-')} / {d.get('missed', '-')} / {d.get('false', d.get('flagged', '-'))}"
         me = r.get("motion_error_rms")
+        gtext, otext = "-", "-"
+        if "gain_error_rms" in r:
+            gtext = f"{r['gain_error_rms']:.4f} ({r['gain_true_rms']:.4f})"
+            otext = f"{r['offset_error_rms']:.2f} ({r['offset_true_rms']:.2f})"
         lines.append(f"| {r['describe']} | {r['psnr']:.2f} | {r['psnr_plume']:.2f} | {r['mask_fill']:.3f} | "
                      f"{r['hull_fill']:.3f} | {r['motion_left_median']:.4f} | "
-                     f"{'-' if me is None else f'{me:.4f}'} | {dtext} | {r['pipeline_seconds']:.0f} | "
+                     f"{'-' if me is None else f'{me:.4f}'} | {gtext} | {otext} | {dtext} | "
+                     f"{r['pipeline_seconds']:.0f} | "
                      f"{r.get('cpu_seconds', {}).get('deflection', float('nan')):.1f} |")
+    if result.get("lab_scores"):
+        lines += ["", "## Captures rendered with lab effects", "",
+                  "Stores of sessions rendered with lab effects (`schlieren synth --lab`, the family's `-lab` "
+                  "cases), scored against the session's `lab.json`:", "",
+                  "| store | motion error RMS px (max) | true motion RMS px | gain error RMS (true) | "
+                  "offset error RMS grey (true) | defective pixels found / missed / false |",
+                  "|---|---:|---:|---:|---:|---|"]
+        for r in result["lab_scores"]:
+            d = r["defects"]
+            lines.append(f"| `{r['store']}` | {r['motion_error_rms']:.4f} ({r['motion_error_max']:.4f}) | "
+                         f"{r['motion_true_rms']:.4f} | {r['gain_error_rms']:.4f} ({r['gain_true_rms']:.4f}) | "
+                         f"{r['offset_error_rms']:.2f} ({r['offset_true_rms']:.2f}) | "
+                         f"{d['found']} / {d['missed']} / {d['false']} |")
     if result.get("flow_start"):
         lines += ["", "## Start the flow from the motion, or subtract it afterwards", "",
                   f"One camera of the clean session (`{result['flow_start_camera']}`), its frames moved by a "
@@ -395,6 +548,10 @@ def markdown(result: dict) -> str:
               "camera-frame's stored `flow_raw` on the static cells, median over the processed camera-frames.",
               "* motion error: the stored `background_motion` against the true motion, RMS displacement over "
               "the image, RMS over the camera-frames (lab runs with motion estimated).",
+              "* gain / offset error: the stored `photometric` profiles (gain, and offset in grey levels, at the "
+              "row knots) against the lamp drawn, mapped onto the averaged reference (`true_photometric`), RMS over "
+              "knots and processed camera-frames; in brackets the RMS of the true gain's departure from 1 and of "
+              "the true offset: what there was to recover.",
               f"* Machine: {result['machine']}; timings are on a loaded machine (re-measure quiet)."]
     return "\n".join(lines) + "\n"
 
@@ -407,37 +564,47 @@ def main(argv=None) -> int:
     p.add_argument("--runs", default="clean,clean-off,lab,lab-off,sharp,defocus,lab-motion-only,lab-no-motion,"
                                      "lab-background")
     p.add_argument("--label", default="", help="results file suffix (capture_defects_LABEL.md)")
+    p.add_argument("--score-lab", default="", metavar="STORE[,STORE...]",
+                   help="also score stores of captures rendered with lab effects (the session is the store's folder, "
+                        "its lab.json the truth)")
     p.add_argument("--flow-start", action="store_true", help="also measure starting the flow from the motion "
                                                               "against subtracting it (one camera)")
     args = p.parse_args(argv)
     results = []
     truths = {}
-    for name in args.runs.split(","):
+    for name in [r for r in args.runs.split(",") if r]:
         which, params, _ = RUNS[name]
         if which == "clean":
-            src, truth = args.clean, (None, None)
+            src, truth = args.clean, (None, None, None)
         else:
             src = args.work / which
             if not (src / "motion_truth.json").exists():
                 print(f"writing the {which} session {src}", file=sys.stderr)
                 perturb_session(args.clean, src, SESSIONS[which], seed=args.seed)
             if which not in truths:
+                lamp = src / "lamp_truth.json"
                 truths[which] = (json.loads((src / "motion_truth.json").read_text()),
-                                 json.loads((src / "defects_truth.json").read_text()))
+                                 json.loads((src / "defects_truth.json").read_text()),
+                                 json.loads(lamp.read_text()) if lamp.exists() else None)
             truth = truths[which]
         print(f"{name}: running", file=sys.stderr)
         r = run_one(name, src / "session.yaml", src / "truth.zarr", args.work / f"store-{name}.zarr", params,
-                    motion_truth=truth[0] or None, defects_truth=truth[1] or None)
+                    motion_truth=truth[0] or None, defects_truth=truth[1] or None, lamp_truth=truth[2],
+                    spec=SESSIONS[which])
         print(f"{name}: {json.dumps({k: v for k, v in r.items() if k not in ('params', 'warnings')})}",
               file=sys.stderr)
         results.append(r)
+    lab_scores = [dict(store=str(st), **score_lab_store(Path(st), Path(st).parent))
+                  for st in args.score_lab.split(",") if st]
     load = os.getloadavg()[0]
     probe = flow_start_probe(args.clean) if args.flow_start else None
     spec = SESSIONS["lab"]
-    result = {"flow_start": probe, "flow_start_camera": "cam00" if probe else None,"argv": " ".join(argv if argv is not None else sys.argv[1:]), "clean": str(args.clean),
+    result = {"flow_start": probe, "flow_start_camera": "cam00" if probe else None,
+              "argv": " ".join(argv if argv is not None else sys.argv[1:]), "clean": str(args.clean),
               "seed": args.seed, "spec": dataclasses.asdict(spec),
               "spec_text": ", ".join(f"{k} {v}" for k, v in dataclasses.asdict(spec).items()),
-              "machine": f"{os.cpu_count()} cores, 1-min load {load:.1f} at the end", "runs": results}
+              "machine": f"{os.cpu_count()} cores, 1-min load {load:.1f} at the end", "runs": results,
+              "lab_scores": lab_scores}
     stem = "capture_defects" + (f"_{args.label}" if args.label else "")
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=2))
