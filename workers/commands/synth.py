@@ -129,7 +129,7 @@ def _add_lab_options(p) -> None:
                    help="a preset: 'lab' = camera shaking against the reference (0.05 px random walk per frame "
                         "from a 0.1 px offset), lamp flicker 2 %% gain and 1 grey level per frame, background "
                         "0.7 px out of focus, 25 hot pixels per camera; 'lab-all' = every effect. Options below "
-                        "override it")
+                        "override it (default: none, a clean capture)")
     for fs in _lab_fields():
         unit = f"{fs.unit}, " if fs.unit and fs.unit != "1" else ""
         kind = int if fs.types == ("int",) else float
