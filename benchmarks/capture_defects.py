@@ -461,7 +461,7 @@ def flow_start_probe(clean: Path, *, camera: int = 0, frames=(4, 5, 6),
         px = grid.voxel_size / pixel_footprint(cam, grid.center)
         params = dataclasses.replace(flow, window=window_for_voxel(px, flow.window_per_voxel))
     f, size = params.factor, cam.image_size
-    prep = prepare_reference(read_reference(src, camera_name=src.name), **params.reference_kwargs())
+    prep = prepare_reference(read_reference(src, camera_name=src.name), presmooth=params.presmooth, levels=params.levels)
     truth = zarr.open_group(str(clean / "truth.zarr"), mode="r")
     first = int(sess.frames[0])
     reader = open_frames(src, camera_name=src.name)
@@ -484,7 +484,7 @@ def flow_start_probe(clean: Path, *, camera: int = 0, frames=(4, 5, 6),
             yy, xx = np.mgrid[0:size[1], 0:size[0]].astype(np.float64)
             mx, my = field(xx, yy)
             ref_moved = warp_image(prep.image, np.dstack([mx, my]).astype(np.float32))
-            warped = deflection_stage(prepare_reference(ref_moved, **params.reference_kwargs()), img, params)
+            warped = deflection_stage(prepare_reference(ref_moved, presmooth=params.presmooth, levels=params.levels), img, params)
             for key, d in (("start", start), ("subtract", sub), ("warped", warped)):
                 d = capture.to_reference_grid(d, m, size, f)
                 e = cells(d, 6 // f)[:t.shape[0], :t.shape[1]] - t

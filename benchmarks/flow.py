@@ -220,7 +220,7 @@ def throughput(ref: np.ndarray, frames: list, n: int) -> dict:
     out = {"image_size": list(ref.shape[::-1]), "frames_timed": n}
     cv2.setNumThreads(2)
     t = time.perf_counter()
-    prep = F.prepare_reference(ref, **params.reference_kwargs())
+    prep = F.prepare_reference(ref, presmooth=params.presmooth, levels=params.levels)
     out["prepare_reference_ms"] = 1e3 * (time.perf_counter() - t)
     F.deflection_stage(prep, frames[0], params)
     w0 = time.perf_counter()
@@ -236,10 +236,10 @@ def throughput(ref: np.ndarray, frames: list, n: int) -> dict:
     cpu, wall1 = _worker(n)
     out["single_thread_cpu_ms_per_frame"] = 1e3 * cpu / n
     acc = SYMMETRIC
-    _JOB.update(prep=F.prepare_reference(ref, **acc.reference_kwargs()), params=acc)
+    _JOB.update(prep=F.prepare_reference(ref, presmooth=acc.presmooth, levels=acc.levels), params=acc)
     cpu_acc, _ = _worker(max(2, n // 2))
     out["symmetric_single_thread_cpu_ms_per_frame"] = 1e3 * cpu_acc / max(2, n // 2)
-    _JOB.update(prep=F.prepare_reference(ref, **OLD_DEFAULTS.reference_kwargs()),
+    _JOB.update(prep=F.prepare_reference(ref, presmooth=OLD_DEFAULTS.presmooth, levels=OLD_DEFAULTS.levels),
                 params=OLD_DEFAULTS)
     cpu_old, _ = _worker(max(2, n // 2))
     out["old_defaults_single_thread_cpu_ms_per_frame"] = 1e3 * cpu_old / max(2, n // 2)

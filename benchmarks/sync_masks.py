@@ -92,7 +92,8 @@ def bench_resample_and_masks(n_out: int, rng) -> tuple[dict, dict]:
     per = {m: {"true raw": [], "LK raw": []} for m in ("unresampled", "nearest", "linear", "motion")}
     per_all = {m: {"true raw": [], "LK raw": []} for m in per}
     for i in range(2):
-        prep = F.prepare_reference(sensor(scene.references[i], rng, 0.0), **params.reference_kwargs())
+        prep = F.prepare_reference(sensor(scene.references[i], rng, 0.0), presmooth=params.presmooth,
+                                   levels=params.levels)
         need = [S.frames_needed(t, offset=offsets[i], frame_rate=FRAME_RATE, line_time=LINE_TIME, height=H)
                 for t in times]
         lo = min(a for a, _ in need)
@@ -134,15 +135,19 @@ def evaluate_masks(raw_lk: dict, raw_true: dict) -> dict:
                 for pct in (70.0, 80.0, 85.0, 90.0, 95.0)]
     for pct, dt in variants:
         p = M.MaskParams(percentile=pct, deflection_threshold=dt)
-        thr = M.threshold_from_summaries([M.potential_summary(pots[k], **p.kwargs_for(M.potential_summary))
-                                          for k in keys], **p.kwargs_for(M.threshold_from_summaries))
+        thr = M.threshold_from_summaries([M.potential_summary(pots[k], smooth_sigma=p.smooth_sigma,
+                                                              n_quantiles=p.n_quantiles)
+                                          for k in keys], percentile=p.percentile)
         contain, ratio = [], []
         for cam in sorted({c for c, _ in keys}):
             frames = sorted(f for c, f in keys if c == cam)
             stack = np.stack([pots[cam, f] for f in frames])
             flows = np.stack([raw_lk[cam, f] for f in frames])
             for j, f in enumerate(frames):
-                m = M.make_mask(stack, j, thr, flows=flows, **p.kwargs_for(M.make_mask))
+                m = M.make_mask(stack, j, thr, flows=flows, smooth_sigma=p.smooth_sigma,
+                                dilation_radius=p.dilation_radius, temporal_radius=p.temporal_radius,
+                                deflection_threshold=p.deflection_threshold, flow_sigma=p.flow_sigma,
+                                noise_factor=p.noise_factor, grow_factor=p.grow_factor)
                 s = np.linalg.norm(raw_true[cam, f], axis=-1) > 0.02
                 contain.append(float(m[s].mean()))
                 ratio.append(float(m.sum() / max(s.sum(), 1)))
@@ -157,7 +162,8 @@ def tealight_masks(n_frames: int, rng) -> dict:
     params = F.FlowParams()
     raw_lk, raw_true = {}, {}
     for i in range(2):
-        prep = F.prepare_reference(sensor(scene.references[i], rng, 0.0), **params.reference_kwargs())
+        prep = F.prepare_reference(sensor(scene.references[i], rng, 0.0), presmooth=params.presmooth,
+                                   levels=params.levels)
         for f in range(3, 3 + n_frames):
             img, dpx = scene.frame(i, f)
             raw_true[i, f] = R.cell_average(dpx, scene.flow_grid).astype(np.float32)

@@ -15,39 +15,28 @@ import cv2
 import numpy as np
 
 from schlieren.pipeline.geometry import Camera, FlowGrid, Grid
-from schlieren.pipeline.params import param
+from schlieren.pipeline.params import param, parameters
 
 __all__ = ["HullParams", "HullProjection", "hull_projection", "visual_hull"]
 
 
-@dataclass(frozen=True)
+@parameters
 class HullParams:
-    """Parameters of :func:`visual_hull`.
+    """Parameters of :func:`visual_hull`."""
 
-    Attributes
-    ----------
-    margin_px : float
-        Extra tolerance, flow-grid pixels, added to every voxel's projected radius.
-    min_views : int
-        A voxel seen (projected inside the flow grid, in front of the camera) by fewer
-        cameras is carved.
-    max_misses : int
-        A voxel is carved when more than this many of the cameras that see it put it
-        outside their mask (0: the paper's strict intersection). With many cameras and
-        noisy masks one camera's mask that misses part of the plume cuts it out of the
-        strict hull: on the realistic family's 16-camera H.264 tune case the hull missed
-        12 % of the plume, and the truth's own deflections through it lost 8 dB (35.46
-        against 43.45 dB whole box). 1 took that to 38.91 dB, but the optical-flow results
-        moved little and not always up (whole box, against 0): H.264 cases +0.26 (16
-        cameras, tune), -0.11 (8, tune), +0.62 / +0.30 (16 / 8, report plume), -0.16 (8,
-        jet); lossless cases -0.04 to -0.45 (the hull grows 5-16 %: unknowns the few views
-        cannot determine). So 0 stays the default; 1 is worth trying with many cameras and
-        lossy video whose masks are ragged.
-    """
-
-    margin_px: float = param(0.0, unit="flow cells", ge=0, le=100)
-    min_views: int = param(1, unit="cameras", ge=1, le=1000)
-    max_misses: int = param(0, unit="cameras", ge=0, le=1000)
+    margin_px: float = param(
+        0.0, unit="flow cells", ge=0, le=100,
+        help="Extra tolerance added to every voxel's projected radius.")
+    min_views: int = param(
+        1, unit="cameras", ge=1, le=1000,
+        help="A voxel seen by fewer cameras (projected inside the flow grid, in front of the camera) is "
+             "carved.")
+    max_misses: int = param(
+        0, unit="cameras", ge=0, le=1000,
+        help="A voxel is carved when more than this many of the cameras that see it put it outside their "
+             "mask: 0 is the paper's strict intersection; 1 may suit many cameras with ragged masks from "
+             "lossy video.",
+        see="benchmarks/results/realistic_hull_misses1.md", tuned=True)
 
 
 @dataclass(frozen=True)

@@ -24,14 +24,11 @@ are masked the same way.
 
 from __future__ import annotations
 
-import inspect
-from dataclasses import dataclass
-
 import cv2
 import numpy as np
 from scipy import fft
 
-from schlieren.pipeline.params import param
+from schlieren.pipeline.params import param, parameters
 
 __all__ = [
     "MaskParams",
@@ -54,89 +51,50 @@ __all__ = [
 GROW_NOISE_RATIO = 2.0
 
 
-@dataclass(frozen=True)
+
+@parameters
 class MaskParams:
-    """Parameters of the mask stages (field names = keyword names of the kernels).
+    """Parameters of the mask stages (paper sec. 4; field names = keyword names of the kernels)."""
 
-    Attributes
-    ----------
-    percentile : float
-        Percent of all camera-frame pixels (whole sequence, all cameras) whose ``|P|`` lies
-        below the threshold; the mask starts from the remaining ``100 - percentile`` percent.
-    smooth_sigma : float
-        Gaussian smoothing of the potential before thresholding, flow-grid cells.
-    dilation_radius : int
-        Radius of the disk used for the spatial dilation, flow-grid cells. The hull is
-        carved from the dilated masks, and every voxel outside it is held at ambient, so a
-        tighter mask removes unknowns the few views cannot determine. Chosen on the
-        realistic family's tune cases (plume1; mean whole box / in plume, ``temporal_radius``
-        1): 4 gave 39.49 / 25.24 dB, 2 40.02 / 25.55, **1** (see docs/design.md "Mask
-        dilation"); with ``temporal_radius`` 0, 1 gave 40.30 / 25.65 and 0 40.41 / 25.62 (0
-        loses 0.35 dB in plume on the H.264 case: noisy masks miss the plume's faint edges,
-        and 1 cell keeps a margin).
-    temporal_radius : int
-        The mask of frame ``t`` is the union of the thresholded frames ``t - r .. t + r``
-        (the lead loads ``2 r + 1`` potentials for :func:`make_mask`), the paper's temporal
-        dilation. 0 gains 0.03-0.19 dB on the realistic family (a plume that moves several
-        voxels between frames gets a hull as wide as its motion) but loses the union's cover
-        for a degraded frame: with a dropped frame in one camera of the tests' moving plume,
-        ignoring the drop then cost only 0.27 dB more than handling it (1.08 dB with 1).
-    n_quantiles : int
-        Size of the per camera-frame summary (quantiles of ``|P|``).
-    deflection_threshold : float
-        Image pixels. When :func:`make_mask` is also given the flows, cells whose smoothed
-        deflection magnitude exceeds this join the mask (0 disables). ``|P|`` marks the
-        plume's core, where the deflection itself may vanish (paper sec. 4); the
-        deflection marks its flanks, whose extent relative to the core varies with the
-        plume's strength and size, which a single percentile cannot follow.
-    flow_sigma : float
-        Gaussian smoothing of the flow before ``deflection_threshold``, flow-grid cells.
-    noise_factor : float
-        The deflection criterion uses ``max(deflection_threshold, noise_factor * sigma)``,
-        ``sigma`` the flow noise of the frame measured from the smoothed flow itself
-        (:func:`flow_noise`): with noisy captures (lossy video) a fixed threshold marks
-        noise as flow and the hull fills the box. 5 sigma leaves about 4e-6 of the
-        flow-free cells above it. 0 keeps the fixed threshold.
-    grow_factor : float
-        Hysteresis of the deflection criterion for noisy flow: cells above
-        ``max(deflection_threshold, grow_factor * sigma)`` join the frame's evidence where
-        they connect (8-neighbour) to cells it already marks, so the mask follows a plume's
-        faint flanks as far as the flow stands above the noise, without marking isolated
-        noise. It acts only where the noise lifts the criterion (``noise_factor * sigma``) to
-        more than :data:`GROW_NOISE_RATIO` times ``deflection_threshold``: lossy video (4.7-6.3
-        times on the realistic family's H.264 cases), not lossless frames (1.2-1.5 times),
-        which want the tightest hull. Chosen on the family's lossy tune cases (plume1, whole
-        box / in plume dB): 16 cameras at 640x480 in H.264, whose masks missed 27 % of the
-        plume, 29.07 / 14.03 -> 29.67 / 14.70 with 3 (2: 29.92 / 15.01; a 4-cell dilation
-        instead: 29.98 / 15.11), 8 cameras at 960x720 36.31 / 21.38 -> 36.26 / 21.40 with 3
-        (2: 36.20 / 21.37; 4-cell dilation 36.11 / 21.34). 0 (or at least ``noise_factor``)
-        disables it.
-    """
-
-    percentile: float = param(95.0, unit="%", gt=0, lt=100)
-    smooth_sigma: float = param(1.0, unit="flow cells", ge=0, le=100)
-    dilation_radius: int = param(1, unit="flow cells", ge=0, le=100)
-    temporal_radius: int = param(1, unit="frames", ge=0, le=10)
-    n_quantiles: int = param(2000, unit="1", ge=10, le=100000)
-    deflection_threshold: float = param(0.015, unit="px", ge=0, le=100)
-    flow_sigma: float = param(1.5, unit="flow cells", ge=0, le=100)
-    noise_factor: float = param(5.0, unit="1", ge=0, le=100)
-    grow_factor: float = param(3.0, unit="1", ge=0, le=100)
-
-    def __post_init__(self):
-        if not 0.0 < self.percentile < 100.0:
-            raise ValueError(f"MaskParams.percentile must be in (0, 100), got {self.percentile}")
-        if self.dilation_radius < 0 or self.temporal_radius < 0:
-            raise ValueError("MaskParams dilation_radius and temporal_radius must be >= 0")
-        if self.n_quantiles < 10:
-            raise ValueError("MaskParams.n_quantiles must be >= 10")
-
-    def kwargs_for(self, kernel) -> dict:
-        """The fields that are keyword-only parameters of ``kernel``, e.g.
-        ``make_mask(P, c, thr, **params.kwargs_for(make_mask))``."""
-        names = [p.name for p in inspect.signature(kernel).parameters.values()
-                 if p.kind is inspect.Parameter.KEYWORD_ONLY]
-        return {n: getattr(self, n) for n in names if hasattr(self, n)}
+    percentile: float = param(
+        95.0, unit="%", gt=0, lt=100,
+        help="Percent of all camera-frame cells (whole sequence, all cameras) whose smoothed potential `|P|` "
+             "lies below the mask threshold; the mask starts from the rest.")
+    smooth_sigma: float = param(
+        1.0, unit="flow cells", ge=0, le=100,
+        help="Gaussian smoothing of the potential before thresholding.")
+    dilation_radius: int = param(
+        1, unit="flow cells", ge=0, le=100,
+        help="Radius of the disk each mask is dilated by: the hull is carved from the dilated masks, so a "
+             "tighter mask leaves fewer unknowns that the few views cannot determine.",
+        tuned=True)
+    temporal_radius: int = param(
+        1, unit="frames", ge=0, le=10,
+        help="The mask of frame `t` is the union of the thresholded frames `t - r .. t + r` (the paper's "
+             "temporal dilation), which also covers for a degraded frame.",
+        tuned=True)
+    n_quantiles: int = param(
+        2000, unit="1", ge=10, le=100000,
+        help="Size of each camera-frame's summary of `|P|` (its quantiles), pooled into the sequence-wide "
+             "threshold.")
+    deflection_threshold: float = param(
+        0.015, unit="px", ge=0, le=100,
+        help="Cells whose smoothed deflection exceeds this also join the mask (0 disables): `|P|` marks the "
+             "plume's core, where the deflection may vanish, the deflection its flanks.")
+    flow_sigma: float = param(
+        1.5, unit="flow cells", ge=0, le=100,
+        help="Gaussian smoothing of the flow before the deflection criterion.")
+    noise_factor: float = param(
+        5.0, unit="1", ge=0, le=100,
+        help="The deflection criterion is `max(deflection_threshold, noise_factor * sigma)`, `sigma` the "
+             "frame's measured flow noise, so noisy captures do not mark noise as flow; 0 keeps the fixed "
+             "threshold.")
+    grow_factor: float = param(
+        3.0, unit="1", ge=0, le=100,
+        help="Hysteresis for noisy flow: cells above `max(deflection_threshold, grow_factor * sigma)` that "
+             "connect to the evidence join it, where the noise lifts the criterion above `GROW_NOISE_RATIO` "
+             "times `deflection_threshold` (lossy video). 0 (or at least `noise_factor`) disables it.",
+        see="benchmarks/results/realistic_no_grow.md", tuned=True)
 
 
 def flow_potential(flow: np.ndarray) -> np.ndarray:
@@ -201,8 +159,8 @@ def _magnitude(potential: np.ndarray, smooth_sigma: float) -> np.ndarray:
     return np.abs(P)
 
 
-def potential_summary(potential: np.ndarray, *, smooth_sigma: float = 1.0,
-                      n_quantiles: int = 2000) -> np.ndarray:
+def potential_summary(potential: np.ndarray, *, smooth_sigma: float = MaskParams.smooth_sigma,
+                      n_quantiles: int = MaskParams.n_quantiles) -> np.ndarray:
     """Small per camera-frame summary of ``|P|`` for the threshold reduction.
 
     Parameters
@@ -238,7 +196,7 @@ def sorted_quantiles(values: np.ndarray, probs: np.ndarray) -> np.ndarray:
     return m[lo] + (m[hi] - m[lo]) * t
 
 
-def threshold_from_summaries(summaries, *, percentile: float = 95.0) -> float:
+def threshold_from_summaries(summaries, *, percentile: float = MaskParams.percentile) -> float:
     """Global threshold: the ``percentile`` of ``|P|`` over every summarised camera-frame.
 
     The reduction step: pools the quantiles of all :func:`potential_summary` results,
@@ -268,7 +226,7 @@ def threshold_from_summaries(summaries, *, percentile: float = 95.0) -> float:
     return float(np.interp(percentile / 100.0, cdf, vals))
 
 
-def threshold_from_samples(samples: np.ndarray, *, percentile: float = 95.0) -> float:
+def threshold_from_samples(samples: np.ndarray, *, percentile: float = MaskParams.percentile) -> float:
     """Global threshold from raw samples of the (smoothed) potential magnitude.
 
     Parameters
@@ -315,9 +273,11 @@ def flow_noise(flow: np.ndarray) -> float:
 
 
 def make_mask(potentials: np.ndarray, centre: int, threshold: float, *, flows=None,
-              smooth_sigma: float = 1.0, dilation_radius: int = 1, temporal_radius: int = 1,
-              deflection_threshold: float = 0.015, flow_sigma: float = 1.5,
-              noise_factor: float = 5.0, grow_factor: float = 3.0) -> np.ndarray:
+              smooth_sigma: float = MaskParams.smooth_sigma, dilation_radius: int = MaskParams.dilation_radius,
+              temporal_radius: int = MaskParams.temporal_radius,
+              deflection_threshold: float = MaskParams.deflection_threshold,
+              flow_sigma: float = MaskParams.flow_sigma, noise_factor: float = MaskParams.noise_factor,
+              grow_factor: float = MaskParams.grow_factor) -> np.ndarray:
     """Conservative mask of one camera-frame: threshold, temporal union, spatial dilation.
 
     Paper sec. 4 / Figure 4: ``|P| > threshold`` on the smoothed potential of every frame
@@ -362,9 +322,11 @@ def make_mask(potentials: np.ndarray, centre: int, threshold: float, *, flows=No
     return mask_from_evidence(evidence, dilation_radius=dilation_radius)
 
 
-def frame_evidence(potential: np.ndarray, threshold: float, *, flow=None, smooth_sigma: float = 1.0,
-                   deflection_threshold: float = 0.015, flow_sigma: float = 1.5,
-                   noise_factor: float = 5.0, grow_factor: float = 3.0) -> np.ndarray:
+def frame_evidence(potential: np.ndarray, threshold: float, *, flow=None,
+                   smooth_sigma: float = MaskParams.smooth_sigma,
+                   deflection_threshold: float = MaskParams.deflection_threshold,
+                   flow_sigma: float = MaskParams.flow_sigma, noise_factor: float = MaskParams.noise_factor,
+                   grow_factor: float = MaskParams.grow_factor) -> np.ndarray:
     """The cells one frame marks as flow, before the temporal union and the dilation of
     :func:`make_mask` (which ORs this over the frames around its centre).
 
@@ -408,7 +370,7 @@ def _grow(seed: np.ndarray, weak: np.ndarray) -> np.ndarray:
     return seed | keep[labels]
 
 
-def mask_from_evidence(evidence, *, dilation_radius: int = 1) -> np.ndarray:
+def mask_from_evidence(evidence, *, dilation_radius: int = MaskParams.dilation_radius) -> np.ndarray:
     """Union of :func:`frame_evidence` maps, dilated by a Euclidean disk of ``dilation_radius`` cells."""
     m = np.zeros(np.shape(evidence[0]), bool)
     for e in evidence:

@@ -1,31 +1,40 @@
-"""The run-parameter schema: meaning, unit, default and valid range of every parameter.
+"""Run parameters: each declared once, and everything else made from that declaration.
 
-Every field of a stage's frozen params dataclass (``FlowParams``, ``TomoParams``, ... and
-the run-level fields of :class:`~schlieren.pipeline.stages.RunConfig`) declares its unit
-and valid values next to its default with :func:`param`::
+A params class is a frozen dataclass declared with :func:`parameters`; each of its fields
+is declared once, with :func:`param`: default, unit, valid values, a one- or two-sentence
+help (what it is and why; measurement history goes to the results it links with ``see``
+or to its entry on the tuning page, ``tuned=True``) and, for a value the run replaces by a
+derived one, what it derives it from::
 
-    @dataclass(frozen=True)
+    @parameters
     class FlowParams:
-        window: int = param(17, unit="px", ge=3, le=255, odd=True)
-        window_type: str = param("gaussian", choices=("box", "gaussian"))
+        \"\"\"Parameters of the deflection stage (paper sec. 4).\"\"\"
+
+        window: int = param(17, unit="px", ge=3, le=255, odd=True,
+                            help="Edge of the Lucas-Kanade integration window.",
+                            derived="with `window_per_voxel` > 0, per camera from the voxel's footprint.")
         # a number or a keyword: annotate the union and list the keywords
-        reg: float | str = param("auto", unit="1", ge=0, le=1e3, choices=("auto",))
+        reg: float | str = param("auto", unit="1", ge=0, le=1e3, choices=("auto",), help="...")
 
-and describes its meaning in the class docstring's numpydoc ``Attributes`` section (the
-first sentence is the short meaning printed by ``schlieren params``; the whole entry goes
-into docs/parameters.md). A field without either is an error of the schema
-(:func:`schema`), which the test suite checks for every params class, so a new field
-cannot be added without them.
+From these declarations come:
 
-The same schema drives:
+* validation, one set of rules for every way in: constructing a params object in code
+  (``FlowParams(window=4)`` raises :class:`ParamsError`, a ``ValueError`` naming
+  ``FlowParams.window``) and :func:`validate` for a ``--params`` mapping (dotted names
+  such as ``tomography.max_iter``, unknown names with a suggestion, every problem
+  counted). Strict types (an integer field takes no ``2.7``, no ``"3"`` and no ``True``;
+  a bool field only ``true``/``false``; a number field no text), finite numbers, ranges,
+  parity and choices; pydantic checks them underneath;
+* the class docstring's numpydoc ``Attributes`` section (:func:`parameters` writes it);
+* ``schlieren params`` (a commented YAML file for ``--params``) and docs/parameters.md (a
+  test keeps the file equal to it): :mod:`schlieren.pipeline.params_text`.
 
-* validation (:func:`validate`): strict types (an integer field takes no ``2.7``, no
-  ``"3"`` and no ``True``; a bool field takes only ``true``/``false``; a number field
-  takes no text), finite numbers only, ranges and choices, unknown names refused with a
-  suggestion; each problem is reported with its dotted name (``tomography.max_iter``).
-  The checks are a pydantic model generated from the dataclass fields;
-* ``schlieren params`` (a commented YAML file for ``--params``: :func:`params_yaml`);
-* docs/parameters.md (:func:`params_markdown`; a test keeps the file equal to it).
+The params classes stay plain frozen dataclasses (not pydantic models) because the rest
+of the code treats them as values: ``dataclasses.replace`` for the values a run derives,
+``asdict`` for the store attributes, equality and hashing for the geometry cache key.
+The rules between fields that are not bounds would be declared beside the fields and run
+by the same validation; the stages have none (each former ``__post_init__`` check was a
+bound or a choice).
 
 Pure: no file I/O (the caller reads the YAML file and passes the mapping).
 """
@@ -34,6 +43,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import functools
 import math
 import re
 import textwrap
@@ -42,15 +52,16 @@ import typing
 from dataclasses import dataclass
 from typing import Any, Annotated, Literal, Union
 
-__all__ = ["Param", "param", "FieldSchema", "ParamsError", "schema", "validate", "expected",
-           "params_yaml", "params_markdown"]
+__all__ = ["Param", "param", "parameters", "FieldSchema", "ParamsError", "schema", "class_schema", "validate",
+           "expected"]
 
 _KEY = "schlieren.param"
+_MARK = "__schlieren_parameters__"
 
 
 @dataclass(frozen=True)
 class Param:
-    """Unit and valid values of one parameter (stored in the dataclass field's metadata).
+    """Unit, valid values and help of one parameter (stored in the dataclass field's metadata).
 
     Attributes
     ----------
@@ -64,8 +75,16 @@ class Param:
         An integer that must be odd (or even).
     choices : tuple of str
         Allowed keywords of a text field (or of the text branch of ``int | str``).
-    note : str
-        Appended to the meaning (e.g. where the value comes from at run time).
+    help : str
+        What the parameter is and why, in one or two sentences.
+    derived : str
+        For a value a run replaces by a derived one: from what (printed as "Derived by
+        the run: ..."; the run logs the replacement and stores both values).
+    see : tuple of str
+        Repository paths of the results behind the default (``benchmarks/results/<name>.md``).
+    tuned : bool
+        The tuning page keeps this parameter's history under a heading of its dotted name
+        (section "Run parameters"); docs/parameters.md links it.
     """
 
     unit: str = ""
@@ -76,14 +95,19 @@ class Param:
     odd: bool = False
     even: bool = False
     choices: tuple[str, ...] = ()
-    note: str = ""
+    help: str = ""
+    derived: str = ""
+    see: tuple[str, ...] = ()
+    tuned: bool = False
 
 
-def param(default: Any, *, unit: str = "", ge: float | None = None, gt: float | None = None,
+def param(default: Any, *, help: str = "", unit: str = "", ge: float | None = None, gt: float | None = None,
           le: float | None = None, lt: float | None = None, odd: bool = False, even: bool = False,
-          choices: tuple[str, ...] = (), note: str = "") -> Any:
-    """A dataclass field with its default and its :class:`Param` metadata."""
-    meta = Param(unit=unit, ge=ge, gt=gt, le=le, lt=lt, odd=odd, even=even, choices=tuple(choices), note=note)
+          choices: tuple[str, ...] = (), derived: str = "", see: str | tuple[str, ...] = (),
+          tuned: bool = False) -> Any:
+    """A dataclass field with its default and its :class:`Param` declaration."""
+    meta = Param(unit=unit, ge=ge, gt=gt, le=le, lt=lt, odd=odd, even=even, choices=tuple(choices),
+                 help=help, derived=derived, see=(see,) if isinstance(see, str) else tuple(see), tuned=tuned)
     return dataclasses.field(default=default, metadata={_KEY: meta})
 
 
@@ -94,25 +118,23 @@ class FieldSchema:
     Attributes
     ----------
     group : str
-        The :class:`RunConfig` field holding it (``"flow"``), or ``""`` for run-level fields.
+        The :class:`RunConfig` field holding it (``"flow"``), or ``""`` for run-level
+        fields (and for the fields of a class on its own, :func:`class_schema`).
     name : str
     types : tuple of str
         Accepted Python types: ``"int"``, ``"float"``, ``"bool"``, ``"str"``.
     default : Any
-    meaning : str
-        Short meaning (first sentence of the docstring entry, plus the note).
-    description : str
-        The whole docstring entry (plus the note).
     spec : Param
+    owner : str
+        The params class declaring it (``"FlowParams"``).
     """
 
     group: str
     name: str
     types: tuple[str, ...]
     default: Any
-    meaning: str
-    description: str
     spec: Param
+    owner: str = ""
 
     @property
     def path(self) -> str:
@@ -127,6 +149,17 @@ class FieldSchema:
         """The valid values in words (``odd integer in [3, 255]``)."""
         return expected(self.types, self.spec)
 
+    @property
+    def meaning(self) -> str:
+        """The help: what the parameter is and why."""
+        return _plain(self.spec.help)
+
+    @property
+    def description(self) -> str:
+        """The help, and what the run derives the value from (if it does)."""
+        derived = f" Derived by the run: {_plain(self.spec.derived)}" if self.spec.derived else ""
+        return self.meaning + derived
+
 
 class ParamsError(ValueError):
     """A run parameter of the wrong type or out of range; ``field`` is its dotted name."""
@@ -138,7 +171,52 @@ class ParamsError(ValueError):
 
 
 # --------------------------------------------------------------------------------------
-# the schema of a params dataclass
+# declaring a params class
+# --------------------------------------------------------------------------------------
+def parameters(cls):
+    """Declare a params class: a frozen dataclass whose construction validates every field.
+
+    Every field must be declared with :func:`param` (with its ``help``), or be a group
+    (``field(default_factory=<params class>)``, :class:`~schlieren.pipeline.stages.RunConfig`).
+    The class docstring gets the generated numpydoc ``Attributes`` section; write only
+    what the class is above it.
+
+    Raises
+    ------
+    TypeError
+        A field without :func:`param` or without help, an unsupported type, a default
+        outside its own valid values, or a hand-written ``Attributes`` section or
+        ``__post_init__``.
+    """
+    if "__post_init__" in cls.__dict__:
+        raise TypeError(f"{cls.__name__}: declare valid values with param(), not in __post_init__")
+    if re.search(r"^\s*Attributes\n\s*-+\n", cls.__doc__ or "", flags=re.M):
+        raise TypeError(f"{cls.__name__}: the Attributes section is generated from param(help=...)")
+    cls.__post_init__ = _check_instance
+    cls = dataclass(frozen=True)(cls)
+    setattr(cls, _MARK, True)
+    class_schema(cls)  # every field declared, every default valid: at import
+    cls.__doc__ = _docstring(cls)
+    return cls
+
+
+def _check_instance(self) -> None:
+    """Construction check of a :func:`parameters` class (its ``__post_init__``)."""
+    problems = []
+    cls = type(self)
+    for fs in class_schema(cls):
+        value = getattr(self, fs.name)
+        if not _valid(fs, value)[0]:
+            problems.append(ParamsError(f"must be {fs.valid} (got {_got(value)})", f"{cls.__name__}.{fs.name}"))
+    for f in dataclasses.fields(cls):
+        if _is_group(f) and not isinstance(getattr(self, f.name), f.default_factory):
+            problems.append(ParamsError(f"must be a {f.default_factory.__name__} (got "
+                                        f"{_got(getattr(self, f.name))})", f"{cls.__name__}.{f.name}"))
+    _raise_first(problems)
+
+
+# --------------------------------------------------------------------------------------
+# the schema of a params class
 # --------------------------------------------------------------------------------------
 _TYPE_NAMES = {int: "int", float: "float", bool: "bool", str: "str"}
 
@@ -158,91 +236,47 @@ def _types_of(annotation, where: str) -> tuple[str, ...]:
                     "or a union of them)")
 
 
-def _doc_entries(cls) -> dict[str, str]:
-    """numpydoc ``Attributes`` entries of a class docstring: name -> text (one paragraph)."""
-    doc = textwrap.dedent("\n".join((cls.__doc__ or "").splitlines()[1:]))
-    m = re.search(r"^Attributes\n-+\n(.*?)(?:^\S[^\n]*\n-+\n|\Z)", doc, flags=re.M | re.S)
-    if not m:
-        return {}
-    out: dict[str, str] = {}
-    names: list[str] = []
-    for line in m.group(1).splitlines():
-        head = re.match(r"^([A-Za-z_][\w, ]*?)\s*:\s*.*$", line) if line and not line[0].isspace() else None
-        if head:
-            names = [n.strip() for n in head.group(1).split(",")]
-            for n in names:
-                out[n] = ""
-        elif line.strip() and names:
-            for n in names:
-                out[n] = (out[n] + " " + line.strip()).strip()
-    return out
-
-
 def _plain(text: str) -> str:
     """reST markup to Markdown-style code: ``x`` and :func:`x` become `x`."""
     text = re.sub(r":\w+:`~?([^`]+)`", r"`\1`", text)
     return text.replace("``", "`")
 
 
-def _first_sentence(text: str) -> str:
-    """The first sentence (a period or semicolon outside parentheses, before a capital
-    letter or the end); a very short one takes the next sentence along."""
-    depth, cut = 0, None
-    for k, ch in enumerate(text):
-        depth += (ch in "([") - (ch in ")]")
-        rest = text[k + 1:]
-        if depth == 0 and ch in ".;" and (not rest.strip() or re.match(r"\s+[A-Z`(]", rest)):
-            if k >= 25:
-                cut = k
-                break
-            if cut is None:
-                cut = k
-                continue
-            cut = k
-            break
-    if cut is None:
-        return text
-    return text[:cut].rstrip() + "."
-
-
 def _is_group(f: dataclasses.Field) -> bool:
     return f.default_factory is not dataclasses.MISSING and dataclasses.is_dataclass(f.default_factory)
 
 
-def _leaf_fields(cls, fields, group: str) -> list[FieldSchema]:
-    if not fields:
-        return []
-    hints = typing.get_type_hints(cls)
-    docs = _doc_entries(cls)
+@functools.cache
+def class_schema(cls) -> tuple[FieldSchema, ...]:
+    """The parameters (non-group fields) of one params class, in field order (group ``""``).
+
+    Raises
+    ------
+    TypeError
+        A field without :func:`param` metadata or without help, an unsupported type, or a
+        default outside its own valid values.
+    """
+    leaves = [f for f in dataclasses.fields(cls) if not _is_group(f)]
+    hints = typing.get_type_hints(cls) if leaves else {}
     out = []
-    for f in fields:
+    for f in leaves:
         where = f"{cls.__name__}.{f.name}"
         spec = f.metadata.get(_KEY)
         if spec is None:
-            raise TypeError(f"{where} has no schema: declare it with param(default, unit=..., range...) "
+            raise TypeError(f"{where} has no schema: declare it with param(default, unit=..., range..., help=...) "
                             "(schlieren.pipeline.params)")
-        text = _plain(docs.get(f.name, ""))
-        if not text:
-            raise TypeError(f"{where} has no meaning: describe it in the Attributes section of "
-                            f"{cls.__name__}'s docstring")
+        if not spec.help.strip():
+            raise TypeError(f"{where} has no meaning: say what it is and why in param(help=...)")
         kinds = _types_of(hints[f.name], where)
-        if "str" in kinds and not spec.choices and kinds == ("str",):
+        if kinds == ("str",) and not spec.choices:
             raise TypeError(f"{where}: a text parameter needs its choices")
         if spec.odd and spec.even:
             raise TypeError(f"{where}: odd and even at once")
-        description = text + (f" {spec.note}" if spec.note else "")
-        meaning = _first_sentence(text) + (f" {spec.note}" if spec.note else "")
-        schema_ = FieldSchema(group, f.name, kinds, f.default, meaning, description, spec)
-        _check_default(schema_, where)
-        out.append(schema_)
-    return out
-
-
-def _check_default(fs: FieldSchema, where: str) -> None:
-    try:
-        _adapter(fs).validate_python(fs.default)
-    except Exception:
-        raise TypeError(f"{where}: the default {fs.default!r} is not {fs.valid}") from None
+        fs = FieldSchema("", f.name, kinds, f.default, spec, cls.__name__)
+        if not _valid(fs, fs.default)[0]:
+            raise TypeError(f"{where}: the default {fs.default!r} is not {fs.valid}")
+        out.append(fs)
+    return tuple(out)
 
 
 def schema(config_cls) -> list[FieldSchema]:
@@ -254,24 +288,23 @@ def schema(config_cls) -> list[FieldSchema]:
     Raises
     ------
     TypeError
-        A field without :func:`param` metadata or without a docstring entry, an
-        unsupported type, or a default outside its own range.
+        As :func:`class_schema`, for the class or any group.
     """
-    top = [f for f in dataclasses.fields(config_cls) if not _is_group(f)]
-    out = _leaf_fields(config_cls, top, "")
+    out = list(class_schema(config_cls))
     for f in dataclasses.fields(config_cls):
         if _is_group(f):
-            out.extend(_leaf_fields(f.default_factory, dataclasses.fields(f.default_factory), f.name))
+            out.extend(dataclasses.replace(fs, group=f.name) for fs in class_schema(f.default_factory))
     return out
 
 
 # --------------------------------------------------------------------------------------
 # validation (pydantic)
 # --------------------------------------------------------------------------------------
-def _adapter(fs: FieldSchema):
+@functools.lru_cache(maxsize=None)
+def _adapter(kinds: tuple[str, ...], spec: Param):
     from pydantic import TypeAdapter
 
-    return TypeAdapter(_pydantic_type(fs))
+    return TypeAdapter(_pydantic_type(kinds, spec))
 
 
 def _parity(odd: bool):
@@ -282,24 +315,33 @@ def _parity(odd: bool):
     return check
 
 
-def _pydantic_type(fs: FieldSchema):
+def _pydantic_type(kinds: tuple[str, ...], s: Param):
     from pydantic import AfterValidator, Field
 
-    s = fs.spec
     bounds = {k: getattr(s, k) for k in ("ge", "gt", "le", "lt") if getattr(s, k) is not None}
     branches = []
-    if "bool" in fs.types:
+    if "bool" in kinds:
         branches.append(Annotated[bool, Field(strict=True)])
-    if "int" in fs.types:
+    if "int" in kinds:
         t = Annotated[int, Field(strict=True, **bounds)]
         if s.odd or s.even:
             t = Annotated[t, AfterValidator(_parity(s.odd))]
         branches.append(t)
-    if "float" in fs.types:
+    if "float" in kinds:
         branches.append(Annotated[float, Field(strict=True, allow_inf_nan=False, **bounds)])
-    if "str" in fs.types:
+    if "str" in kinds:
         branches.append(Literal[tuple(s.choices)] if s.choices else Annotated[str, Field(strict=True)])
     return branches[0] if len(branches) == 1 else Union[tuple(branches)]
+
+
+def _valid(fs: FieldSchema, value: Any) -> tuple[bool, Any]:
+    """``(True, the value as validated)`` or ``(False, None)``; numpy scalars count as numbers."""
+    if hasattr(value, "dtype") and getattr(value, "shape", None) == ():
+        value = value.item()
+    try:
+        return True, _adapter(fs.types, fs.spec).validate_python(value)
+    except Exception:
+        return False, None
 
 
 def _fmt(x: float) -> str:
@@ -347,6 +389,17 @@ def _got(v: Any) -> str:
     return r if len(r) <= 40 else r[:37] + "..."
 
 
+def _raise_first(problems: list[ParamsError]) -> None:
+    """Raise the first problem, saying how many more there are."""
+    if not problems:
+        return
+    first = problems[0]
+    more = len(problems) - 1
+    if more:
+        raise ParamsError(first.message + f" (and {more} more problem{'s' if more > 1 else ''})", first.field)
+    raise first
+
+
 def validate(config_cls, data: dict | None) -> Any:
     """Build ``config_cls`` (a RunConfig) from a nested mapping, checking every value.
 
@@ -373,22 +426,19 @@ def validate(config_cls, data: dict | None) -> Any:
     if not isinstance(data, dict):
         raise ParamsError(f"the parameters must be a mapping of stage -> parameters, got "
                           f"{type(data).__name__}")
-    fields = schema(config_cls)
     groups = {f.name: f for f in dataclasses.fields(config_cls) if _is_group(f)}
     by_group: dict[str, dict[str, FieldSchema]] = {}
-    for fs in fields:
+    for fs in schema(config_cls):
         by_group.setdefault(fs.group, {})[fs.name] = fs
     top_names = set(by_group.get("", {}))
     problems: list[ParamsError] = []
 
     def check(fs: FieldSchema, value: Any):
-        if hasattr(value, "dtype") and getattr(value, "shape", None) == ():  # numpy scalars
-            value = value.item()
-        try:
-            return _adapter(fs).validate_python(value)
-        except Exception:
+        ok, v = _valid(fs, value)
+        if not ok:
             problems.append(ParamsError(f"must be {fs.valid} (got {_got(value)})", fs.path))
             return fs.default
+        return v
 
     kwargs: dict[str, Any] = {}
     for key, value in data.items():
@@ -411,12 +461,7 @@ def validate(config_cls, data: dict | None) -> Any:
         else:
             problems.append(ParamsError(f"unknown parameter{_suggest(key, list(groups) + sorted(top_names))}",
                                         str(key)))
-    if problems:
-        first = problems[0]
-        more = len(problems) - 1
-        if more:
-            raise ParamsError(first.message + f" (and {more} more problem{'s' if more > 1 else ''})", first.field)
-        raise first
+    _raise_first(problems)
     built = {}
     for key, values in kwargs.items():
         if key in groups:
@@ -433,7 +478,7 @@ def validate(config_cls, data: dict | None) -> Any:
 
 
 # --------------------------------------------------------------------------------------
-# rendering: the YAML of `schlieren params` and docs/parameters.md
+# the class docstrings (the YAML of `schlieren params` and docs/parameters.md: params_text.py)
 # --------------------------------------------------------------------------------------
 def _yaml_scalar(v: Any) -> str:
     if isinstance(v, bool):
@@ -447,62 +492,31 @@ def _yaml_scalar(v: Any) -> str:
     return repr(v)
 
 
-def params_yaml(config_cls, values=None) -> str:
-    """A commented YAML file of every parameter (``schlieren params``; valid ``--params``).
+def _type_text(fs: FieldSchema) -> str:
+    """The numpydoc type of a parameter: ``int``, ``{"box", "gaussian"}``, ``int or {"auto"}``."""
+    words = [k for k in fs.types if k != "str"]
+    if "str" in fs.types:
+        words.append("{" + ", ".join(f'"{c}"' for c in fs.spec.choices) + "}")
+    return " or ".join(words)
 
-    Each parameter has a comment line with its meaning and one with its unit, valid
-    values and default; ``values`` (a ``config_cls`` instance) overrides the printed values.
-    """
-    lines = ["# schlieren run parameters: edit what you need, delete the rest, then",
-             "#   schlieren run SESSION --out STORE --params FILE",
-             "# Unknown names, wrong types and values out of range are refused before any work.",
-             "# Units: px = full-resolution image pixels; flow cells = cells of the flow grid",
-             "# (flow.factor px each); voxels = reconstruction voxels; 1 = dimensionless.", ""]
-    group = None
-    for fs in schema(config_cls):
-        if fs.group != group:
-            group = fs.group
-            if group:
-                lines += ["", f"{group}:"]
-        indent = "  " if fs.group else ""
-        for ln in textwrap.wrap(fs.meaning, 92 - len(indent)):
-            lines.append(f"{indent}# {ln}")
-        unit = f"unit: {fs.unit}; " if fs.unit else ""
-        lines.append(f"{indent}# {unit}valid: {fs.valid}; default: {_yaml_scalar(fs.default)}")
-        v = fs.default
-        if values is not None:
-            v = getattr(getattr(values, fs.group), fs.name) if fs.group else getattr(values, fs.name)
-        lines.append(f"{indent}{fs.name}: {_yaml_scalar(v)}")
+
+def _docstring(cls) -> str:
+    """The class docstring with the generated numpydoc ``Attributes`` section."""
+    head = textwrap.dedent("\n".join((cls.__doc__ or "").splitlines()[1:])).strip("\n")
+    first = (cls.__doc__ or "").splitlines()[0].strip() if cls.__doc__ else cls.__name__
+    lines = [first] + ([""] + head.splitlines() if head else []) + ["", "Attributes", "----------"]
+    schemas = {fs.name: fs for fs in class_schema(cls)}
+    for f in dataclasses.fields(cls):
+        if _is_group(f):
+            sub = f.default_factory
+            lines += [f"{f.name} : {sub.__name__}", f"    {(sub.__doc__ or '').splitlines()[0].strip()}"]
+            continue
+        fs = schemas[f.name]
+        text = fs.spec.help + (f" Derived by the run: {fs.spec.derived}" if fs.spec.derived else "")
+        text += (f" Unit {fs.unit}, default" if fs.unit else " Default") + f" ``{_yaml_scalar(fs.default)}``."
+        see = list(fs.spec.see) + ['docs/tuning.md, "Run parameters"'] * fs.spec.tuned
+        if see:
+            text += " See " + ", ".join(see) + "."
+        lines.append(f"{f.name} : {_type_text(fs)}")
+        lines += textwrap.wrap(text, 88, initial_indent="    ", subsequent_indent="    ", break_on_hyphens=False)
     return "\n".join(lines) + "\n"
-
-
-def _md_cell(text: str) -> str:
-    return text.replace("|", "\\|").replace("\n", " ")
-
-
-def params_markdown(config_cls) -> str:
-    """docs/parameters.md: one table per group with meaning, unit, default and valid values."""
-    out = ["# Run parameters", "",
-           "<!-- Generated from the parameter schema (schlieren.pipeline.params) by",
-           "     `schlieren params --format markdown`; tests/pipeline/test_params_schema.py",
-           "     fails when this file and the schema differ. Do not edit by hand. -->", "",
-           "Every parameter of a run, with its meaning, unit, default and valid values. Print them "
-           "as a commented YAML file with `schlieren params`, keep the ones you change, and pass "
-           "the file with `schlieren run SESSION --out STORE --params FILE` (or "
-           "`schlieren.run(..., params={...})` in Python). Values are checked before any work "
-           "starts: unknown names, wrong types (text for a number, `2.7` or `true` for an "
-           "integer, `\"no\"` for a switch), NaN/infinity and values out of range are refused "
-           "with the parameter's name.", "",
-           "Units: `px` = pixels of the full-resolution camera image; `flow cells` = cells of the "
-           "flow grid (`flow.factor` px each); `voxels` = reconstruction voxels "
-           "(`volume.voxel_size` of the session); `frames` = camera frames; `1` = dimensionless.", ""]
-    group = None
-    for fs in schema(config_cls):
-        if fs.group != group:
-            group = fs.group
-            out += ["", f"## `{group}`" if group else "## Run-level", "",
-                    "| parameter | meaning | unit | default | valid values |",
-                    "| --- | --- | --- | --- | --- |"]
-        out.append(f"| `{fs.path}` | {_md_cell(fs.description)} | {fs.unit or '-'} | "
-                   f"`{_yaml_scalar(fs.default)}` | {_md_cell(fs.valid)} |")
-    return "\n".join(out).replace("\n\n\n", "\n\n") + "\n"

@@ -27,28 +27,16 @@ from schlieren.pipeline import masks as _masks
 from schlieren.pipeline import poisson as _poisson
 from schlieren.pipeline import sync as _sync
 from schlieren.pipeline import tomography as _tomo
+from schlieren.pipeline.params import param, parameters
 from schlieren.pipeline.params import validate as _validate
-from schlieren.pipeline.params import param
 
 __all__ = ["Stage", "RunConfig", "STAGES", "stage", "middle_frame",
-           "config_from_dict", "config_to_dict", "check_config", "kernel_kwargs", "bind_medium",
-           "bind_flow_factor"]
+           "config_from_dict", "config_to_dict", "check_config", "bind_medium", "bind_flow_factor"]
 
 
-@dataclass(frozen=True)
+@parameters
 class RunConfig:
-    """Every parameter of a run, one frozen dataclass per stage (saved in the store).
-
-    Attributes
-    ----------
-    reconstruction : {"two-step", "direct"}
-        Reconstruction method. ``two-step``: the paper's gradient tomography (``tomography``) followed by the
-        anisotropic Poisson integration (``poisson``); ``direct``: refractivity solved
-        directly from the deflections (``direct``, beyond the paper).
-    warm_start_block : int
-        Frames solved in sequence, each tomography solve warm-started from the previous
-        frame's solution; blocks are independent (more blocks, more parallel work).
-    """
+    """Every parameter of a run, one frozen params class per stage (saved in the store)."""
 
     flow: _flow.FlowParams = field(default_factory=_flow.FlowParams)
     flash: _sync.FlashParams = field(default_factory=_sync.FlashParams)
@@ -57,16 +45,17 @@ class RunConfig:
     hull: _hull.HullParams = field(default_factory=_hull.HullParams)
     tomography: _tomo.TomoParams = field(default_factory=_tomo.TomoParams)
     poisson: _poisson.PoissonParams = field(default_factory=_poisson.PoissonParams)
-    reconstruction: str = param("two-step", choices=("two-step", "direct"))
-    warm_start_block: int = param(4, unit="frames", ge=1, le=10000)
+    reconstruction: str = param(
+        "two-step", choices=("two-step", "direct"),
+        help="`two-step`: the paper's gradient tomography (`tomography`) followed by the anisotropic Poisson "
+             "integration (`poisson`); `direct`: refractivity solved directly from the deflections "
+             "(`direct`, beyond the paper).")
+    warm_start_block: int = param(
+        4, unit="frames", ge=1, le=10000,
+        help="Frames solved in sequence, each tomography solve warm-started from the previous frame's; "
+             "blocks are independent, so more blocks give more parallel work.")
     direct: _tomo.RefractivityParams = field(default_factory=_tomo.RefractivityParams)
     capture: _capture.CaptureParams = field(default_factory=_capture.CaptureParams)
-
-    def __post_init__(self):
-        if self.reconstruction not in {"two-step", "direct"}:
-            raise ValueError(f"reconstruction must be 'two-step' or 'direct', not {self.reconstruction!r}")
-        if self.warm_start_block < 1:
-            raise ValueError("warm_start_block must be at least 1")
 
     @property
     def flow_factor(self) -> int:
@@ -94,16 +83,6 @@ def bind_medium(cfg: RunConfig, n_ambient: float) -> RunConfig:
         if dataclasses.is_dataclass(value) and any(g.name == "n_ambient" for g in dataclasses.fields(value)):
             out[f.name] = dataclasses.replace(value, n_ambient=float(n_ambient))
     return dataclasses.replace(cfg, **out)
-
-
-def kernel_kwargs(params, kernel: Callable) -> dict:
-    """The fields of a params dataclass that ``kernel`` takes as keyword arguments."""
-    import inspect
-
-    if params is None:
-        return {}
-    accepted = inspect.signature(kernel).parameters
-    return {f.name: getattr(params, f.name) for f in dataclasses.fields(params) if f.name in accepted}
 
 
 @dataclass(frozen=True)
@@ -170,8 +149,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("clock", _sync.output_times, None, ("time_offset",), ("time",), (),
           after=(("sync", "all"),), cost=0.001),
     # a raw frame of the rolling-shutter margins is processed only if an output instant
-    # needs it, which the clock decides (4 of the 12 raw frames per camera of an 8-frame
-    # run; 2 of them were never used on the paper-scale session benchmark)
+    # needs it, which the clock decides (docs/tuning.md, "Frame quality")
     # defective pixels from the reference frames and a sample of the capture frames (issue 33)
     Stage("capture", _capture.find_defective_pixels, "capture", ("images",), ("defective_pixels",), ("camera",),
           cost=0.05),
@@ -189,8 +167,7 @@ STAGES: tuple[Stage, ...] = (
           ("mask_threshold",), (), after=(("potential", "all"),), cost=0.02),
     # the potential edges are implied by the threshold's, but without them Dask counts
     # masks as root tasks (one small dependency group) and holds them in its scheduler
-    # queue until a worker runs out of hull and solve tasks: at 960x720 the last masks
-    # ran 7 s after the threshold, and the last warm-start chain ran alone at the end
+    # queue until a worker runs out of hull and solve tasks (docs/tuning.md, "Scheduling")
     Stage("mask", _masks.make_mask, "masks", ("potential", "mask_threshold"), ("mask",),
           ("camera", "frame"), after=(("threshold", "all"), ("potential", "window")), frame_halo=1,
           batch=True, cost=0.003, grid="flow"),
@@ -199,9 +176,8 @@ STAGES: tuple[Stage, ...] = (
           after=(("mask", "same"),), cost=0.36),
     # the regularisation weight, from the noise measured outside the masks (discrepancy
     # principle on the middle frame; with reg_choice "fixed" it only records reg_weight).
-    # It reads the middle frame's masks only: waiting for every mask (as it once did) held
-    # every solve until all masks were done, then kept one worker busy with this task alone
-    # (3.2 idle worker-seconds of 175 on the 32-frame paper-scale session)
+    # It reads the middle frame's masks only, so the solves need not wait for every mask
+    # (docs/tuning.md, "Tomography weight")
     Stage("regularisation", _tomo.choose_reg_weight, "tomography", ("flow", "mask", "geometry"),
           ("reg_weight", "rhs_noise"), (), after=(("mask", "middle"), ("geometry", "all")),
           resources={"TOMO": 1}, cost=2.5),

@@ -20,14 +20,39 @@ def tiny_session(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
-def serial_store(tiny_session, tmp_path_factory):
-    """The tiny session reconstructed by the serial reference executor."""
+def serial_run(tiny_session, tmp_path_factory):
+    """The tiny session reconstructed by the serial reference executor: ``store`` (its path),
+    ``reads`` (the params fields the run's code read, tests/params_reads.py) and ``log`` (the
+    run's log messages)."""
+    import logging
+    from types import SimpleNamespace
+
+    from params_reads import recording_reads
+
     from schlieren.workers.run import run_session
 
     out = tmp_path_factory.mktemp("serial") / "store.zarr"
-    summary = run_session(tiny_session.session, out, serial=True)
+    lines: list[str] = []
+    handler = logging.Handler(logging.INFO)
+    handler.emit = lambda record: lines.append(record.getMessage())
+    logger = logging.getLogger("schlieren")
+    level = logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    try:
+        with recording_reads() as reads:
+            summary = run_session(tiny_session.session, out, serial=True)
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
     assert summary.ok, summary.failures
-    return out
+    return SimpleNamespace(store=out, reads=frozenset(reads), log=lines)
+
+
+@pytest.fixture(scope="session")
+def serial_store(serial_run):
+    """The tiny session reconstructed by the serial reference executor."""
+    return serial_run.store
 
 
 def pytest_configure(config):

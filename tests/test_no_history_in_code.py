@@ -32,16 +32,10 @@ HISTORY = {
 #: entry.) Keep this short.
 ALLOWED: frozenset[tuple[str, str]] = frozenset()
 
-#: Parameter classes whose field help still carries tuning figures: the parameter pass of
-#: issue 34 (branch i34-params) rewrites every params class's help to one or two sentences;
-#: their figures are already in docs/tuning.md. Remove an entry once its class is clean
-#: (:func:`test_pending_exemptions_are_still_needed` says when).
-PENDING: frozenset[tuple[str, str]] = frozenset({
-    ("pipeline/flow/params.py", "FlowParams"),
-    ("pipeline/hull.py", "HullParams"),
-    ("pipeline/masks.py", "MaskParams"),
-    ("pipeline/tomography/params.py", "TomoParams"),
-})
+#: Classes exempted while their history is moved out: ``(file, class)``. Empty since the
+#: parameter pass of issue 34 cut every params class's help to one or two sentences; keep it
+#: empty (:func:`test_pending_exemptions_are_still_needed` says when an entry is stale).
+PENDING: frozenset[tuple[str, str]] = frozenset()
 
 
 def _texts(path: Path):

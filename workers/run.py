@@ -32,14 +32,15 @@ from typing import Callable
 
 from schlieren.pipeline.capture import row_knots
 from schlieren.pipeline.geometry import FlowGrid
-from schlieren.pipeline.stages import STAGES, RunConfig, bind_flow_factor, bind_medium, check_config, config_to_dict
-from schlieren.pipeline.tomography.binning import cells_per_voxel
+from schlieren.pipeline.overrides import bind_run, records, session_overrides
+from schlieren.pipeline.stages import STAGES, RunConfig, check_config, config_to_dict
 from schlieren.storage import location
 from schlieren.storage.layout import result_layout
 from schlieren.storage.session import Session, load_session
 from schlieren.storage.errors import StoreError
 from schlieren.storage.store import ResultStore, remove_store
 from schlieren.workers.monitoring import log_receipt
+from schlieren.workers.overrides import DERIVED_ATTR, RunOverrides
 from schlieren.workers.plan import Extents, Plan, make_plan
 
 log = logging.getLogger(__name__)
@@ -161,8 +162,10 @@ def run_layout(session: Session, cfg: RunConfig) -> tuple[list, Extents]:
     return layout, ext
 
 
-def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig) -> tuple[ResultStore, Extents, str]:
-    """Create (or reopen for resume) the result store for ``session`` and return the extents."""
+def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig,
+                  derived: dict | None = None) -> tuple[ResultStore, Extents, str]:
+    """Create (or reopen for resume) the result store for ``session`` and return the extents;
+    ``derived``: the run's overrides known so far (root attribute ``derived``)."""
     a, b = session.frames
     n_frames = b - a
     raw_first = max(0, a - RAW_MARGIN)
@@ -183,6 +186,7 @@ def prepare_store(session: Session, out_path: str | Path, cfg: RunConfig) -> tup
                 "video_slots": {name: [int(n), [int(k) for k in gone]]
                                 for name, (n, gone) in session.video_slots.items()}},
         "stage_times": {},
+        DERIVED_ATTR: dict(derived or {}),
     }
     markers = {st.name: st.over for st in STAGES}
     try:
@@ -326,26 +330,24 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
         raise StoreError(str(exc), field="keep") from None
     session = session_path if isinstance(session_path, Session) else load_session(session_path, frames=frames)
     adopt_session(session_location(session), session)  # this process's task contexts reuse it
-    cfg = bind_flow_factor(bind_medium(config, session.medium.n_ambient), session.cameras, session.grid)
-    if cfg.flow.factor != config.flow.factor:
-        def cells(factor: int) -> float:
-            return cells_per_voxel(session.cameras, session.grid, FlowGrid(session.cameras[0].image_size, factor))
-
-        log.info("flow grid: factor %d (flow.auto_factor: %.2f flow cells per voxel edge; flow.factor %d "
-                 "would leave %.2f)", cfg.flow.factor, cells(cfg.flow.factor), config.flow.factor,
-                 cells(config.flow.factor))
+    cfg, derived = bind_run(config, session.cameras, session.grid, session.medium.n_ambient)
+    given = (session.manifest.get("volume") or {}).get("voxel_size") is not None
+    derived = session_overrides(session.cameras, session.grid, voxel_size_given=given) + derived
+    overrides = RunOverrides(cfg, derived, session.frames[1] - session.frames[0])
+    overrides.start()
     # memory and disk, with the measured model, before anything is written
     preflight(session, cfg, run_layout(session, cfg)[0], out_path,
               workers=[WorkerSlots()] if (serial or client is None) else workers_of_client(client))
     with store_lease(out_path):
-        return _run_leased(session, out_path, cfg, client=client, serial=serial, report=report,
+        return _run_leased(session, out_path, cfg, overrides, client=client, serial=serial, report=report,
                            on_receipt=on_receipt, on_failure=on_failure, on_plan=on_plan,
                            frames_per_task=frames_per_task, overwrite=overwrite, verify=verify, keep=keep)
 
 
-def _run_leased(session, out_path, cfg, *, client, serial, report, on_receipt, on_failure, on_plan,
+def _run_leased(session, out_path, cfg, overrides, *, client, serial, report, on_receipt, on_failure, on_plan,
                 frames_per_task, overwrite, verify, keep) -> RunSummary:
-    store, ext, token = _open_store(session, out_path, cfg, overwrite=overwrite)
+    store, ext, token = _open_store(session, out_path, cfg, overwrite=overwrite,
+                                    derived=records(overrides.overrides))
     if frames_per_task is None:
         frames_per_task = default_frames_per_task(session.cameras[0].image_size, cfg.flow_factor)
     check = _verify(store, out_path, ext, full=verify)
@@ -362,13 +364,8 @@ def _run_leased(session, out_path, cfg, *, client, serial, report, on_receipt, o
     t0 = time.time()
     if dropper is not None:
         dropper.start()
-        user_receipt = on_receipt
-
-        def on_receipt(r: dict) -> None:
-            dropper.receipt(r)
-            if user_receipt:
-                user_receipt(r)
-    clock = _StageClock(summary.executor, on_receipt)
+        on_receipt = _both(dropper.receipt, on_receipt)
+    clock = _StageClock(summary.executor, _both(overrides.receipt, on_receipt))
     receipts, failures = _execute(summary.executor, client, str(out_path), plan, report=report,
                                   on_receipt=clock, on_failure=on_failure)
     summary.receipts = receipts
@@ -377,7 +374,7 @@ def _run_leased(session, out_path, cfg, *, client, serial, report, on_receipt, o
     summary.stage_seconds = dict(clock.busy)
     summary.stage_cpu_seconds = dict(clock.cpu)
     summary.bad_frames = excluded_frames(store, receipts)
-    _record_stage_times(store, out_path, plan, summary, clock)
+    _record_run_attrs(store, out_path, plan, summary, clock, overrides)
     from schlieren.workers.diagnostics import diagnose
 
     summary.warnings = diagnose(receipts, n_voxels=math.prod(session.grid.shape), flash_frames=flash_spans(store),
@@ -413,16 +410,25 @@ def _retention(store: ResultStore, ext: Extents, check, keep):
     return dropper
 
 
-def _open_store(session, out_path, cfg, *, overwrite: bool) -> tuple[ResultStore, Extents, str]:
+def _open_store(session, out_path, cfg, *, overwrite: bool, derived: dict) -> tuple[ResultStore, Extents, str]:
     """:func:`prepare_store`; with ``overwrite`` a store of another configuration is replaced."""
     try:
-        return prepare_store(session, out_path, cfg)
+        return prepare_store(session, out_path, cfg, derived=derived)
     except StoreError as exc:
         if not (overwrite and exc.field == "fingerprint"):
             raise
         log.warning("replacing the store %s of another configuration (--overwrite)", out_path)
         remove_store(out_path)
-        return prepare_store(session, out_path, cfg)
+        return prepare_store(session, out_path, cfg, derived=derived)
+
+
+def _both(first: Callable[[dict], None], second: Callable[[dict], None] | None) -> Callable[[dict], None]:
+    """A receipt callback calling ``first``, then ``second`` (if any)."""
+    def call(r: dict) -> None:
+        first(r)
+        if second is not None:
+            second(r)
+    return call
 
 
 def _verify(store: ResultStore, out_path, ext: Extents, *, full: bool):
@@ -478,9 +484,11 @@ def _execute(executor: str, client, store_path: str, plan: Plan, *, report, on_r
     return run_graph(client, store_path, plan, on_receipt=on_receipt, on_failure=on_failure)
 
 
-def _record_stage_times(store: ResultStore, out_path, plan: Plan, summary: RunSummary, clock: _StageClock) -> None:
+def _record_run_attrs(store: ResultStore, out_path, plan: Plan, summary: RunSummary, clock: _StageClock,
+                      overrides: RunOverrides) -> None:
     """Store each stage's first start, last completion and task seconds of this run in the
-    store's ``stage_times`` (stages with a failed task keep their previous entry)."""
+    store's ``stage_times`` (stages with a failed task keep their previous entry), and the
+    run's derived overrides in ``derived`` (:class:`~schlieren.workers.overrides.RunOverrides`)."""
     times = dict(store.attrs.get("stage_times") or {})
     done_stages = {t.stage for t in plan.tasks} - {k.split("-")[0] for k in summary.failures}
     for s in done_stages:
@@ -488,7 +496,7 @@ def _record_stage_times(store: ResultStore, out_path, plan: Plan, summary: RunSu
             times[s] = {"started": clock.first[s], "completed": clock.last[s],
                         "task_seconds": clock.busy.get(s, 0.0), "executor": summary.executor}
     try:
-        store.update_attrs({"stage_times": times})
+        store.update_attrs({"stage_times": times, DERIVED_ATTR: overrides.attrs(store)})
     except OSError as exc:  # only the timing attributes are lost; every chunk and marker stays
         from schlieren.workers.tasks.runner import failure_text
 

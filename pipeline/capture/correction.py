@@ -104,7 +104,7 @@ def corrected_deflection(reference, frame: np.ndarray, flow: FlowParams = FlowPa
     from schlieren.pipeline.flow.reference import PreparedReference
 
     prep = reference if isinstance(reference, PreparedReference) else \
-        prepare_reference(reference, **flow.reference_kwargs())
+        prepare_reference(reference, presmooth=flow.presmooth, levels=flow.levels)
     H, W = prep.shape
     size = (W, H)
     bad = None if defects is None or not np.any(defects) else np.asarray(defects) != 0
@@ -159,7 +159,7 @@ def _flow_on_moved_reference(prep, frame, flow: FlowParams, motion, size, bad, i
     if bad is not None:
         r = int(np.ceil(motion_extent(motion, size))) + 2
         bad = cv2.dilate(bad.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8)).astype(bool)
-    return deflection_stage(prepare_reference(moved, **flow.reference_kwargs()), frame, flow, info=info, invalid=bad)
+    return deflection_stage(prepare_reference(moved, presmooth=flow.presmooth, levels=flow.levels), frame, flow, info=info, invalid=bad)
 
 
 def _border(bad: np.ndarray | None, shape: tuple[int, int], width: int) -> np.ndarray:

@@ -32,6 +32,8 @@ from typing import Iterable
 import cv2
 import numpy as np
 
+from .params import CaptureParams
+
 __all__ = ["HOT", "DEAD", "STUCK", "DEFECT_NAMES", "find_defective_pixels", "defect_counts", "MIN_STUCK_FRAMES"]
 
 HOT, DEAD, STUCK = 1, 2, 4
@@ -51,7 +53,8 @@ def _standard_residual(img: np.ndarray) -> np.ndarray:
     return r / np.float32(scale) if scale > 0 else np.zeros_like(r)
 
 
-def find_defective_pixels(frames: Iterable[np.ndarray], *, threshold: float = 10.0, stuck_ratio: float = 0.1,
+def find_defective_pixels(frames: Iterable[np.ndarray], *, threshold: float = 10.0,
+                          stuck_ratio: float = CaptureParams.stuck_ratio,
                           min_stuck_frames: int = MIN_STUCK_FRAMES) -> np.ndarray:
     """Map of a camera's defective pixels from its frames.
 

@@ -77,7 +77,7 @@ class Photometric:
         return row_profile(self.gain, self.knots, rows), row_profile(self.offset, self.knots, rows)
 
     def departs(self, *, gain_tolerance: float, offset_tolerance: float, mean: float = 0.0,
-                gain_sigma=0.0, level_sigma=0.0, significance: float = 0.0) -> bool:
+                gain_sigma=0.0, level_sigma=0.0, significance: float) -> bool:
         """Whether, at some knot, the gain departs from 1 by more than ``gain_tolerance``,
         or the grey level ``mean`` (the reference's mean) moves by more than
         ``offset_tolerance`` grey levels, and by more than ``significance`` times its

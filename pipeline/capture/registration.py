@@ -30,6 +30,7 @@ from schlieren.pipeline.flow.reference import PreparedReference, prepare_referen
 
 from ._kernels import _residuals
 from .motion import _design, motion_extent, motion_size, no_motion
+from .params import CaptureParams
 from .photometric import Photometric, row_knots
 
 __all__ = ["BackgroundFit", "register_background", "HUBER_K"]
@@ -90,8 +91,9 @@ class BackgroundFit:
 
 
 def register_background(reference, frame: np.ndarray, *, static: np.ndarray | None = None,
-                        valid: np.ndarray | None = None, model: str = "affine", photometric: bool = True,
-                        banding_rows: int = 48, min_static_fraction: float = 0.05, presmooth: float = 0.6,
+                        valid: np.ndarray | None = None, model: str = "affine",
+                        photometric: bool = CaptureParams.photometric, banding_rows: int = CaptureParams.banding_rows,
+                        min_static_fraction: float = CaptureParams.min_static_fraction, presmooth: float = 0.6,
                         levels: int = 3, iterations: int = 8) -> BackgroundFit:
     """Measure a frame's background motion, gain and offset against the reference.
 

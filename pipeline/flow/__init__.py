@@ -28,7 +28,8 @@ kernels in :mod:`._kernels`. :func:`endpoint_error` lives in
 from schlieren.pipeline.metrics import endpoint_error
 
 from .lk import ici_windows
-from .params import CELL_SOLVE_MIN_CELLS, METHODS, FlowParams, uses_cell_solve, window_for_voxel
+from .params import (CELL_SOLVE_MIN_CELLS, METHODS, FlowParams, camera_window, px_per_voxel, uses_cell_solve,
+                     window_for_voxel)
 from .post import downsample_flow, remove_outliers, smooth_flow
 from .reference import PreparedReference, invalid_pixels, prepare_reference
 from .splines import prolong_flow, spline_coefficients, warp_coefficient_rows, warp_coefficients, warp_image
@@ -52,6 +53,8 @@ __all__ = [
     "endpoint_error",
     "invalid_pixels",
     "window_for_voxel",
+    "camera_window",
+    "px_per_voxel",
     "measurement_sigma",
     "uses_cell_solve",
     "CELL_SOLVE_MIN_CELLS",

@@ -18,7 +18,7 @@ __all__ = ["ici_windows"]
 
 
 def _lk_level(coef, frame, u, v, *, window, window_type, iterations, regularisation,
-              gradient="frame", keep=None, weight=None, ici=None, cells=0, **_):
+              gradient, keep=None, weight=None, ici=None, cells=0, **_):
     """Dense Lucas-Kanade on one level, warping the reference at every iteration.
 
     Each pixel ``q`` of the window of ``p`` is linearised around its own current warp:

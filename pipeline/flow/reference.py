@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 
 from .images import _as_image, _fill_nonfinite, _normalisation, _pyramid, _standardise
+from .params import FlowParams
 from .splines import _spline_coefficients
 
 __all__ = ["PreparedReference", "prepare_reference", "invalid_pixels"]
@@ -48,8 +49,8 @@ class PreparedReference:
         return self._invalid[key]
 
 
-def prepare_reference(reference: np.ndarray, *, presmooth: float = 0.6, levels: int = 3
-                      ) -> PreparedReference:
+def prepare_reference(reference: np.ndarray, *, presmooth: float = FlowParams.presmooth,
+                      levels: int = FlowParams.levels) -> PreparedReference:
     """Pre-process a reference background for :func:`deflection_field`.
 
     Parameters
@@ -68,7 +69,7 @@ def prepare_reference(reference: np.ndarray, *, presmooth: float = 0.6, levels: 
     return PreparedReference(img, mean, scale, float(presmooth), int(levels), tuple(pyr), coef)
 
 
-def invalid_pixels(image: np.ndarray, *, texture_threshold: float = 0.1, size: int = 7,
+def invalid_pixels(image: np.ndarray, *, texture_threshold: float = FlowParams.texture_threshold, size: int = 7,
                    clip_fraction: float = 0.6) -> np.ndarray:
     """Pixels of one image that cannot carry a BOS deflection.
 

@@ -73,23 +73,23 @@ def deflection_field(
     reference,
     frame: np.ndarray,
     *,
-    method: str = "lk",
-    window: int = 17,
-    window_type: str = "gaussian",
-    levels: int = 3,
-    iterations: int = 2,
-    fine_iterations: int = 1,
-    presmooth: float = 0.6,
-    regularisation: float = 1e-3,
-    gradient: str = "frame",
-    alpha: float = 0.3,
-    inner_iterations: int = 30,
-    dis_preset: str = "medium",
-    corr_window: int = 32,
-    corr_step: int = 16,
-    corr_taper: bool = False,
-    ici_gamma: float = 0.0,
-    ici_min_window: int = 5,
+    method: str = FlowParams.method,
+    window: int = FlowParams.window,
+    window_type: str = FlowParams.window_type,
+    levels: int = FlowParams.levels,
+    iterations: int = FlowParams.iterations,
+    fine_iterations: int = FlowParams.fine_iterations,
+    presmooth: float = FlowParams.presmooth,
+    regularisation: float = FlowParams.regularisation,
+    gradient: str = FlowParams.gradient,
+    alpha: float = FlowParams.alpha,
+    inner_iterations: int = FlowParams.inner_iterations,
+    dis_preset: str = FlowParams.dis_preset,
+    corr_window: int = FlowParams.corr_window,
+    corr_step: int = FlowParams.corr_step,
+    corr_taper: bool = FlowParams.corr_taper,
+    ici_gamma: float = FlowParams.ici_gamma,
+    ici_min_window: int = FlowParams.ici_min_window,
 ) -> np.ndarray:
     """Full-resolution BOS deflection field between a reference background and a frame.
 
@@ -121,7 +121,7 @@ def deflection_field(
 def _flow_components(reference, frame, *, method, window, window_type, levels, iterations,
                      fine_iterations, presmooth, regularisation, gradient, alpha,
                      inner_iterations, dis_preset, corr_window, corr_step, corr_taper,
-                     ici_gamma=0.0, ici_min_window=5, keep=None, valid=None, info=None, cells=0, start=None):
+                     ici_gamma, ici_min_window, keep=None, valid=None, info=None, cells=0, start=None):
     """:func:`deflection_field` as two (H, W) float32 arrays (u, v); for LK, ``keep``
     (a dict) receives the full-resolution frame gradients ``gx``, ``gy``. ``valid``
     (H, W) bool: pixels the flow may use (LK and HS weight the others out; every method
@@ -239,8 +239,14 @@ def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowPara
     ici = params.method == "lk" and params.ici_gamma > 0 and params.gradient == "frame"
     texture = params.method == "lk" and params.texture_correction and not ici
     keep = {} if texture or on_cells else None
-    u, v = _flow_components(reference, frame, **params.field_kwargs(), keep=keep, valid=valid, info=info,
-                            cells=f if on_cells else 0, start=motion)
+    p = params
+    u, v = _flow_components(reference, frame, method=p.method, window=p.window, window_type=p.window_type,
+                            levels=p.levels, iterations=p.iterations, fine_iterations=p.fine_iterations,
+                            presmooth=p.presmooth, regularisation=p.regularisation, gradient=p.gradient,
+                            alpha=p.alpha, inner_iterations=p.inner_iterations, dis_preset=p.dis_preset,
+                            corr_window=p.corr_window, corr_step=p.corr_step, corr_taper=p.corr_taper,
+                            ici_gamma=p.ici_gamma, ici_min_window=p.ici_min_window,
+                            keep=keep, valid=valid, info=info, cells=f if on_cells else 0, start=motion)
     if u.shape == (rows, cols) and on_cells:
         comps = [u, v]
     else:

@@ -7,7 +7,8 @@ rising from a source on the floor or leaving through the top) the flow is not am
 beyond the face, so by default the differences crossing the box faces are dropped
 there (natural boundary, ``box_boundary="neumann"``; docs/tuning.md, "Poisson").
 
-Modules: :mod:`~schlieren.pipeline.poisson.tensor` (the Appendix's diffusion tensor and the
+Modules: :mod:`~schlieren.pipeline.poisson.params` (:class:`PoissonParams`),
+:mod:`~schlieren.pipeline.poisson.tensor` (the Appendix's diffusion tensor and the
 sign constraint), :mod:`~schlieren.pipeline.poisson.assembly` (the discretised eq. 8),
 :mod:`~schlieren.pipeline.poisson.multigrid` (the "mg" solver's preconditioner) and
 :mod:`~schlieren.pipeline.poisson.integration` (:func:`integrate`, the per-frame driver);
@@ -16,9 +17,10 @@ the conjugate-gradient loop is :func:`schlieren.pipeline.linalg.pcg`.
 
 from schlieren.pipeline.linalg.cg import pcg
 from schlieren.pipeline.poisson.assembly import assemble, laplacian_matrix
-from schlieren.pipeline.poisson.integration import SOLVERS, PoissonInfo, PoissonParams, integrate
+from schlieren.pipeline.poisson.integration import PoissonInfo, integrate
 from schlieren.pipeline.poisson.multigrid import LaplaceMultigrid
+from schlieren.pipeline.poisson.params import SIGNS, SOLVERS, PoissonParams
 from schlieren.pipeline.poisson.tensor import diffusion_tensor, sign_constraint
 
 __all__ = ["PoissonParams", "PoissonInfo", "integrate", "sign_constraint", "diffusion_tensor", "assemble",
-           "SOLVERS", "LaplaceMultigrid", "laplacian_matrix", "pcg"]
+           "SOLVERS", "SIGNS", "LaplaceMultigrid", "laplacian_matrix", "pcg"]

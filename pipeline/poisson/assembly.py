@@ -24,7 +24,7 @@ from schlieren.pipeline.poisson._assembly_kernels import _assemble_rows
 from schlieren.pipeline.poisson.tensor import diffusion_tensor
 
 if TYPE_CHECKING:
-    from schlieren.pipeline.poisson.integration import PoissonParams
+    from schlieren.pipeline.poisson.params import PoissonParams
 
 __all__ = ["assemble", "laplacian_matrix"]
 

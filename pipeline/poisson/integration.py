@@ -1,5 +1,5 @@
-"""Per-frame Poisson integration (paper sec. 5, eq. 8): parameters, the solvers and
-:func:`integrate` (pad, assemble, solve, sign constraint)."""
+"""Per-frame Poisson integration (paper sec. 5, eq. 8): the solvers and :func:`integrate`
+(pad, assemble, solve, sign constraint); the parameters are :class:`~.params.PoissonParams`."""
 
 from __future__ import annotations
 
@@ -14,79 +14,14 @@ import scipy.sparse as sp
 from schlieren.pipeline.geometry import Grid
 from schlieren.pipeline.linalg._cg_kernels import dot
 from schlieren.pipeline.linalg.cg import pcg
-from schlieren.pipeline.params import param
 from schlieren.pipeline.poisson.assembly import assemble
 from schlieren.pipeline.poisson.multigrid import LaplaceMultigrid
-from schlieren.pipeline.poisson.tensor import SIGNS, sign_constraint
+from schlieren.pipeline.poisson.params import SOLVERS, PoissonParams
+from schlieren.pipeline.poisson.tensor import sign_constraint
 
 __all__ = ["PoissonParams", "PoissonInfo", "integrate", "SOLVERS"]
 
 log = logging.getLogger(__name__)
-
-SOLVERS = ("mg", "amg", "jacobi_cg")
-
-
-@dataclass(frozen=True)
-class PoissonParams:
-    """Parameters of :func:`integrate`.
-
-    Attributes
-    ----------
-    alpha : float
-        Data fidelity of the diffusion tensor (Appendix); 1 = plain Poisson (the
-        default: the paper's 0.8 measured no gain on the realistic family, see the
-        notes of :mod:`schlieren.pipeline.poisson.tensor`).
-    sigma : float
-        Gaussian smoothing of the structure tensor, voxels.
-    k : float
-        Edge constant of the Appendix, in the units described in the docstring of
-        :mod:`schlieren.pipeline.poisson.tensor`.
-    value_scale : float
-        The field range those units assume (255: 8-bit volume; see the notes of
-        :mod:`schlieren.pipeline.poisson.tensor`).
-    box_boundary : str
-        Where the hull touches a face of the reconstruction box (a plume rising from a
-        source at the floor, or leaving through the top) the paper's ``n = n_air``
-        outside the hull is wrong. ``"neumann"`` (default) drops the differences that
-        cross the box faces there (natural boundary); ``"dirichlet"`` keeps
-        ``r = r_ambient`` beyond the box as in the paper. Inside the box the hull
-        boundary is always Dirichlet.
-    solver : str
-        ``"mg"`` (default: CG preconditioned by one geometric-multigrid V-cycle of the
-        hull Laplacian, rebuilt per frame at negligible cost), ``"amg"`` (CG
-        preconditioned by pyamg smoothed aggregation; its setup dominates) or
-        ``"jacobi_cg"`` (the paper's Jacobi-preconditioned CG).
-    tol : float
-        Relative residual ``||f - A u|| / ||f||`` at which to stop.
-    max_iter : int
-        Iteration cap.
-    sign : str
-        The sign of the flow's refractivity offset ``r - r_ambient``: ``"negative"`` for
-        gas hotter or lighter than the surrounding air (flames, candles, burners, hot
-        jets, helium), ``"positive"`` for colder or denser gas (a CO2 jet, a cold
-        plume). Voxels whose estimate has the other sign are set to ambient
-        (:func:`sign_constraint`): with few views the reconstruction rings around the
-        plume with both signs, and those lobes are artefacts. ``"auto"`` (default) takes
-        the sign of the frame's dominant offset and applies it only when the other sign
-        holds at most ``sign_max_opposite`` of the summed ``|r - r_ambient|``
-        (a flow that really has both signs is left as it is); ``"none"`` keeps every
-        value (the paper). Applies to the two-step reconstruction (``reconstruction:
-        direct`` writes its solve's refractivity as it is).
-    sign_max_opposite : float
-        ``"auto"`` applies the sign only below this share of the opposite sign (the
-        realistic family's ringing: 1.5-3 %).
-    """
-
-    alpha: float = param(1.0, unit="1", gt=0, le=1)
-    sigma: float = param(0.5, unit="voxels", ge=0, le=20)
-    k: float = param(0.5e-5, unit="1", gt=0, le=1e3)
-    value_scale: float = param(255.0, unit="1", gt=0, le=1e9)
-    box_boundary: str = param("neumann", choices=("neumann", "dirichlet"))
-    solver: str = param("mg", choices=SOLVERS)
-    tol: float = param(1e-6, unit="1", gt=0, lt=1)
-    max_iter: int = param(5000, unit="1", ge=1, le=100000)
-    sign: str = param("auto", choices=SIGNS)
-    sign_max_opposite: float = param(0.1, unit="1", ge=0, le=0.5)
 
 
 @dataclass(frozen=True)

@@ -35,16 +35,15 @@ import numpy as np
 import scipy.ndimage as ndi
 
 from schlieren.pipeline.poisson._tensor_kernels import _tensor_from_structure
+from schlieren.pipeline.poisson.params import SIGNS, PoissonParams
 
 __all__ = ["sign_constraint", "diffusion_tensor", "SIGNS"]
 
 log = logging.getLogger(__name__)
 
-SIGNS = ("auto", "negative", "positive", "none")
 
-
-def sign_constraint(r: np.ndarray, hull: np.ndarray, r_ambient: float, *, sign: str = "auto",
-                    max_opposite: float = 0.1) -> tuple[np.ndarray, str, float]:
+def sign_constraint(r: np.ndarray, hull: np.ndarray, r_ambient: float, *, sign: str = PoissonParams.sign,
+                    max_opposite: float = PoissonParams.sign_max_opposite) -> tuple[np.ndarray, str, float]:
     """Set the hull voxels whose offset ``r - r_ambient`` has the wrong sign to ambient.
 
     The projection onto fields of one sign (:class:`PoissonParams` ``sign``): a heated
@@ -111,7 +110,7 @@ def _range_estimate(g: np.ndarray, h: float) -> float:
 
 
 def diffusion_tensor(g: np.ndarray, h: float, *, alpha: float, sigma: float, k: float,
-                     value_scale: float = 255.0, where: np.ndarray | None = None) -> np.ndarray:
+                     value_scale: float = PoissonParams.value_scale, where: np.ndarray | None = None) -> np.ndarray:
     """Edge-preserving diffusion tensor of the Appendix.
 
     Parameters

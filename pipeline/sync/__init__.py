@@ -15,14 +15,16 @@ row ``r`` of frame ``f`` of a camera starts its exposure at
   (:func:`resample_flow`). Flow fields are smooth, so warping them (rather than the raw
   images) keeps the high frequencies the optical flow needs (paper sec. 4).
 
-Modules: :mod:`.strobe` (flash detection and the offset it gives), :mod:`.timing` (row
-times, output instants, the frames an instant needs), :mod:`.motion` (the motion between
-two flow fields and its per-process cache) and :mod:`.resample` (the row-wise resampling).
+Modules: :mod:`.params` (:class:`FlashParams`, :class:`ResampleParams`), :mod:`.strobe`
+(flash detection and the offset it gives), :mod:`.timing` (row times, output instants, the
+frames an instant needs), :mod:`.motion` (the motion between two flow fields and its
+per-process cache) and :mod:`.resample` (the row-wise resampling).
 """
 
 from .motion import cached_field_motion, field_digest, field_motion
-from .resample import ResampleParams, resample_flow
-from .strobe import FlashDetection, FlashParams, detect_flash, flash_frames, offset_from_flash, row_means
+from .params import FlashParams, ResampleParams
+from .resample import resample_flow
+from .strobe import FlashDetection, detect_flash, flash_frames, offset_from_flash, row_means
 from .timing import frames_needed, output_times, row_times
 
 __all__ = [

@@ -15,6 +15,8 @@ import numpy as np
 
 from schlieren.pipeline.flow.splines import prolong_flow, spline_coefficients, warp_coefficients
 
+from .params import ResampleParams
+
 __all__ = ["field_digest", "cached_field_motion", "field_motion"]
 
 
@@ -62,8 +64,10 @@ def cached_field_motion(source: np.ndarray, target: np.ndarray, *, digests: tupl
     return _remembered_motion(source, target, digests=digests, **kwargs).copy()
 
 
-def field_motion(source: np.ndarray, target: np.ndarray, *, window: int = 15, levels: int = 3,
-                 iterations: int = 4, regularisation: float = 1e-2, finest: int = 0) -> np.ndarray:
+def field_motion(source: np.ndarray, target: np.ndarray, *, window: int = ResampleParams.window,
+                 levels: int = ResampleParams.levels, iterations: int = ResampleParams.iterations,
+                 regularisation: float = ResampleParams.regularisation,
+                 finest_level: int = ResampleParams.finest_level) -> np.ndarray:
     """Motion ``m`` between two multi-channel fields: ``source(p) ~= target(p + m(p))``.
 
     Dense pyramidal Lucas-Kanade summing the structure tensors of all channels (here the
@@ -73,9 +77,9 @@ def field_motion(source: np.ndarray, target: np.ndarray, *, window: int = 15, le
     Parameters
     ----------
     source, target : ndarray, shape (h, w, C)
-    window : int
-        Window edge (cells, odd).
-    finest : int
+    window, levels, iterations, regularisation : int, int, int, float
+        As in :class:`~.params.ResampleParams`.
+    finest_level : int
         Finest pyramid level estimated (0: the fields' own grid); below it the motion is
         only prolonged to the fields' grid.
 
@@ -104,7 +108,7 @@ def field_motion(source: np.ndarray, target: np.ndarray, *, window: int = 15, le
     def box(a):
         return cv2.sepFilter2D(a, cv2.CV_32F, taps, taps, borderType=cv2.BORDER_REFLECT)
 
-    stop = min(finest, len(pyr_s) - 1)
+    stop = min(finest_level, len(pyr_s) - 1)
     for lev in range(len(pyr_s) - 1, stop - 1, -1):
         s_ch, t_ch = pyr_s[lev], pyr_t[lev]
         h, w = s_ch[0].shape

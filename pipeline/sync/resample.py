@@ -8,68 +8,19 @@ optical flow needs.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 
 import numpy as np
 
 from schlieren.pipeline.flow.splines import spline_coefficients, warp_coefficient_rows
 from schlieren.pipeline.geometry import FlowGrid
-from schlieren.pipeline.params import param
 
 from .motion import _digest, cached_field_motion
+from .params import ResampleParams
 from .timing import _fractional_frame
 
 __all__ = ["ResampleParams", "resample_flow"]
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class ResampleParams:
-    """Parameters of :func:`resample_flow`.
-
-    Attributes
-    ----------
-    method : {"motion", "linear", "nearest"}
-        ``motion``: warp between successive flow fields along the motion estimated between
-        them (paper sec. 4); ``linear``: per-row linear blend without motion compensation;
-        ``nearest``: per row, the field of the nearest frame in time.
-    window : int
-        Window (flow-grid cells, odd) of the Lucas-Kanade motion estimate between fields.
-    levels : int
-        Pyramid levels of the motion estimate.
-    iterations : int
-        Warping iterations per level of the motion estimate. 2 (was 4): on the paper-scale
-        session's flow fields the motion moves by 0.008 cells RMS (of 0.86) and the estimate
-        takes 13 instead of 22 ms; the realistic family's tune cases are unchanged to the
-        reported digit with 2 and with 1 (1: 0.044 cells, 10 ms).
-    regularisation : float
-        Tikhonov weight of the motion estimate relative to the strongest structure
-        (pulls the motion of flow-free regions to zero).
-    finest_level : int
-        Finest pyramid level the motion is estimated on (0: the flow grid itself); the
-        levels below it take the motion prolonged (bilinear, doubled per level). 1 (was 0):
-        the motion between two flow fields is smooth (its window is 15 cells), and its
-        estimate on the full grid mostly fits the fields' noise. Resampled flow against the
-        rendered truth (RMS error where the deflection exceeds 0.02 px): paper-scale session
-        (4 cameras x 8 frames) 0.03035 -> 0.02854 px and the resample task 62 -> 35 ms per
-        camera-frame; the realistic family's tune cases 0.01542 -> 0.01541 (16 cameras),
-        0.01314 -> 0.01314 (8 cameras), 0.05318 -> 0.05284 (8 cameras H.264), 1.7-1.9x
-        faster; level 2 was no better (0.02897, 0.01548, 0.01321, 0.05265).
-    """
-
-    method: str = param("motion", choices=("motion", "linear", "nearest"))
-    window: int = param(15, unit="flow cells", ge=3, le=101, odd=True)
-    levels: int = param(3, unit="1", ge=1, le=8)
-    iterations: int = param(2, unit="1", ge=1, le=50)
-    regularisation: float = param(1e-2, unit="1", ge=0, le=1e3)
-    finest_level: int = param(1, unit="1", ge=0, le=7)
-
-    def __post_init__(self):
-        if self.method not in ("motion", "linear", "nearest"):
-            raise ValueError(f"ResampleParams.method must be motion/linear/nearest, got {self.method!r}")
-        if self.window < 3 or self.window % 2 == 0:
-            raise ValueError(f"ResampleParams.window must be odd and >= 3, got {self.window}")
 
 
 def _coefficients(field: np.ndarray) -> list:
@@ -188,7 +139,7 @@ def _blend_rows(raw: np.ndarray, j0: np.ndarray, j1: np.ndarray, alpha: np.ndarr
             keys = tuple(digests[j] if digests[j] is not None else _digest(raw[j]) for j in (a, b))
         m = cached_field_motion(fa, fb, window=params.window, levels=params.levels,
                                 iterations=params.iterations, regularisation=params.regularisation,
-                                finest=params.finest_level, digests=keys)
+                                finest_level=params.finest_level, digests=keys)
         # only the rows that use this frame pair are warped
         mr = m[rows]
         wa = _warp_channel_rows(coefs(a), rows, -al * mr)

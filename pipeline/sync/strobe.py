@@ -11,28 +11,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from schlieren.pipeline.params import param
+from .params import FlashParams
 
 __all__ = ["FlashDetection", "FlashParams", "row_means", "detect_flash", "offset_from_flash", "flash_frames"]
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class FlashParams:
-    """Parameters of :func:`detect_flash` (field names = its keyword names).
-
-    Attributes
-    ----------
-    min_snr : float
-        The band's brightening must exceed this many robust noise sigmas of the
-        frame-to-frame row-mean fluctuations.
-    min_contrast : float
-        The band's brightening must also exceed this many grey levels.
-    """
-
-    min_snr: float = param(10.0, unit="1", gt=0, le=1e6)
-    min_contrast: float = param(2.0, unit="grey levels", ge=0, le=65535)
 
 
 @dataclass(frozen=True)
@@ -97,8 +80,8 @@ def _longest_run(mask: np.ndarray) -> tuple[int, int]:
     return int(starts[k]), int(stops[k])
 
 
-def detect_flash(row_means: np.ndarray, *, min_snr: float = 10.0, min_contrast: float = 2.0
-                 ) -> FlashDetection:
+def detect_flash(row_means: np.ndarray, *, min_snr: float = FlashParams.min_snr,
+                 min_contrast: float = FlashParams.min_contrast) -> FlashDetection:
     """Find the strobe's band of lit rows in one camera (paper sec. 4, Figure 5).
 
     The static background makes every row's mean nearly constant over the window; the

@@ -82,19 +82,50 @@ class LabParams:
         Pixels per camera stuck at one random grey level each.
     """
 
-    motion_offset: float = param(0.0, unit="px", ge=0.0, le=50.0)
-    motion_walk: float = param(0.0, unit="px", ge=0.0, le=10.0)
-    roll: float = param(0.0, unit="deg", ge=0.0, le=10.0)
-    roll_walk: float = param(0.0, unit="deg", ge=0.0, le=1.0)
-    flicker_gain: float = param(0.0, unit="1", ge=0.0, le=0.5)
-    flicker_offset: float = param(0.0, unit="grey level", ge=0.0, le=50.0)
-    banding: float = param(0.0, unit="1", ge=0.0, le=0.5)
-    banding_frequency: float = param(100.0, unit="Hz", gt=0.0)
-    defocus: float = param(0.0, unit="px", ge=0.0, le=20.0)
-    vignetting: float = param(0.0, unit="1", ge=0.0, lt=1.0)
-    hot_pixels: int = param(0, unit="1", ge=0)
-    dead_pixels: int = param(0, unit="1", ge=0)
-    stuck_pixels: int = param(0, unit="1", ge=0)
+    motion_offset: float = param(
+        0.0, unit="px", ge=0.0, le=50.0,
+        help="Constant displacement of the image against the reference, at the principal point, in a random "
+             "direction per camera: where the tripod settled after the reference.")
+    motion_walk: float = param(
+        0.0, unit="px", ge=0.0, le=10.0,
+        help="Random walk of the image per raw frame: each frame after the first adds a Gaussian step of this "
+             "standard deviation along each image axis.")
+    roll: float = param(
+        0.0, unit="deg", ge=0.0, le=10.0,
+        help="Constant rotation of the camera about its optical axis against the reference, random sign per camera"
+             " (positive turns the image content from +u towards +v).")
+    roll_walk: float = param(
+        0.0, unit="deg", ge=0.0, le=1.0,
+        help="Random walk of that rotation: Gaussian steps of this standard deviation per raw frame.")
+    flicker_gain: float = param(
+        0.0, unit="1", ge=0.0, le=0.5,
+        help="Lamp brightness per frame (reference frames included): the image times `1 + N(0, flicker_gain)`, "
+             "drawn independently for each frame and camera.")
+    flicker_offset: float = param(
+        0.0, unit="grey level", ge=0.0, le=50.0,
+        help="Grey levels (8-bit scale) `N(0, flicker_offset)` added per frame (stray light, black level).")
+    banding: float = param(
+        0.0, unit="1", ge=0.0, le=0.5,
+        help="Relative amplitude of the row banding of a rolling shutter under mains-powered light: rows times `1 "
+             "+ banding sin(2 pi f t_row + phase)`; 0 = none.")
+    banding_frequency: float = param(
+        100.0, unit="Hz", gt=0.0,
+        help="The light's flicker frequency `f`: twice the mains frequency (100 Hz at 50 Hz mains, 120 at 60).")
+    defocus: float = param(
+        0.0, unit="px", ge=0.0, le=20.0,
+        help="Sigma of the Gaussian blur of the background image: the camera is focused on the volume.")
+    vignetting: float = param(
+        0.0, unit="1", ge=0.0, lt=1.0,
+        help="Relative brightness lost at the image corners (radial gain `1 - v (r / r_corner)^2`).")
+    hot_pixels: int = param(
+        0, unit="1", ge=0,
+        help="Pixels per camera stuck at full scale, at the same places in the reference and every frame.")
+    dead_pixels: int = param(
+        0, unit="1", ge=0,
+        help="Pixels per camera stuck at 0.")
+    stuck_pixels: int = param(
+        0, unit="1", ge=0,
+        help="Pixels per camera stuck at one random grey level each.")
 
     @property
     def moves(self) -> bool:

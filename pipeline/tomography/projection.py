@@ -32,6 +32,7 @@ from schlieren.pipeline.tomography._projection_kernels import (
     _project_pass,
     _prune_kernel,
 )
+from schlieren.pipeline.tomography.params import TomoParams
 
 __all__ = ["clip_rays_to_box", "basis_weights", "build_projection", "prune_rows", "csr_view", "large_empty"]
 
@@ -113,7 +114,7 @@ def _row_caps(a: np.ndarray, b: np.ndarray, s0: np.ndarray, s1: np.ndarray) -> n
 
 
 def build_projection(origins: np.ndarray, dirs: np.ndarray, shape_zyx, origin_xyz, h: float,
-                     *, step: float = 0.25) -> sp.csr_matrix:
+                     *, step: float = TomoParams.step) -> sp.csr_matrix:
     """Full-grid projection matrix of line integrals of the normalised basis (eq. 6).
 
     Parameters

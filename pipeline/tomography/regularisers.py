@@ -23,6 +23,7 @@ from schlieren.pipeline.tomography._regulariser_kernels import (
     _plaquettes,
 )
 from schlieren.pipeline.tomography._restriction_kernels import matvec3
+from schlieren.pipeline.tomography.params import TomoParams
 
 __all__ = ["difference_operator", "difference_normal", "SquaredLaplacian", "regulariser", "regulariser_normal",
            "CurlNormal", "curl_normal", "apply_regulariser"]
@@ -109,7 +110,7 @@ class SquaredLaplacian:
         return np.add.reduceat(np.asarray(M.data, dtype=np.float64) ** 2, M.indptr[:-1])
 
 
-def regulariser(inset: np.ndarray, prior: str = "second-differences") -> sp.csr_matrix | SquaredLaplacian:
+def regulariser(inset: np.ndarray, prior: str = TomoParams.prior) -> sp.csr_matrix | SquaredLaplacian:
     """The smoothness term's normal matrix as the solver applies it: :func:`difference_normal`
     for ``first-differences``, :class:`SquaredLaplacian` of it for ``second-differences``
     (equal to :func:`regulariser_normal`, never formed)."""
@@ -126,7 +127,7 @@ def apply_regulariser(R, X: np.ndarray) -> np.ndarray:
     return _apply_cols(R, X)
 
 
-def regulariser_normal(inset: np.ndarray, prior: str = "second-differences") -> sp.csr_matrix:
+def regulariser_normal(inset: np.ndarray, prior: str = TomoParams.prior) -> sp.csr_matrix:
     """The normal matrix of the smoothness term (``TomoParams.prior``) on the set ``inset``,
     formed: :func:`regulariser` as an explicit matrix (for tests and inspection).
 

@@ -158,7 +158,7 @@ def valid_rays(data: np.ndarray) -> np.ndarray | None:
 
 
 def prepare_frame(geom: TomoGeometry, hull: np.ndarray, *, dilation: int,
-                  rows: np.ndarray | None = None, prior: str = "second-differences",
+                  rows: np.ndarray | None = None, prior: str = TomoParams.prior,
                   curl: bool = False) -> FrameSystem:
     """Restrict the session's projection to a frame's hull (basis functions and rays;
     ``rows``: only these rays, e.g. :func:`valid_rays`; ``curl``: also build

@@ -19,7 +19,7 @@ from schlieren.storage.errors import SchlierenInputError
 from schlieren.storage.readers.kinds import frames_kind
 from schlieren.storage.readers.opening import open_frames
 from schlieren.storage.scaffold.sources import VideoInfo, probe_source, source_kind, write_reference_frames
-from schlieren.storage.session.checks import centre_inside, frames_beside_strobe, strobe_overlap
+from schlieren.storage.session.checks import check_rig, frames_beside_strobe, strobe_overlap
 from schlieren.storage.session.models import camera_name_problem
 
 log = logging.getLogger(__name__)
@@ -308,9 +308,8 @@ def _grid(vmin: np.ndarray, vmax: np.ndarray, voxel_size: float | None, cameras:
 
 def _cameras(calib: CalibrationFile, order: list[str], vmin: np.ndarray, vmax: np.ndarray, background_distance):
     """Every camera with its background plane (from the calibration or ``background_distance``,
-    in front of it), its centre outside the volume; some camera must see the volume centre."""
+    in front of it), and a sane rig (:func:`~schlieren.storage.session.checks.check_rig`)."""
     bg_dist = _per_camera(background_distance, order, "background.distance")
-    centre = 0.5 * (vmin + vmax)
     entries, cameras = [], []
     for n in order:
         e = calib.camera(n)
@@ -333,19 +332,11 @@ def _cameras(calib: CalibrationFile, order: list[str], vmin: np.ndarray, vmax: n
         if cam.background_distance() <= 0:
             raise SchlierenInputError("the background plane is behind the camera", file=calib.path,
                                       camera=n, field="background")
-        inside = centre_inside(cam, vmin, vmax)
-        if inside is not None:
-            raise SchlierenInputError(inside, file=calib.path, camera=n, field="t")
         cameras.append(cam)
         entries.append((e, bg))
-    seeing = [c.name for c in cameras if _sees_point(c, centre)]
-    if not seeing:
-        raise SchlierenInputError("no camera sees the volume centre "
-                                  f"{np.round(centre, 4).tolist()} (check --volume and the world frame "
-                                  "of the calibration)", file=calib.path, field="volume")
-    for c in cameras:
-        if c.name not in seeing:
-            log.warning("camera %s does not see the volume centre", c.name)
+    # units, placement, visibility: before the grid (a voxel from a millimetre rig's footprint is absurd)
+    check_rig(cameras, vmin, vmax, file=calib.path, error=SchlierenInputError,
+              fields={n: f"cameras[{calib.names.index(n)}]" for n in order})
     return cameras, entries
 
 
@@ -370,7 +361,10 @@ def _write_session(plan: _Plan, *, copy_videos: bool, medium: Medium | None, nam
             yaml.safe_dump(manifest, fh, sort_keys=False, default_flow_style=None, width=100)
         from schlieren.storage.session import load_session
 
-        load_session(tmp)  # the reader `schlieren run` uses: fail here, before the manifest is in place
+        try:  # the reader `schlieren run` uses: fail here, before the manifest is in place
+            load_session(tmp)
+        except SchlierenInputError as exc:
+            raise _named_for_user(exc, tmp, plan) from None
         os.replace(tmp, manifest_path)
     except BaseException:
         tmp.unlink(missing_ok=True)
@@ -380,6 +374,19 @@ def _write_session(plan: _Plan, *, copy_videos: bool, medium: Medium | None, nam
             elif p.exists():
                 p.unlink()
         raise
+
+
+def _named_for_user(exc: SchlierenInputError, tmp: Path, plan: _Plan) -> SchlierenInputError:
+    """The session reader's error on the temporary manifest, naming instead the file the
+    user gave: the calibration for a camera's geometry, else the manifest to be written."""
+    if exc.file is None or Path(exc.file).resolve() != tmp.resolve():
+        return exc
+    geometry = exc.camera is not None and exc.field is not None and \
+        exc.field.split(".")[-1].split("[")[0] in ("K", "dist", "R", "rvec", "t", "background", "distance")
+    if geometry and exc.camera in plan.calib.names:
+        field = exc.field.replace(exc.field.split(".")[0], f"cameras[{plan.calib.names.index(exc.camera)}]", 1)
+        return type(exc)(exc.message, file=plan.calib.path, camera=exc.camera, field=field)
+    return type(exc)(exc.message, file=str(plan.manifest_path), camera=exc.camera, field=exc.field)
 
 
 def _camera_docs(plan: _Plan, copy_videos: bool, created: list[Path]) -> tuple[list[dict], bool]:
@@ -525,12 +532,3 @@ def _place_frames(spec: str, root: Path, camera: str, copy: bool, created: list)
         shutil.copy2(f, target)
     rel = _rel_inside(str(new_spec), root)
     return (rel + "/" if kind == "folder" else rel), False
-
-
-def _sees_point(cam: Camera, X: np.ndarray) -> bool:
-    Xc = cam.R @ np.asarray(X, dtype=np.float64) + cam.t
-    if Xc[2] <= 0:
-        return False
-    uv = cam.project(np.asarray(X, dtype=np.float64)[None, :])[0]
-    W, H = cam.image_size
-    return bool(-0.5 <= uv[0] <= W - 0.5 and -0.5 <= uv[1] <= H - 0.5)

@@ -10,12 +10,14 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import asdict
 
 import numpy as np
 
 from schlieren.pipeline import resources as _resources
+from schlieren.pipeline.calibration.sanity import RigSanityParams, centre_inside, rig_problems, sees_box
 from schlieren.pipeline.geometry import Camera, Grid, auto_voxel_size, rodrigues
-from schlieren.storage.errors import SessionError
+from schlieren.storage.errors import SchlierenInputError, SessionError
 from schlieren.storage.session.models import CameraModel, VolumeModel, _as_range
 
 log = logging.getLogger(__name__)
@@ -60,7 +62,12 @@ def strobe_overlap(rng: tuple[int, int], strobe: tuple[int, int], what: str = "f
     (a, b), (s0, s1) = rng, strobe
     if a >= s1 or s0 >= b:
         return None
-    fix = f"[{s1}, {b})" if b > s1 else (f"[{a}, {s0})" if a < s0 else "frames outside it")
+    if b > s1:
+        fix = f"[{s1}, {b})"
+    elif a < s0:
+        fix = f"[{a}, {s0})"
+    else:
+        fix = f"frames from {s1} on" + (f" or before {s0}" if s0 > 0 else "")
     return (f"the {what} [{a}, {b}) overlap sync.strobe.search_frames [{s0}, {s1}): a frame the flash "
             f"lit cannot be reconstructed; process frames outside the strobe window (e.g. {fix})")
 
@@ -152,47 +159,23 @@ def _check_background(i: int, cam: Camera, file: str) -> None:
                            f"{-s:.4g} m behind the camera centre)", file=file, camera=cam.name, field=fld)
 
 
-def _check_background_beyond_volume(i: int, cam: Camera, grid: Grid, file: str) -> None:
-    fld = f"cameras[{i}].background"
-    C, axis, n = cam.center, cam.optical_axis, cam.bg_normal
-    s = float((cam.bg_point - C) @ n) / float(axis @ n)
-    depth = float((grid.center - C) @ axis)
-    if depth > 0 and s <= depth:
-        raise SessionError(f"the background plane ({s:.4g} m along the optical axis) is not behind the "
-                           f"volume centre ({depth:.4g} m)", file=file, camera=cam.name, field=fld)
-
-
-def centre_inside(cam: Camera, vmin, vmax) -> str | None:
-    """Why camera ``cam`` cannot image the box ``[vmin, vmax]``: its centre lies in it
-    (rays would start inside the reconstruction), or None."""
-    C = np.asarray(cam.center, dtype=np.float64)
-    if np.all(C >= np.asarray(vmin)) and np.all(C <= np.asarray(vmax)):
-        return (f"the camera centre {np.round(C, 4).tolist()} m (-R^T t) lies inside the volume "
-                f"{[round(float(v), 4) for v in vmin]} .. {[round(float(v), 4) for v in vmax]}: a camera must "
-                "look at the flow from outside the box (check t, and the volume's world frame)")
-    return None
-
-
-def _check_centre_outside(i: int, cam: Camera, grid: Grid, file: str) -> None:
-    why = centre_inside(cam, grid.vmin, grid.vmax)
-    if why is not None:
-        raise SessionError(why, file=file, camera=cam.name, field=f"cameras[{i}].t")
-
-
 def _sees_volume(cam: Camera, grid: Grid) -> bool:
     """Conservative test: False only if no part of the box can be in the image."""
-    pts = np.vstack([grid.corners(), grid.center[None, :]])
-    Xc = pts @ cam.R.T + cam.t
-    front = Xc[:, 2] > 0
-    if not front.any():
-        return False
-    if not front.all():  # the box straddles the camera plane: the camera is next to or in it
-        return True
-    uv = cam.project(pts)
-    W, H = cam.image_size
-    lo, hi = -0.5, np.array([W - 0.5, H - 0.5])
-    if np.any(np.all((uv >= lo) & (uv <= hi), axis=1)):
-        return True
-    # the projected box may still cover the image without a corner inside it
-    umin, umax = uv.min(axis=0), uv.max(axis=0)
-    return bool(np.all(umin <= hi) and np.all(umax >= lo))
+    return sees_box(cam, grid.vmin, grid.vmax)
+
+
+def check_rig(cameras, vmin, vmax, *, file: str, fields: dict[str, str] | None = None,
+              error: type[SchlierenInputError] = SessionError,
+              params: RigSanityParams = RigSanityParams()) -> None:
+    """Calibration sanity (:func:`~schlieren.pipeline.calibration.sanity.rig_problems`)
+    before any work: raise the first fatal problem as ``error`` naming ``file`` (the
+    manifest or calibration file the user gave), the camera and its field
+    (``fields[name] + "." + field``, default ``cameras[i].field``); log the warnings."""
+    prefix = fields or {c.name: f"cameras[{i}]" for i, c in enumerate(cameras)}
+    problems = rig_problems(cameras, vmin, vmax, **asdict(params))
+    for p in problems:
+        if p.fatal:
+            fld = "volume" if p.camera is None else f"{prefix[p.camera]}.{p.field}"
+            raise error(p.message, file=file, camera=p.camera, field=fld)
+    for p in problems:
+        log.warning("camera %s %s (file %s)", p.camera, p.message, file)

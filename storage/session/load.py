@@ -2,7 +2,7 @@
 
 Find the manifest, parse its YAML safely, validate the typed model, check the camera list,
 the volume, the sync window and the frame range, resolve and contain the cameras' paths,
-check that the cameras see the volume, check the files, and check that the cameras agree
+check the rig's geometry (units, cameras outside the volume and seeing it), check the files, and check that the cameras agree
 on the image size. Each step is a function here or in a sibling module, and raises the
 one-line :class:`~schlieren.storage.errors.SessionError` of the first problem it finds.
 """
@@ -26,11 +26,9 @@ from schlieren.storage.readers.video import VideoFrames
 from schlieren.storage.session.checks import (
     _camera_from_model,
     _check_background,
-    _check_background_beyond_volume,
-    _check_centre_outside,
     _check_range,
     _check_volume,
-    _sees_volume,
+    check_rig,
     frames_beside_strobe,
     parse_frame_range,
     strobe_overlap,
@@ -97,9 +95,10 @@ def load_session(path: str | os.PathLike, *, frames: tuple[int, int] | None = No
     if rng is not None and strobe is not None and strobe_overlap(rng, strobe, what) is not None:
         raise SessionError(strobe_overlap(rng, strobe, what), file=mfile, field="sync.strobe.search_frames")
     cameras, sources = _cameras_and_sources(m, root, mfile)
+    if all(b > a for a, b in zip(m.volume.min, m.volume.max)):  # else _check_volume says why
+        check_rig(cameras, m.volume.min, m.volume.max, file=mfile)  # units, placement, visibility
     if grid is None:   # no voxel_size in the manifest: from the cameras' pixel footprint
         grid = _check_volume(m.volume, mfile, cameras)
-    _check_cameras_see_volume(cameras, grid, mfile)
     found = _FileChecks(frames=rng)
     if check_files:
         found = _check_files(cameras, sources, root, mfile, rng=rng, what=what, strobe=strobe,
@@ -259,21 +258,6 @@ def _cameras_and_sources(m: ManifestModel, root: Path | str, mfile: str) -> tupl
         cameras.append(cam)
         sources.append(CameraSource(c.name, fr, ref, kind, _kind_of_reference(c.reference), c.interlaced))
     return cameras, sources
-
-
-def _check_cameras_see_volume(cameras: list[Camera], grid: Grid, mfile: str) -> None:
-    """No camera centre inside the volume; some camera sees the volume (a warning for each
-    that does not); every background plane lies behind the volume."""
-    for i, cam in enumerate(cameras):
-        _check_centre_outside(i, cam, grid, mfile)
-    seeing = [cam.name for cam in cameras if _sees_volume(cam, grid)]
-    if not seeing:
-        raise SessionError("no camera sees any part of the volume (check volume, R and t)", file=mfile,
-                           field="volume")
-    for i, cam in enumerate(cameras):
-        if cam.name not in seeing:
-            log.warning("camera %s does not see the volume; it will contribute nothing", cam.name)
-        _check_background_beyond_volume(i, cam, grid, mfile)
 
 
 def _check_same_image_size(m: ManifestModel, mfile: str) -> None:

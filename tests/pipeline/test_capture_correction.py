@@ -25,7 +25,7 @@ def background():
 @pytest.fixture(scope="module")
 def prep(background):
     ref = render(background, SHAPE, noise=0.4, rng=np.random.default_rng(1))
-    return prepare_reference(ref, **FLOW.reference_kwargs())
+    return prepare_reference(ref, presmooth=FLOW.presmooth, levels=FLOW.levels)
 
 
 def _static():
@@ -110,10 +110,10 @@ def test_defective_pixels_get_no_weight_and_no_nan(background):
     rows, cols = np.array([30, 90, 150, 40]), np.array([40, 200, 120, 230])
     defects[rows, cols] = 1
     off = CaptureParams(motion_model="none", photometric=False)
-    d_clean, _ = corrected_deflection(prepare_reference(ref, **FLOW.reference_kwargs()), frame, FLOW, off)
+    d_clean, _ = corrected_deflection(prepare_reference(ref, presmooth=FLOW.presmooth, levels=FLOW.levels), frame, FLOW, off)
     frame[rows, cols] = 255.0
     ref[rows, cols] = 255.0
-    prep_hot = prepare_reference(ref, **FLOW.reference_kwargs())
+    prep_hot = prepare_reference(ref, presmooth=FLOW.presmooth, levels=FLOW.levels)
     d, _ = corrected_deflection(prep_hot, frame, FLOW, off, defects=defects)
     assert np.isfinite(d).all()
     d_blind, _ = corrected_deflection(prep_hot, frame, FLOW, off)

@@ -84,10 +84,10 @@ def test_mask_contains_plume_support_over_a_sequence():
         flows.append(f + rng.normal(0, 0.005, f.shape).astype(np.float32))
     P = np.stack([M.flow_potential(f) for f in flows])
     params = M.MaskParams(percentile=85.0, deflection_threshold=0.0)
-    summaries = [M.potential_summary(p, **params.kwargs_for(M.potential_summary)) for p in P]
-    thr = M.threshold_from_summaries(summaries, **params.kwargs_for(M.threshold_from_summaries))
+    summaries = [M.potential_summary(p) for p in P]
+    thr = M.threshold_from_summaries(summaries, percentile=params.percentile)
     for t in range(n):
-        m = M.make_mask(P, t, thr, **params.kwargs_for(M.make_mask))
+        m = M.make_mask(P, t, thr, deflection_threshold=params.deflection_threshold)
         s = supports[t]
         assert m[s].mean() >= 0.995
         assert m.sum() <= 3 * s.sum()
@@ -127,14 +127,13 @@ def test_deflection_union_covers_strong_plume_flanks_without_noise_false_positiv
     P = M.flow_potential(flow)[None]
     params = M.MaskParams(percentile=97.0)
     thr = M.threshold_from_samples(P, percentile=params.percentile)
-    core_only = M.make_mask(P, 0, thr, **params.kwargs_for(M.make_mask))
-    both = M.make_mask(P, 0, thr, flows=flow[None], **params.kwargs_for(M.make_mask))
+    core_only = M.make_mask(P, 0, thr)
+    both = M.make_mask(P, 0, thr, flows=flow[None])
     assert core_only[support].mean() < 0.99          # the percentile alone misses the flanks
     assert both[support].mean() >= 0.995
     assert both.sum() <= 3 * support.sum()
     noise = rng.normal(0, 0.004, (1, h, w, 2)).astype(np.float32)
-    empty = M.make_mask(np.zeros((1, h, w), np.float32), 0, 1.0, flows=noise,
-                        **params.kwargs_for(M.make_mask))
+    empty = M.make_mask(np.zeros((1, h, w), np.float32), 0, 1.0, flows=noise)
     assert not empty.any()
 
 

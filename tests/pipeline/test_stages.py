@@ -4,7 +4,6 @@ import dataclasses
 
 import pytest
 
-from schlieren.pipeline import stages
 from schlieren.pipeline.stages import STAGES, RunConfig, bind_medium, config_from_dict, config_to_dict
 
 
@@ -46,12 +45,3 @@ def test_table_is_consistent():
     for s in STAGES:
         assert set(s.inputs) <= seen | {"geometry"}, s.name
         seen |= set(s.outputs)
-
-
-def test_kernel_kwargs_passes_only_accepted_fields():
-    from schlieren.pipeline import masks
-
-    kw = stages.kernel_kwargs(masks.MaskParams(), masks.make_mask)
-    assert set(kw) <= {"smooth_sigma", "dilation_radius", "temporal_radius", "deflection_threshold",
-                       "flow_sigma", "percentile", "n_quantiles", "noise_factor", "grow_factor"}
-    assert "dilation_radius" in kw

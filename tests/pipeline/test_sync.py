@@ -243,7 +243,7 @@ def test_field_motion_recovers_a_translation():
 
 
 def test_field_motion_from_the_coarser_level_is_no_worse_on_noisy_fields():
-    """``finest=1`` (the default of ``ResampleParams.finest_level``) estimates the motion on
+    """``finest_level=1`` (the default of ``ResampleParams.finest_level``) estimates the motion on
     the half-resolution level and prolongs it: the motion between flow fields is smooth, so
     against the known translation (2.5 cells up) it is at least as accurate as the full-grid
     estimate, with and without flow noise."""
@@ -256,7 +256,7 @@ def test_field_motion_from_the_coarser_level_is_no_worse_on_noisy_fields():
             for _ in range(3):
                 a = blob_field(0.0) + rng.normal(0, sigma, GRID.shape + (2,)).astype(np.float32)
                 b = blob_field(1.0 / FR) + rng.normal(0, sigma, GRID.shape + (2,)).astype(np.float32)
-                m = S.field_motion(a, b, window=15, levels=3, iterations=2, finest=finest)
+                m = S.field_motion(a, b, window=15, levels=3, iterations=2, finest_level=finest)
                 assert m.shape == GRID.shape + (2,)
                 e.append(np.sqrt(np.mean((m[g, 1] + 2.5) ** 2)))
             err[finest] = float(np.mean(e))

@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from schlieren.pipeline.calibration import BoardSpec, CameraCalibration, RigCalibration
-from schlieren.storage.calibration_io import write_calibration
+from schlieren.storage.calibration_io import read_calibration, write_calibration
 from schlieren.storage.errors import SchlierenInputError
 from schlieren.storage.scaffold import find_videos, probe_video, scaffold_session
 from schlieren.storage.frames import read_reference
@@ -299,7 +299,48 @@ def test_init_refuses_a_camera_inside_the_volume_and_a_bad_name(tmp_path):
     kw = dict(reference_frames=(0, 4), frame_rate=FPS, time_offsets=0.0, **VOLUME)
     with pytest.raises(SchlierenInputError, match="inside the volume") as info:
         scaffold_session(session, folders, str(tmp_path / "inside.yaml"), **kw)
-    assert info.value.camera == "cam1" and info.value.field == "t"
+    assert info.value.camera == "cam1" and info.value.field == "cameras[1].t"
+    assert info.value.file == str(tmp_path / "inside.yaml")  # the calibration the user gave
     with pytest.raises(SchlierenInputError, match="camera name") as info:
         scaffold_session(session, {"cam 0": folders["cam0"]}, calib_path, **kw)
     assert len(str(info.value)) < 400
+
+
+def test_init_refuses_a_calibration_in_millimetres_naming_it(tmp_path):
+    """Issue 33: t and the background in mm were accepted (all cameras) or refused naming
+    the temporary manifest (one camera); now refused naming the calibration and the unit."""
+    session = tmp_path / "s"
+    folders = make_sequences(session)
+    doc = yaml.safe_load(open(make_calibration(tmp_path / "calibration.yaml")))
+    kw = dict(reference_frames=(0, 4), frame_rate=FPS, time_offsets=0.0, **VOLUME)
+    for only_t in (False, True):
+        for c in doc["cameras"]:
+            c["t"] = [1000.0 * v for v in c["t"]]
+            c["background"] = {"distance": 5.0 if only_t else 5000.0}
+        path = tmp_path / f"mm{only_t}.yaml"
+        path.write_text(yaml.safe_dump(doc))
+        with pytest.raises(SchlierenInputError, match="calibration in millimetres") as info:
+            scaffold_session(session, folders, str(path), **kw)
+        assert info.value.file == str(path) and info.value.camera == "cam0" and ".tmp" not in str(info.value)
+        assert not (session / "session.yaml").exists()
+        doc = yaml.safe_load(open(tmp_path / "calibration.yaml"))
+
+
+def test_an_error_of_the_session_reader_names_the_users_files(tmp_path):
+    from schlieren.storage.errors import SessionError
+    from schlieren.storage.scaffold.build import _named_for_user
+
+    calib = read_calibration(make_calibration(tmp_path / "calibration.yaml"))
+
+    class Plan:
+        pass
+
+    plan = Plan()
+    plan.calib, plan.manifest_path = calib, tmp_path / "s" / "session.yaml"
+    tmp = tmp_path / "s" / "session.yaml.tmp"
+    geo = _named_for_user(SessionError("bad", file=str(tmp), camera="cam2", field="cameras[1].background"), tmp, plan)
+    assert (geo.file, geo.camera, geo.field) == (calib.path, "cam2", "cameras[2].background")
+    other = _named_for_user(SessionError("bad", file=str(tmp), field="frames"), tmp, plan)
+    assert other.file == str(plan.manifest_path) and isinstance(other, SessionError)
+    elsewhere = SessionError("bad", file=str(tmp_path / "x.png"), camera="cam2", field="cameras[1].frames")
+    assert _named_for_user(elsewhere, tmp, plan) is elsewhere

@@ -445,7 +445,7 @@ def test_background_plane_in_front_of_the_volume(session_builder):
     b.camera(2)["background"] = {"distance": 0.5}  # the volume centre is 1 m away
     b.save()
     expect_error(b.root, file=b.path, camera="cam02", field="cameras[2].background",
-                 match="not behind the volume")
+                 match="nearer than the volume centre")
 
 
 def test_background_negative_distance(session_builder):
@@ -851,3 +851,17 @@ def test_a_camera_inside_the_volume_is_refused(session_builder):
     b.camera(0)["t"] = (-R @ inside).tolist()
     b.save()
     expect_error(b.root, file=b.path, camera="cam00", field="cameras[0].t", match="inside the volume")
+
+
+def test_a_manifest_in_millimetres_is_refused_before_any_work(session_builder):
+    """Translations and background distances in mm, the volume in metres (issue 33)."""
+    b = session_builder
+    for i in range(3):
+        b.camera(i)["t"] = (1000.0 * np.asarray(b.camera(i)["t"])).tolist()
+        b.camera(i)["background"] = {"distance": 1000.0 * b.camera(i)["background"]["distance"]}
+    b.save()
+    err = expect_error(b.root, file=b.path, camera="cam00", field="cameras[0].t", match="calibration in millimetres?")
+    assert "\n" not in str(err)
+    del b.manifest["volume"]["voxel_size"]
+    b.save()
+    expect_error(b.root, file=b.path, camera="cam00", field="cameras[0].t", match="calibration in millimetres?")

@@ -69,3 +69,56 @@ def test_performance_report_none_is_a_no_op():
     with performance_report_cm(None) as path:
         assert path is None
     assert time.perf_counter() - t0 < 5
+
+
+def _health(link: str) -> tuple[int, str]:
+    return _get(link.replace("/status", "/health"))
+
+
+@pytest.mark.system
+@pytest.mark.timeout(120)
+def test_a_taken_dashboard_port_is_named_in_the_dashboard_line():
+    """8787 taken (another run, a notebook's cluster): the run still starts, on another port,
+    and the line it prints says which port was taken; the link is the one that answers."""
+    import socket
+
+    from schlieren.workers.cluster import dashboard_line
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen(1)
+        taken = s.getsockname()[1]
+        opts = ClusterOptions(workers=1, memory_limit="1GiB", dashboard_address=f"127.0.0.1:{taken}")
+        with open_client(opts) as (client, info):
+            line = dashboard_line(client)
+            assert line == f"dashboard: {info.dashboard_link} (port {taken} is taken, by another run or program; " \
+                           f"this run's is {info.dashboard_link.split(':')[2].split('/')[0]})", line
+            assert f":{taken}/" not in info.dashboard_link
+            assert _health(info.dashboard_link) == (200, "ok")
+
+
+@pytest.mark.system
+@pytest.mark.timeout(120)
+def test_a_batch_clusters_dashboard_link_names_where_it_listens():
+    """The submit scheduler listens on all interfaces (host None: the compute nodes reach it)
+    but its dashboard on loopback only: the link names 127.0.0.1, not the host's address."""
+    from pathlib import Path
+
+    from distributed import Client
+
+    from schlieren.workers.cluster import dashboard_line, dashboard_link, make_batch_cluster
+    from schlieren.workers.commands.submit import load_submit_config
+
+    cfg = load_submit_config(Path(__file__).resolve().parents[2] / "deploy/slurm/jobqueue.yaml")
+    cfg["schlieren"].pop("tls", None)
+    cfg["schlieren"]["adapt"] = {"minimum": 0, "maximum": 1}  # submits nothing
+    cfg["jobqueue"]["slurm"]["scheduler-options"] = {"dashboard_address": "127.0.0.1:0"}
+    cluster = make_batch_cluster("slurm", cfg)
+    try:
+        with Client(cluster) as client:
+            link = dashboard_link(client)
+            assert link.startswith("http://127.0.0.1:"), (link, cluster.scheduler_address)
+            assert _health(link) == (200, "ok")
+            assert dashboard_line(client) == f"dashboard: {link}"
+    finally:
+        cluster.close()

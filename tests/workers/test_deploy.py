@@ -352,7 +352,7 @@ def test_submit_runs_the_session_on_the_cluster_it_creates(tiny_session, tmp_pat
     saved = {k: os.environ.get(k) for k in THREAD_ENV}  # in-process nannies export them here
     try:
         code = cli_main(["submit", str(tiny_session.session), "--out", str(tmp_path / "store"), "--cluster", "slurm",
-                         "--config", str(cfg_path), "--scale", "3", "--frames", "1:3", "--no-progress",
+                         "--config", str(cfg_path), "--scale", "3", "--frames", "5:7", "--no-progress",
                          "--log", str(tmp_path / "run.jsonl"), "--verify"])
     finally:
         for k, v in saved.items():
@@ -363,7 +363,7 @@ def test_submit_runs_the_session_on_the_cluster_it_creates(tiny_session, tmp_pat
     assert code == 0
     assert made["kind"] == "slurm" and made["scale"] == 3
     name = yaml.safe_load(Path(tiny_session.session).read_text())["name"]
-    assert calls == [(name, str(tmp_path / "store"), (1, 3), True, False)]  # --verify reaches the run
+    assert calls == [(name, str(tmp_path / "store"), (5, 7), True, False)]  # --verify reaches the run
     lines = [json.loads(x) for x in (tmp_path / "run.jsonl").read_text().splitlines()]
     assert [x["message"] for x in lines] == ["task receipt", "run finished"]
     assert lines[0]["session"] == name and lines[0]["iterations"] == 7 and lines[0]["frame"] == 2
@@ -371,3 +371,39 @@ def test_submit_runs_the_session_on_the_cluster_it_creates(tiny_session, tmp_pat
     assert made["cluster"].status.name == "closed"  # submit shuts the cluster down
     err = capsys.readouterr().err
     assert "dashboard: http://127.0.0.1:" in err
+
+
+# ----------------------------------------------------------------------------------------
+# the job watch of SLURM / PBS clusters (its runs against a real SLURM: tests/e2e/test_slurm.py)
+
+
+def test_batch_job_states_are_read_from_squeue_and_qstat():
+    from schlieren.workers.cluster.jobwatch import is_alive, parse_qstat, parse_squeue, submit_error_line
+
+    assert parse_squeue("12 RUNNING\n13 PENDING\n14 CANCELLED\n\n") == {"12": "RUNNING", "13": "PENDING",
+                                                                       "14": "CANCELLED"}
+    qstat = ("Job id            Name             User              Time Use S Queue\n"
+             "----------------  ---------------- ----------------  -------- - -----\n"
+             "1234.pbs01        schlieren-worker alice             00:00:03 R workq\n"
+             "1235.pbs01        schlieren-worker alice                    0 Q workq\n")
+    assert parse_qstat(qstat) == {"1234": "R", "1235": "Q"}
+    assert is_alive("slurm", "RUNNING") and is_alive("slurm", "PENDING")
+    assert not any(is_alive("slurm", s) for s in ("COMPLETING", "CANCELLED", "FAILED", "NODE_FAIL", None))
+    assert is_alive("pbs", "Q") and not is_alive("pbs", "F") and not is_alive("pbs", "E")
+    refused = RuntimeError("Command exited with non-zero exit code.\nExit code: 1\nCommand:\nsbatch /tmp/x.sh\n"
+                           "stdout:\n\nstderr:\nsbatch: error: invalid partition specified: compute\n\n")
+    assert submit_error_line(refused) == "sbatch: error: invalid partition specified: compute"
+
+
+def test_workers_are_mapped_to_their_multi_process_job():
+    """``<job>-<i>`` names the i-th worker process of job ``<job>`` (dask-jobqueue issue 611)."""
+    from schlieren.workers.cluster.jobwatch import WatchedJobs
+
+    cluster = WatchedJobs.__new__(WatchedJobs)
+    group = {"group": ["-0", "-1"]}
+    cluster.worker_spec = {"SLURMCluster-1": group, "SLURMCluster-10": group}
+    cluster.workers = {"SLURMCluster-1": object(), "SLURMCluster-10": object(), "SLURMCluster-2": object()}
+    assert cluster.job_of("SLURMCluster-1-1") == "SLURMCluster-1"
+    assert cluster.job_of("SLURMCluster-10-0") == "SLURMCluster-10"
+    assert cluster.job_of("SLURMCluster-2-0") == "SLURMCluster-2"  # dropped from the plan, still held
+    assert cluster.job_of("SLURMCluster-1") is None and cluster.job_of("SLURMCluster-3-0") is None

@@ -771,7 +771,9 @@ def test_job_script_runs_the_venv_python_with_a_valid_worker_command(kind, tmp_p
         env = {"HOME": str(home), "PATH": "/usr/bin:/bin", "ARGV_LOG": str(log)}
         if tmpdir is not None:
             env["TMPDIR"] = tmpdir
-        subprocess.run(["bash", str(script)], env=env, check=True, timeout=60, capture_output=True)
+        done = subprocess.run(["bash", str(script)], env=env, check=True, timeout=60, capture_output=True, text=True)
+        # a site without environment modules: the recipe's `module load` line stays quiet
+        assert done.stderr == "", done.stderr
     calls = [json.loads(x) for x in log.read_text().splitlines()]
     assert len(calls) == 3 and all(c[:2] == ["-m", "distributed.cli.dask_worker"] for c in calls)
     dirs = []
@@ -936,3 +938,34 @@ def test_dev_pins_cover_the_test_environment_and_agree_with_the_image():
         if req.marker is not None and not req.marker.evaluate({"extra": ""}):
             continue
         assert req.specifier.contains(dev[canonicalize_name(req.name)], prereleases=True), raw
+
+
+# ----------------------------------------------------------------------------------------
+# the local SLURM script and the guide's SLURM section
+
+
+@pytest.mark.system  # runs deploy/slurm/local/slurm.sh start (it ends at once here, but it is SLURM's script)
+@pytest.mark.skipif(os.name != "posix", reason="a bash script")
+def test_local_slurm_script_says_in_one_line_why_it_cannot_start(tmp_path):
+    """Where SLURM cannot be started (here: not root) slurm.sh exits 3 with one line, which
+    tests/e2e/test_slurm.py skips with and .ci/run reports; nothing is started."""
+    fake = tmp_path / "bin"
+    fake.mkdir()
+    (fake / "id").write_text("#!/bin/sh\necho 1000\n")  # `id -u`: not root
+    (fake / "id").chmod(0o755)
+    env = dict(os.environ, PATH=f"{fake}:{os.environ.get('PATH', '/usr/bin:/bin')}",
+               SCHLIEREN_SLURM_DIR=str(tmp_path / "slurm"))
+    p = subprocess.run([str(DEPLOY / "slurm/local/slurm.sh"), "start"], env=env, capture_output=True, text=True,
+                       timeout=60)
+    assert p.returncode == 3, p.stderr
+    assert len(p.stderr.strip().splitlines()) == 1 and "needs root" in p.stderr, p.stderr
+    assert not (tmp_path / "slurm" / "slurm.conf").exists()
+
+
+def test_guide_names_what_a_slurm_site_edits_and_needs_first():
+    guide = (DEPLOY / "GUIDE.md").read_text()
+    slurm = guide[guide.index("## 3. SLURM"):guide.index("## 4. PBS")]
+    for needed in ("schlieren tls init", "DASK_CONFIG", "`--exclusive`", "one job per node",
+                   "deploy/slurm/local/slurm.sh start", "SLURM_CONF", "wait-timeout", "stall-timeout"):
+        assert needed in slurm, needed
+    assert slurm.index("schlieren tls init") < slurm.index("schlieren submit SESSION"), "certificates first"

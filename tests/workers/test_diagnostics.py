@@ -269,3 +269,45 @@ def test_flash_lit_frames_get_no_deflection_warning():
                [{"stage": "deflection", "camera": "cam01", "frame": 3, "max_px": 40.0}]
     w = diagnose(receipts, n_voxels=100, flash_frames={"cam03": (3, 4), "cam01": (-1, -1)})
     assert len(w) == 1 and w[0].startswith("camera cam01, frame 3: deflections up to 40 px"), w
+
+
+_SCRIPT = '''import schlieren
+
+{body}
+'''
+
+
+def _run_script(tmp_path, name, body):
+    import subprocess
+    import sys
+
+    script = tmp_path / name
+    script.write_text(_SCRIPT.format(body=body))
+    return subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+
+
+def test_a_script_without_the_main_guard_stops_with_one_line(tiny_session, tmp_path):
+    """schlieren.run(..., workers=2) at the top level of a plain script: the spawned workers
+    import the script again and start clusters of their own (before: ~500 lines of worker
+    tracebacks ending in "Nanny failed to start"). It stops at once with one line naming the
+    guard, before any worker starts or anything is written."""
+    out = tmp_path / "unguarded.zarr"
+    p = _run_script(tmp_path, "plain.py", f"ds = schlieren.run({str(tiny_session.session)!r}, {str(out)!r}, "
+                                          "workers=2, progress=False)\nprint(ds)")
+    lines = p.stderr.strip().splitlines()
+    assert p.returncode == 1, p.stderr[-3000:]
+    assert len(lines) == 1 and "Traceback" not in p.stderr, p.stderr[-3000:]
+    assert 'if __name__ == "__main__":' in lines[0] and "plain.py, line 3" in lines[0], lines[0]
+    assert not out.exists()
+
+
+@pytest.mark.system  # starts a local Dask cluster
+def test_a_script_with_the_main_guard_runs(tiny_session, serial_store, tmp_path):
+    from store_compare import assert_same_store
+
+    out = tmp_path / "guarded.zarr"
+    body = (f"def main():\n    schlieren.run({str(tiny_session.session)!r}, {str(out)!r}, workers=2, progress=False)\n\n\n"
+            "if __name__ == \"__main__\":\n    main()")
+    p = _run_script(tmp_path, "guarded.py", body)
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert_same_store(serial_store, out)

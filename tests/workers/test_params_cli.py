@@ -32,7 +32,11 @@ def test_python_configurations_are_checked_before_the_store_exists(tiny_session,
     from schlieren.workers.run import run_session
 
     cfg = RunConfig()
-    bad = dataclasses.replace(cfg, flow=dataclasses.replace(cfg.flow, presmooth=float("inf")))
+    with pytest.raises(ParamsError, match="FlowParams.presmooth"):  # refused where it is built
+        dataclasses.replace(cfg.flow, presmooth=float("inf"))
+    flow = dataclasses.replace(cfg.flow)
+    object.__setattr__(flow, "presmooth", float("inf"))  # changed behind the construction's back
+    bad = dataclasses.replace(cfg, flow=flow)
     out = tmp_path / "out.zarr"
     with pytest.raises(ParamsError, match="flow.presmooth"):
         run_session(tiny_session.session, out, serial=True, config=bad)

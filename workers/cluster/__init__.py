@@ -20,10 +20,11 @@ One module per mode, as distributed's ``deploy/``:
 settings        ``TOMO``, thread caps, allocator settings, the Dask config of every cluster
 options         :class:`ClusterOptions`, :class:`ClusterInfo`, a submit config's ``schlieren:``
 worker_setup    the worker plugins (:class:`SchlierenWorkerSetup`, :class:`TomoResource`)
-dashboard       the dashboard link; a loopback address with a free port
+dashboard       the dashboard link and line (the port taken, if any); a loopback address
 scheduler       connecting to a running scheduler; the version check; preparing a client
 local           the local process cluster
 jobqueue        SLURM / PBS (dask-jobqueue): cluster arguments, job script, walltime checks
+jobwatch        the batch jobs: the ones that end replaced; one line when none can run
 kubernetes      the ``DaskCluster`` manifest (from dask-kubernetes' template) and KubeCluster
 interrupts      Ctrl-C on a local cluster's workers
 client          the entry points: :func:`open_client`, :func:`connect`, :func:`make_batch_cluster`
@@ -33,9 +34,15 @@ client          the entry points: :func:`open_client`, :func:`connect`, :func:`m
 from __future__ import annotations
 
 from schlieren.workers.cluster.client import adopt_client, connect, make_batch_cluster, open_client
-from schlieren.workers.cluster.dashboard import DEFAULT_DASHBOARD, dashboard_link, loopback_dashboard_address
+from schlieren.workers.cluster.dashboard import (
+    DEFAULT_DASHBOARD,
+    dashboard_line,
+    dashboard_link,
+    loopback_dashboard_address,
+)
 from schlieren.workers.cluster.interrupts import LocalInterrupts
 from schlieren.workers.cluster.jobqueue import job_script, jobqueue_cluster, jobqueue_kwargs
+from schlieren.workers.cluster.jobwatch import ClusterStalled, WatchedJobs, stop_on_stall
 from schlieren.workers.cluster.kubernetes import (
     IMAGE_UID,
     TLS_MOUNT,
@@ -54,9 +61,9 @@ from schlieren.workers.cluster.worker_setup import (
 
 __all__ = [
     "BATCH_KINDS", "DASK_SETTINGS", "DEFAULT_DASHBOARD", "IMAGE_UID", "MALLOC_ENV", "THREAD_ENV", "TLS_MOUNT", "TOMO",
-    "ClusterInfo", "ClusterOptions", "LocalInterrupts", "SchlierenWorkerSetup", "TomoResource",
-    "VersionMismatchError", "adopt_client", "check_versions", "connect", "connect_error", "dashboard_link",
-    "dask_settings", "daskcluster_manifest", "job_script", "jobqueue_cluster", "jobqueue_kwargs",
-    "loopback_dashboard_address", "make_batch_cluster", "open_client", "register_worker_setup",
-    "schlieren_section", "unique_cluster_config", "worker_thread_report",
+    "ClusterInfo", "ClusterOptions", "ClusterStalled", "LocalInterrupts", "SchlierenWorkerSetup", "TomoResource",
+    "VersionMismatchError", "WatchedJobs", "adopt_client", "check_versions", "connect", "connect_error",
+    "dashboard_line", "dashboard_link", "dask_settings", "daskcluster_manifest", "job_script", "jobqueue_cluster",
+    "jobqueue_kwargs", "loopback_dashboard_address", "make_batch_cluster", "open_client", "register_worker_setup",
+    "schlieren_section", "stop_on_stall", "unique_cluster_config", "worker_thread_report",
 ]

@@ -20,6 +20,7 @@ from distributed import Client
 from distributed.security import Security
 
 from schlieren.workers.cluster.jobqueue import scaled_jobqueue_cluster
+from schlieren.workers.cluster.jobwatch import ClusterStalled, WatchedJobs
 from schlieren.workers.cluster.kubernetes import kube_cluster
 from schlieren.workers.cluster.local import local_client
 from schlieren.workers.cluster.options import BATCH_KINDS, ClusterInfo, ClusterOptions, schlieren_section
@@ -57,17 +58,31 @@ def connect(cluster: Any, opts: ClusterOptions | None = None, *, mode: str = "ba
 
     Registers :class:`SchlierenWorkerSetup` and checks versions like :func:`open_client`;
     waits for ``wait_workers`` workers first (batch jobs may queue: ``timeout`` None waits
-    as long as it takes). Closes the client, not the cluster.
+    as long as it takes; past it :class:`ClusterStalled` says how many came and what the
+    jobs do). Closes the client, not the cluster.
     """
     opts = opts or ClusterOptions()
     client = Client(cluster, security=security, set_as_default=True)
     try:
         if wait_workers:
-            client.wait_for_workers(wait_workers, timeout=timeout)
+            try:
+                client.wait_for_workers(wait_workers, timeout=timeout)
+            except TimeoutError:  # distributed's WorkerStartTimeoutError: "1 (120.0)" as text
+                raise ClusterStalled(_no_workers_yet(cluster, client, wait_workers, timeout)) from None
         info = prepare_client(client, opts, mode)
         yield client, info
     finally:
         client.close()
+
+
+def _no_workers_yet(cluster: Any, client: Client, wanted: int, timeout: float | None) -> str:
+    """One line for a first wait that timed out: how many workers came, what the jobs do."""
+    got = len(client.scheduler_info(n_workers=-1).get("workers", {}))
+    jobs = ""
+    if isinstance(cluster, WatchedJobs):
+        with contextlib.suppress(Exception):
+            jobs = f": {cluster.sync(cluster.jobs_summary_now)}"
+    return f"{got} of {wanted} worker(s) joined within {timeout:g} s (schlieren.wait-timeout){jobs}"
 
 
 def make_batch_cluster(kind: str, config: Mapping[str, Any]) -> Any:

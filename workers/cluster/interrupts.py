@@ -9,9 +9,12 @@ of the terminal.
 from __future__ import annotations
 
 import logging
+import multiprocessing
 from typing import Any
 
 from distributed.diagnostics.plugin import WorkerPlugin
+
+from schlieren.workers.cluster.worker_setup import exit_without_teardown
 
 
 class _CancelledOnClose(logging.Filter):
@@ -49,7 +52,10 @@ class LocalInterrupts(WorkerPlugin):
     processes of a local cluster included: each printed a KeyboardInterrupt traceback
     before the client's one-line "interrupted" message. The client closes the cluster
     (which stops the workers) and keeps every completed chunk; the workers ignore SIGINT
-    (they only note it, to keep the cluster's closing errors out of the terminal).
+    (they only note it, to keep the cluster's closing errors out of the terminal). Asked
+    to close after a Ctrl-C, a worker process ends at once: its nanny would otherwise wait
+    for the task it runs and, past 4 s, kill it with "Worker process still alive after 4.0
+    seconds, killing" (that task's chunks and marker are not written; the rerun computes it).
     Registered only on local clusters (a worker started by hand keeps its Ctrl-C).
     """
 
@@ -64,3 +70,7 @@ class LocalInterrupts(WorkerPlugin):
             signal.signal(signal.SIGINT, _note_ctrl_c)  # ignored, but remembered for _AfterCtrlC
         logging.getLogger("distributed.worker.state_machine").addFilter(_CancelledOnClose())
         logging.getLogger("distributed.worker").addFilter(_AfterCtrlC())
+
+    def teardown(self, worker: Any) -> None:
+        if _AfterCtrlC.interrupted and getattr(worker, "nanny", None) and multiprocessing.parent_process():
+            exit_without_teardown()

@@ -1,6 +1,7 @@
 """SLURM and PBS through dask-jobqueue: the keyword arguments of its cluster objects, built
 from a submit config (``deploy/slurm/jobqueue.yaml``), the job script they submit, and the
 checks that keep a batch job from killing its workers mid-task (walltime vs ``--lifetime``).
+The cluster classes have :mod:`~schlieren.workers.cluster.jobwatch`'s job watch mixed in.
 
 The scheduler runs in the submitting process (on the login node); each batch job starts
 worker processes that join it.
@@ -8,6 +9,7 @@ worker processes that join it.
 
 from __future__ import annotations
 
+import functools
 import shlex
 from collections.abc import Mapping
 from pathlib import Path
@@ -15,6 +17,8 @@ from typing import Any
 
 from distributed.security import Security
 
+from schlieren.workers.cluster.dashboard import port_warnings_logged
+from schlieren.workers.cluster.jobwatch import WatchedJobs, WatchSettings, recording_job_class
 from schlieren.workers.cluster.options import schlieren_section, underscore_keys
 from schlieren.workers.cluster.settings import THREAD_ENV, TOMO
 from schlieren.workers.security import cluster_security, tls_files_from_config
@@ -195,11 +199,17 @@ def jobqueue_kwargs(kind: str, config: Mapping[str, Any], *,
 
 
 def _jobqueue_class(kind: str) -> type:
+    """dask-jobqueue's cluster class for ``kind`` with :class:`WatchedJobs` mixed in."""
     try:
         import dask_jobqueue
     except ImportError as exc:
         raise RuntimeError("dask-jobqueue is not installed: pip install 'schlieren[cluster]'") from exc
-    return {"slurm": dask_jobqueue.SLURMCluster, "pbs": dask_jobqueue.PBSCluster}[kind]
+    return _watched({"slurm": dask_jobqueue.SLURMCluster, "pbs": dask_jobqueue.PBSCluster}[kind])
+
+
+@functools.lru_cache(maxsize=None)
+def _watched(base: type) -> type:
+    return type(f"Watched{base.__name__}", (WatchedJobs, base), {"job_cls": recording_job_class(base.job_cls)})
 
 
 def job_script(kind: str, config: Mapping[str, Any], *, scheduler_address: str | None = None,
@@ -221,10 +231,20 @@ def job_script(kind: str, config: Mapping[str, Any], *, scheduler_address: str |
 
 
 def jobqueue_cluster(kind: str, config: Mapping[str, Any]) -> Any:
-    """The dask-jobqueue cluster object for ``kind``, with its scheduler started, no job submitted yet."""
+    """The dask-jobqueue cluster object for ``kind``, with its scheduler started, no job submitted yet.
+
+    Its jobs are watched (:class:`~schlieren.workers.cluster.jobwatch.WatchedJobs`): the ones
+    that end are replaced, and ``stalled`` says when none can run.
+    """
     job_kw, cluster_kw = jobqueue_kwargs(kind, config)
+    sec = schlieren_section(config)
+    wait = sec["wait_timeout"]
+    watch = WatchSettings(kind=kind, stall_timeout=float(sec["stall_timeout"]),
+                          wait_timeout=float(wait) if wait is not None else None,
+                          log_directory=job_kw.get("log_directory"))
     cls = _jobqueue_class(kind)
-    return cls(**cluster_kw, **{k: v for k, v in job_kw.items() if k not in cluster_kw})
+    with port_warnings_logged():  # a taken dashboard port: the run's "dashboard:" line says so
+        return cls(watch=watch, **cluster_kw, **{k: v for k, v in job_kw.items() if k not in cluster_kw})
 
 
 def scaled_jobqueue_cluster(kind: str, config: Mapping[str, Any]) -> Any:

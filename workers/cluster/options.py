@@ -153,14 +153,18 @@ def schlieren_section(config: Mapping[str, Any]) -> dict[str, Any]:
     ``--scale N`` on the command line drops it), ``tomo-slots`` (default 1),
     ``tls`` (a mapping for :func:`~schlieren.workers.security.tls_files_from_config`, or
     absent), ``dashboard-address`` (default ``127.0.0.1:8787``), ``wait-workers``
-    (workers to wait for before running, default 1), ``wait-timeout`` (seconds, default
-    none: wait for the batch queue), ``dask`` (extra Dask config, dotted keys).
+    (workers to wait for before running, default 1), ``wait-timeout`` (seconds without
+    workers before the run fails, at the start and whenever the workers have left; default
+    none: wait for the batch queue), ``stall-timeout`` (seconds with no worker and no job
+    pending or running before the run fails, default 120), ``dask`` (extra Dask config,
+    dotted keys).
     """
     raw = config.get("schlieren") or {}
     if not isinstance(raw, Mapping):
         raise ValueError("the 'schlieren' section of the config must be a mapping")
     sec = underscore_keys(raw)
-    known = {"scale", "adapt", "tomo_slots", "tls", "dashboard_address", "wait_workers", "wait_timeout", "dask"}
+    known = {"scale", "adapt", "tomo_slots", "tls", "dashboard_address", "wait_workers", "wait_timeout",
+             "stall_timeout", "dask"}
     unknown = set(sec) - known
     if unknown:
         raise ValueError(f"unknown key(s) in the 'schlieren' section: {', '.join(sorted(unknown))}")
@@ -171,11 +175,14 @@ def schlieren_section(config: Mapping[str, Any]) -> dict[str, Any]:
         "dashboard_address": str(sec.get("dashboard_address", DEFAULT_DASHBOARD)),
         "wait_workers": int(sec.get("wait_workers", 1)),
         "wait_timeout": sec.get("wait_timeout"),
+        "stall_timeout": float(sec.get("stall_timeout", 120)),
         "dask": dict(sec.get("dask") or {}),
         "adapt": _adapt_bounds(sec.get("adapt")),
     }
     if out["scale"] < 1 or out["tomo_slots"] < 1:
         raise ValueError("scale and tomo-slots must be at least 1")
+    if out["stall_timeout"] <= 0 or (out["wait_timeout"] is not None and float(out["wait_timeout"]) <= 0):
+        raise ValueError("wait-timeout and stall-timeout must be positive numbers of seconds")
     if out["tls"] is not None and not isinstance(out["tls"], Mapping):
         raise ValueError("the 'tls' entry must be a mapping (dir, or ca-file/cert/key)")
     return out

@@ -23,7 +23,7 @@ def add_parser(sub) -> None:
 
 
 def handler(args) -> int:
-    from schlieren.pipeline.params import params_markdown, params_yaml
+    from schlieren.pipeline.params_text import params_markdown, params_yaml
     from schlieren.pipeline.stages import RunConfig
 
     text = params_markdown(RunConfig) if args.format == "markdown" else params_yaml(RunConfig)

@@ -141,11 +141,12 @@ def execute(session: str, out: str, frames, args, *, console=None):
     with open_run_log(getattr(args, "log", None), loaded.name) as run_log, client_for(args) as (client, info):
         link = None
         if client is not None:
-            from schlieren.workers.cluster import dashboard_link
+            from schlieren.workers.cluster import dashboard_line, dashboard_link
 
             link = dashboard_link(client)
-            if link:
-                print(f"dashboard: {link}", file=sys.stderr)
+            line = dashboard_line(client)  # names the port asked for when it was taken
+            if line:
+                print(line, file=sys.stderr)
         with StageProgress(enabled=not args.no_progress, console=console) as prog:
             summary = run_session(loaded, out, client=client, frames=frames,
                                   serial=client is None, config=cfg, report=args.report,

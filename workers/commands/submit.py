@@ -124,7 +124,7 @@ def _note_missing_certificates(config: dict[str, Any]) -> None:
 
 
 def handler(args: argparse.Namespace) -> int:
-    from schlieren.workers.cluster import ClusterOptions, connect, make_batch_cluster, schlieren_section
+    from schlieren.workers.cluster import make_batch_cluster, schlieren_section
 
     config = load_submit_config(args.config, scale=args.scale)
     try:
@@ -137,10 +137,7 @@ def handler(args: argparse.Namespace) -> int:
 
     # the run entry points belong to the executor; imported here so this module loads without them
     from schlieren.storage.session import load_session
-    from schlieren.workers.commands.run import (check_out, fan_out, load_params, log_finished, open_run_log,
-                                                parse_frames, print_summary)
-    from schlieren.workers.progress import StageProgress
-    from schlieren.workers.run import run_session
+    from schlieren.workers.commands.run import check_out, load_params, open_run_log, parse_frames, print_summary
 
     frames = parse_frames(args.frames)
     run_config = load_params(args.params)
@@ -151,16 +148,32 @@ def handler(args: argparse.Namespace) -> int:
             cluster = make_batch_cluster(args.cluster, config)
         except (ValueError, TypeError, FileNotFoundError, RuntimeError) as exc:
             raise CLIError(f"config {args.config}: {exc}") from None
-        timeout = sec["wait_timeout"]
-        with cluster, connect(
+        with cluster:
+            summary = _run_on(cluster, args, sec, session, run_config, run_log)
+    print_summary(summary, stream=sys.stderr)  # the stream of now (tests swap sys.stderr)
+    return 0 if summary.ok else 1
+
+
+def _run_on(cluster, args: argparse.Namespace, sec: dict[str, Any], session, run_config, run_log):
+    """Connect to the batch cluster, run the session on it; a cluster that cannot run it
+    (no worker joined in time, jobs that keep ending) is one line, not a hang."""
+    from schlieren.workers.cluster import ClusterOptions, ClusterStalled, connect, dashboard_line, stop_on_stall
+    from schlieren.workers.commands.run import fan_out, log_finished
+    from schlieren.workers.progress import StageProgress
+    from schlieren.workers.run import run_session
+
+    timeout = sec["wait_timeout"]
+    try:
+        with stop_on_stall(cluster), connect(
             cluster,
             ClusterOptions(tomo_slots=sec["tomo_slots"]),
             mode=args.cluster,
             wait_workers=sec["wait_workers"],
             timeout=float(timeout) if timeout is not None else None,
         ) as (client, info):
-            if info.dashboard_link:
-                print(f"dashboard: {info.dashboard_link}", file=sys.stderr)
+            line = dashboard_line(client)
+            if line:
+                print(line, file=sys.stderr)
             with StageProgress(enabled=not args.no_progress) as prog:
                 summary = run_session(
                     session,
@@ -178,5 +191,6 @@ def handler(args: argparse.Namespace) -> int:
                 )
             log_finished(run_log, summary)
             summary.dashboard = info.dashboard_link
-    print_summary(summary, stream=sys.stderr)  # the stream of now (tests swap sys.stderr)
-    return 0 if summary.ok else 1
+    except ClusterStalled as exc:
+        raise CLIError(f"{exc}; every completed chunk is kept, submit again to resume") from None
+    return summary

@@ -111,13 +111,31 @@ def build_report(store_path: str | os.PathLike, out_dir: str | os.PathLike, *, f
         _render_section(page, rd, grid, writer, sel, shown, times, medium.refractivity_ambient, render_size)
     _residual_section(page, rd, grid, cameras, cam_note, writer, sel, shown, medium, max_cameras, params)
     _timings_section(page, attrs, writer)
-    if params:
-        page.add("Parameters", f"<pre>{html.escape(json.dumps(params, indent=2, default=str))}</pre>", "params")
+    if params or attrs.get("derived"):
+        page.add("Parameters", _parameters_html(params, attrs.get("derived")), "params")
     page.summary.update({"session": name, "frames": [rd.capture_index(sel.start), rd.capture_index(sel.start)
                                                      + len(sel)] if len(sel) else [],
                          "shown_frame": None if shown is None else rd.capture_index(shown),
                          "missing": page.missing})
     return writer.finish(page)
+
+
+def _parameters_html(params, derived) -> str:
+    """The values the run derived in place of parameters (the store's ``derived`` attribute:
+    requested, effective, unit, from what), then every parameter as stored."""
+    body = ""
+    if isinstance(derived, dict) and derived:
+        def show(v):
+            return ", ".join(fmt_number(x) for x in v) if isinstance(v, list) else \
+                "not given" if v is None else fmt_number(v)
+
+        rows = [[name, show(d.get("requested")), show(d.get("effective")), d.get("unit", ""), d.get("from", "")]
+                for name, d in derived.items() if isinstance(d, dict)]
+        body += ("<p>Values the run derived in place of the parameters (per-camera values in camera "
+                 "order):</p>" + html_table(["parameter", "requested", "effective", "unit", "from"], rows))
+    if params:
+        body += f"<pre>{html.escape(json.dumps(params, indent=2, default=str))}</pre>"
+    return body
 
 
 def _pick_shown(rd: ReportReader, sel: range, n_frames: int) -> int | None:

@@ -20,7 +20,6 @@ import numpy as np
 from schlieren.pipeline import capture
 from schlieren.pipeline import flow as flowmod
 from schlieren.pipeline import frame_quality as fq
-from schlieren.pipeline.geometry import pixel_footprint
 from schlieren.pipeline.stages import stage
 from schlieren.storage.errors import SessionError
 from schlieren.workers.tasks.capture import defective_pixels, static_region
@@ -150,15 +149,10 @@ def quality_vector(ctx: RunContext, c: int, f: int, img: np.ndarray) -> np.ndarr
 
 
 def flow_params(ctx: RunContext, c: int):
-    """Camera ``c``'s flow parameters: the LK window from the voxel footprint (``window_per_voxel``)."""
+    """Camera ``c``'s flow parameters: the LK window from the voxel footprint (``window_per_voxel``,
+    :func:`~schlieren.pipeline.flow.camera_window`; the run logs and stores it)."""
     params = ctx.config.flow
     if params.window_per_voxel <= 0:
         return params
-
-    def make():
-        grid = ctx.session.grid
-        centre = 0.5 * (np.asarray(grid.vmin) + np.asarray(grid.vmax))
-        px = grid.voxel_size / pixel_footprint(ctx.cameras[c], centre)
-        return dataclasses.replace(params, window=flowmod.window_for_voxel(px, params.window_per_voxel))
-
-    return ctx.once(("flow_params", c), make)
+    return ctx.once(("flow_params", c), lambda: dataclasses.replace(params, window=flowmod.camera_window(
+        ctx.cameras[c], ctx.session.grid, window=params.window, window_per_voxel=params.window_per_voxel)))

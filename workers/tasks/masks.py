@@ -12,7 +12,6 @@ from __future__ import annotations
 import numpy as np
 
 from schlieren.pipeline import masks as masksmod
-from schlieren.pipeline.stages import kernel_kwargs
 from schlieren.workers.tasks.run_context import RunContext
 
 __all__ = ["potential_task", "threshold_task", "mask_task"]
@@ -27,9 +26,10 @@ def potential_task(ctx: RunContext, c: int, k: int) -> dict:
     """
     f = ctx.read_upstream("flow", (c, k))
     p = np.asarray(masksmod.flow_potential(f), dtype=np.float32)
-    kw = kernel_kwargs(ctx.config.masks, masksmod.potential_summary)
+    params = ctx.config.masks
     ctx.store.write("potential", (c, k), p)
-    ctx.store.write("potential_summary", (c, k), masksmod.potential_summary(p, **kw))
+    ctx.store.write("potential_summary", (c, k), masksmod.potential_summary(
+        p, smooth_sigma=params.smooth_sigma, n_quantiles=params.n_quantiles))
     return {}
 
 
@@ -40,8 +40,7 @@ def threshold_task(ctx: RunContext) -> dict:
     # every summary under a set potential marker exists (a lost one raises ChunkError)
     summaries = [ctx.store.read("potential_summary", (c, k))
                  for c in range(len(ctx.cameras)) for k in range(ctx.n_frames)]
-    thr = masksmod.threshold_from_summaries(
-        summaries, **kernel_kwargs(params, masksmod.threshold_from_summaries))
+    thr = masksmod.threshold_from_summaries(summaries, percentile=params.percentile)
     ctx.store.write("mask_threshold", (), np.array([thr], dtype=np.float64))
     return {"threshold": float(thr)}
 
@@ -52,11 +51,13 @@ def mask_task(ctx: RunContext, c: int, k: int) -> dict:
     h = params.temporal_radius
     ks = [min(max(i, 0), ctx.n_frames - 1) for i in range(k - h, k + h + 1)]
     thr = ctx.mask_threshold()
-    kw = kernel_kwargs(params, masksmod.frame_evidence)
 
     def evidence(i):  # masksmod.make_mask, with each frame's evidence made once per process
         return masksmod.frame_evidence(ctx.read_upstream("potential", (c, i)), thr,
-                                       flow=ctx.read_upstream("flow", (c, i)), **kw)
+                                       flow=ctx.read_upstream("flow", (c, i)), smooth_sigma=params.smooth_sigma,
+                                       deflection_threshold=params.deflection_threshold,
+                                       flow_sigma=params.flow_sigma, noise_factor=params.noise_factor,
+                                       grow_factor=params.grow_factor)
 
     keys = {i: ("mask_evidence", c, i, thr) for i in ks}
     todo = [(c, i) for i, key in keys.items() if not ctx.memoized(key)]
@@ -64,6 +65,6 @@ def mask_task(ctx: RunContext, c: int, k: int) -> dict:
         ctx.read_upstream_many("potential", todo)
         ctx.read_upstream_many("flow", todo)
     ev = [ctx.memo(key, lambda i=i: evidence(i)) for i, key in keys.items()]
-    m = masksmod.mask_from_evidence(ev, **kernel_kwargs(params, masksmod.mask_from_evidence))
+    m = masksmod.mask_from_evidence(ev, dilation_radius=params.dilation_radius)
     ctx.store.write("mask", (c, k), np.asarray(m, dtype=bool))
     return {"fraction": float(np.mean(m))}

@@ -138,7 +138,8 @@ class RunContext:
         parity) per process."""
         params = self.config.flow
         return self.once(("prepared_reference", c, parity),
-                          lambda: flowmod.prepare_reference(self.reference(c, parity), **params.reference_kwargs()))
+                          lambda: flowmod.prepare_reference(self.reference(c, parity), presmooth=params.presmooth,
+                                                            levels=params.levels))
 
     def time_offset(self, c: int) -> float:
         return self.once(("time_offset", c), lambda: float(self.store.read("time_offset", (c,))))

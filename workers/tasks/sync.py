@@ -12,7 +12,6 @@ from __future__ import annotations
 import numpy as np
 
 from schlieren.pipeline import sync
-from schlieren.pipeline.stages import kernel_kwargs
 from schlieren.workers.tasks.run_context import RunContext, TaskFailed
 
 __all__ = ["sync_task", "clock_task"]
@@ -27,7 +26,8 @@ def sync_task(ctx: RunContext, c: int) -> dict:
         b = min(b, len(ctx.frames(c)))
         rows = _row_means(ctx, c, a, b)
         try:
-            det = sync.detect_flash(rows, **kernel_kwargs(ctx.config.flash, sync.detect_flash))
+            flash = ctx.config.flash
+            det = sync.detect_flash(rows, min_snr=flash.min_snr, min_contrast=flash.min_contrast)
         except ValueError as exc:
             raise TaskFailed(f"sync: camera {cam.name}: frames {a}..{b - 1}: {exc}") from None
         off = sync.offset_from_flash(det, first_frame=a, frame_rate=s.frame_rate,

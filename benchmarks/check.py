@@ -1,0 +1,133 @@
+"""``schlieren check`` on realistic sessions: its table, its wall time, and its numbers
+against the lab renderer's truth (issue 33 item 6).
+
+    python benchmarks/check.py SESSION [SESSION ...] [--results benchmarks/results]
+
+For each session: runs ``schlieren check SESSION --no-html`` in a fresh process (the
+wall time includes Python's start and the imports, as a user sees it) and records its
+output, the wall time, its CPU seconds and the machine's load (``os.getloadavg``). For a session with a
+``lab.json`` beside its manifest (the realistic family's lab variants: the motion, hot
+pixels and noise each camera was rendered with), compares check's numbers with it: the
+frames' shift against the reference (the renderer's ``shift`` moves the image content, so
+the flow-convention shift is its negative), the hot pixels found against those injected,
+and the sensor noise against the rendered noise with 8-bit quantisation.
+
+Writes ``benchmarks/results/check.json`` and ``.md``. Timings on a loaded machine are not
+the tool's speed: re-measure on a quiet one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+RESULTS = HERE / "results"
+
+
+def run_check(session: str) -> dict:
+    exe = Path(sys.executable).with_name("schlieren")
+    load = os.getloadavg()
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    out = subprocess.run([str(exe), "check", session, "--no-html"], capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return {"session": session, "wall_seconds": wall, "cpu_seconds": cpu, "load_before": load,
+            "load_after": os.getloadavg(), "exit": out.returncode, "output": out.stdout + out.stderr}
+
+
+def against_truth(session: str) -> dict | None:
+    from schlieren.pipeline.rigcheck import check_camera
+    from schlieren.storage.rigcheck import camera_inputs
+    from schlieren.storage.session import load_session
+
+    lab_file = Path(session) / "lab.json"
+    if not lab_file.is_file():
+        return None
+    lab = json.loads(lab_file.read_text())
+    noise = json.loads((Path(session) / "case.json").read_text())["case"]["noise"]
+    s = load_session(session, check_files=False)
+    errs, found, injected, false, noises = [], 0, 0, 0, []
+    for c, cam in enumerate(s.cameras):
+        inp = camera_inputs(s, c)
+        r = check_camera(cam, s.grid, inp.reference_frames, inp.frames, strobe_rows=inp.strobe_rows)
+        truth = lab["cameras"][cam.name]
+        for k, sh in zip(inp.frame_indices, r.shifts):
+            d = -np.asarray(truth["shift"][k])
+            errs.append([sh.du - d[0], sh.dv - d[1]])
+        hot = {tuple(p) for p in r.hot.tolist()}
+        true_hot = {tuple(p) for p in truth["hot"]}
+        found += len(hot & true_hot)
+        injected += len(true_hot)
+        false += len(hot - true_hot)
+        noises.append(r.noise)
+    e = np.asarray(errs)
+    return {"params": lab["params"], "shift_rms": float(np.sqrt((e ** 2).mean())), "shift_max": float(np.abs(e).max()),
+            "camera_frames": len(e), "hot_found": found, "hot_injected": injected, "hot_false": false,
+            "noise_rendered": noise, "noise_expected": float(np.sqrt(noise ** 2 + 1 / 12)),
+            "noise_measured": [float(min(noises)), float(max(noises))]}
+
+
+def markdown(res: dict) -> str:
+    lines = ["# `schlieren check` on realistic sessions", "",
+             "Command: `python benchmarks/check.py SESSION ...` (see its docstring). Wall time of "
+             "`schlieren check SESSION --no-html` in a fresh process, its CPU seconds (user + system: "
+             "what it costs whatever the load), and the machine's load average (1 min) before and after; "
+             f"{res['machine']}. Loaded machine (2 cores shared by several sessions): re-measure the wall "
+             "times quiet. The `checked in` line is the command's own time, without Python's start and "
+             "imports.", ""]
+    for r in res["sessions"]:
+        lines += [f"## {r['session']}", "",
+                  f"Wall time {r['wall_seconds']:.1f} s ({r['cpu_seconds']:.1f} CPU seconds), load "
+                  f"{r['load_before'][0]:.1f} -> {r['load_after'][0]:.1f} (exit {r['exit']}).", "", "```",
+                  r["output"].rstrip(), "```", ""]
+        t = r.get("truth")
+        if t:
+            lines += ["Against the lab renderer's truth (`lab.json`):", "",
+                      f"* shift against the reference: RMS error {t['shift_rms']:.4f} px, largest "
+                      f"{t['shift_max']:.4f} px over {t['camera_frames']} camera-frames",
+                      f"* hot pixels: {t['hot_found']} of {t['hot_injected']} found, {t['hot_false']} false",
+                      f"* sensor noise: {t['noise_measured'][0]:.3f}-{t['noise_measured'][1]:.3f} grey levels "
+                      f"measured, {t['noise_expected']:.3f} expected ({t['noise_rendered']} rendered, with 8-bit "
+                      "quantisation)",
+                      f"* rendered with: {json.dumps(t['params'])}", ""]
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
+    ap.add_argument("sessions", nargs="+")
+    ap.add_argument("--results", default=str(RESULTS))
+    ap.add_argument("--markdown-only", action="store_true", help="rewrite check.md from check.json")
+    args = ap.parse_args(argv)
+    if args.markdown_only:
+        res = json.loads((Path(args.results) / "check.json").read_text())
+        (Path(args.results) / "check.md").write_text(markdown(res))
+        return 0
+    res = {"machine": f"{platform.node()}, {os.cpu_count()} cores", "sessions": []}
+    for s in args.sessions:
+        r = run_check(s)
+        r["truth"] = against_truth(s)
+        res["sessions"].append(r)
+        print(f"{s}: {r['wall_seconds']:.1f} s", flush=True)
+    out = Path(args.results)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "check.json").write_text(json.dumps(res, indent=2))
+    (out / "check.md").write_text(markdown(res))
+    print(out / "check.md")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

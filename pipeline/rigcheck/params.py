@@ -1,0 +1,40 @@
+"""Parameters of ``schlieren check`` (:class:`CheckParams`): what it reads and when it warns."""
+
+from __future__ import annotations
+
+from schlieren.pipeline.params import param, parameters
+
+__all__ = ["CheckParams"]
+
+
+@parameters
+class CheckParams:
+    """What ``schlieren check`` measures on, and the limits above which it warns."""
+
+    motion_frames: int = param(
+        3, unit="1", ge=1, le=100,
+        help="Frames of the capture (spread over the frames to process) whose global shift against the"
+             " reference is measured.")
+    max_shift: float = param(
+        0.02, unit="px", ge=0, le=100,
+        help="A camera whose frames moved more than this against the reference is flagged.")
+    max_flow_noise: float = param(
+        0.03, unit="px", gt=0, le=100,
+        help="A camera whose predicted flow noise exceeds this is flagged (a tenth of the weakest "
+             "deflections worth reconstructing).")
+    min_focus_ratio: float = param(
+        0.7, unit="1", ge=0, le=1,
+        help="A camera whose finest-scale texture energy is below this fraction of the rig's best "
+             "camera is flagged (out of focus, or a coarser view of the background).")
+    max_clipped: float = param(
+        0.01, unit="1", ge=0, le=1,
+        help="A camera with more than this fraction of its reference's pixels clipped black or white "
+             "is flagged.")
+    hot_sigmas: float = param(
+        8.0, unit="1", gt=0, le=1e3,
+        help="A pixel differing from its 3 x 3 median by more than this many robust standard "
+             "deviations of that difference (and `hot_min_step`) is hot (dead).")
+    hot_min_step: float = param(
+        20.0, unit="grey levels", ge=0, le=255,
+        help="The smallest such difference, in grey levels of 8-bit images (scaled to the frames' full"
+             " scale).")

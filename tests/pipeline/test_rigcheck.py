@@ -1,0 +1,181 @@
+"""The rig check's kernels against ground truth (issue 33 item 6): known sensor noise,
+sub-pixel shifts, blur, hot pixels and clipped regions are recovered within stated
+tolerances, and the predicted flow noise matches the flow noise the run's deflection
+stage measures on a no-flow pair within a factor 1.5."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from rigcheck_images import Texture, noisy
+
+from schlieren.pipeline.flow import FlowParams, deflection_stage
+from schlieren.pipeline.geometry import Grid
+from schlieren.pipeline.masks import flow_noise
+from schlieren.pipeline.rigcheck import (CheckParams, FamilyCase, check_camera, clipped_fractions,
+                                         expected_accuracy, focus_energy, footprint, global_shift, hot_pixels,
+                                         predicted_flow_noise, sensor_noise, sensor_noise_from_pairs)
+from schlieren.pipeline.synthetic.rig import make_rig
+
+SHAPE = (240, 320)
+
+
+@pytest.fixture(scope="module")
+def tex():
+    return Texture(SHAPE, seed=3)
+
+
+def test_sensor_noise_from_reference_frames_despite_flicker(tex):
+    rng = np.random.default_rng(0)
+    img = tex.render()
+    frames = [(1 + 0.02 * rng.standard_normal()) * noisy(img, 2.0, rng) + rng.normal(0, 1.0) for _ in range(12)]
+    assert sensor_noise(np.stack(frames)) == pytest.approx(2.0, rel=0.03)
+
+
+def test_sensor_noise_quantised_frames_include_the_quantisation():
+    tex8 = Texture(SHAPE, seed=4)
+    rng = np.random.default_rng(1)
+    frames = np.stack([noisy(tex8.render(), 1.5, rng, quantise=True) for _ in range(8)])
+    assert sensor_noise(frames, full_scale=255) == pytest.approx(np.sqrt(1.5 ** 2 + 1 / 12), rel=0.03)
+
+
+def test_sensor_noise_from_frames_carrying_flow(tex):
+    rng = np.random.default_rng(2)
+    frames = []
+    for k in range(4):
+        img = tex.render()
+        img[60:140, 100:180] = tex.render(0.3 * k, 0.0)[60:140, 100:180]  # a region whose content moves
+        frames.append(noisy(img, 2.0, rng))
+    assert sensor_noise_from_pairs(np.stack(frames)) == pytest.approx(2.0, rel=0.1)
+
+
+@pytest.mark.parametrize("noise", [1.0, 3.0])
+def test_predicted_flow_noise_matches_the_measured_flow_noise_without_flow(tex, noise):
+    """The run's deflection stage (default FlowParams, window 9, factor 2) on a no-flow
+    pair: its robust flow noise is within a factor 1.5 of the prediction."""
+    rng = np.random.default_rng(5)
+    img = tex.render()
+    n_ref = 8
+    reference = np.mean([noisy(img, noise, rng) for _ in range(n_ref)], axis=0).astype(np.float32)
+    frame = noisy(img, noise, rng).astype(np.float32)
+    params = FlowParams(window=9, factor=2)
+    measured = flow_noise(deflection_stage(reference, frame, params))
+    sigma = predicted_flow_noise(reference, noise=noise, n_reference=n_ref, window=9)
+    predicted = float(np.median(sigma[16:-16, 16:-16]))
+    assert 1 / 1.5 < predicted / measured < 1.5, (predicted, measured)
+
+
+def test_predicted_flow_noise_scales_with_noise_and_texture(tex):
+    img = tex.render()
+    a = np.median(predicted_flow_noise(img, noise=1.0, window=9))
+    assert np.median(predicted_flow_noise(img, noise=2.0, window=9)) == pytest.approx(2 * a, rel=1e-3)
+    weak = 128 + 0.25 * (img - 128)  # a quarter of the contrast: four times the noise
+    assert np.median(predicted_flow_noise(weak, noise=1.0, window=9)) == pytest.approx(4 * a, rel=0.02)
+    assert np.median(predicted_flow_noise(img, noise=1.0, window=17)) < 0.6 * a  # a larger window averages more
+
+
+@pytest.mark.parametrize("du, dv", [(0.1, 0.0), (0.3, -0.12), (-0.05, 0.02), (1.7, 0.45), (-3.2, 2.6)])
+def test_global_shift_recovers_a_known_subpixel_shift(tex, du, dv):
+    rng = np.random.default_rng(6)
+    ref = noisy(tex.render(), 1.5, rng)
+    frame = noisy(tex.render(du, dv), 1.5, rng)
+    s = global_shift(ref, frame)
+    assert abs(s.du - du) < 0.01 and abs(s.dv - dv) < 0.01, s
+
+
+def test_global_shift_is_robust_to_a_plume_and_to_a_lighting_change(tex):
+    rng = np.random.default_rng(7)
+    ref = noisy(tex.render(), 1.5, rng)
+    frame = tex.render(0.15, -0.08)
+    frame[:, 130:200] = tex.render(0.15 + 0.4, -0.08)[:, 130:200]  # a plume column deflecting 0.4 px
+    frame = noisy(1.03 * frame + 2.0, 1.5, rng)
+    s = global_shift(ref, frame)
+    assert abs(s.du - 0.15) < 0.01 and abs(s.dv + 0.08) < 0.01, s
+
+
+def test_global_shift_of_a_tiled_background_is_not_a_tile_away():
+    tiled = Texture(SHAPE, seed=8, period=64)
+    rng = np.random.default_rng(8)
+    s = global_shift(noisy(tiled.render(), 1.5, rng), noisy(tiled.render(0.2, 0.1), 1.5, rng))
+    assert abs(s.du - 0.2) < 0.01 and abs(s.dv - 0.1) < 0.01, s
+
+
+def test_hot_and_dead_pixels_at_known_positions():
+    tex = Texture(SHAPE, seed=3, contrast=30.0)  # about the realistic family's texture (little clipping)
+    rng = np.random.default_rng(9)
+    img = np.clip(noisy(tex.render(), 1.5, rng), 0, 255)
+    pos = rng.choice(SHAPE[0] * SHAPE[1], 25, replace=False)
+    hot_at = {divmod(int(p), SHAPE[1]) for p in pos[:20]}
+    dead_at = {divmod(int(p), SHAPE[1]) for p in pos[20:]}
+    for r, c in hot_at:
+        img[r, c] = 255.0
+    for r, c in dead_at:
+        img[r, c] = 0.0
+    hot, dead = hot_pixels(img, full_scale=255.0)
+    # a defect next to another one, or on a pixel already near its level, may hide: all but 1
+    assert len({tuple(p) for p in hot.tolist()} - hot_at) == 0  # no false alarm
+    assert len({tuple(p) for p in hot.tolist()} & hot_at) >= 19
+    assert {tuple(p) for p in dead.tolist()} <= dead_at and len(dead) >= 4
+    h0, d0 = hot_pixels(np.clip(noisy(tex.render(), 1.5, rng), 0, 255), full_scale=255.0)
+    assert len(h0) == 0 and len(d0) == 0
+
+
+def test_clipped_fractions_of_known_regions(tex):
+    img = np.clip(tex.render(), 1, 254)
+    img[:30, :40] = 255.0
+    img[-10:, :] = 0.0
+    dark, bright = clipped_fractions(img, full_scale=255.0)
+    assert dark == pytest.approx(10 * SHAPE[1] / img.size) and bright == pytest.approx(30 * 40 / img.size)
+
+
+def test_focus_falls_with_a_known_blur_and_not_with_noise(tex):
+    rng = np.random.default_rng(10)
+    values = [focus_energy(tex.render(blur=b)) for b in (0.0, 0.5, 0.7, 1.0)]
+    assert all(a > b for a, b in zip(values, values[1:]))
+    assert values[2] < 0.7 * values[0]  # a 0.7 px defocus loses more than 30 % of the finest scale
+    for n in (0.5, 3.0):  # the noise's share of the finest scale is removed
+        assert focus_energy(noisy(tex.render(), n, rng), noise=n) == pytest.approx(values[0], rel=0.05)
+
+
+def test_footprint_and_implied_voxel():
+    grid = Grid((-0.075, -0.075, 0.0), (0.075, 0.075, 0.3), 0.0025)
+    cam = make_rig(1, grid=grid, image_size=(640, 480), radius=2.5)[0]
+    fp = footprint(cam, grid)
+    f = cam.K[0, 0]
+    assert fp.metres_per_px == pytest.approx(2.5 / f, rel=1e-3)
+    assert fp.size[1] == pytest.approx(0.3 * f / 2.5, rel=0.1)  # the box's height at the centre's depth
+    assert fp.implied_voxel == pytest.approx(2 * fp.metres_per_px)
+    assert fp.px_per_voxel == pytest.approx(0.0025 / fp.metres_per_px)
+
+
+def test_expected_accuracy_takes_the_nearest_case():
+    cases = [FamilyCase("a-16-640", 16, (640, 480), False, 45.6, 30.7, 34.4),
+             FamilyCase("b-8-960", 8, (960, 720), False, 43.5, 28.5),
+             FamilyCase("a-16-640-h264", 16, (640, 480), True, 29.6, 14.3)]
+    assert expected_accuracy(cases, cameras=16, size=(720, 540), video=False).name == "a-16-640"
+    assert expected_accuracy(cases, cameras=6, size=(1024, 768), video=False).name == "b-8-960"
+    assert expected_accuracy(cases, cameras=16, size=(640, 480), video=True).name == "a-16-640-h264"
+    assert expected_accuracy([], cameras=16, size=(640, 480), video=False) is None
+
+
+def test_check_camera_reports_every_injected_defect(tex):
+    grid = Grid((-0.075, -0.075, 0.0), (0.075, 0.075, 0.3), 0.0025)
+    cam = make_rig(1, grid=grid, image_size=SHAPE[::-1], line_time=1e-4)[0]
+    rng = np.random.default_rng(11)
+    refs = np.stack([noisy(tex.render(), 2.0, rng) for _ in range(6)])
+    refs[:, 50, 60] = 255.0  # a hot pixel
+    frames = np.stack([noisy(tex.render(0.05 * k, -0.1), 2.0, rng) for k in range(3)])
+    rows = np.tile(refs.mean(axis=0).mean(axis=1), (5, 1))
+    rows[2, 100:140] += 40.0  # the flash: rows 100-139 of frame 2 of the window
+    r = check_camera(cam, grid, refs, frames, strobe_rows=rows, strobe_first=10, frame_rate=60.0,
+                     full_scale=255.0, params=CheckParams())
+    assert r.noise == pytest.approx(2.0, rel=0.05)
+    assert [round(s.du, 2) for s in r.shifts] == [0.0, 0.05, 0.1]
+    assert all(abs(s.dv + 0.1) < 0.01 for s in r.shifts)
+    assert r.hot.tolist() == [[50, 60]]
+    assert r.flash.startswith("frame 12 rows 100-139")
+    assert r.offset == pytest.approx(-12 / 60.0 - 139.5e-4)
+    assert any("moved against its reference by up to 0.1" in n for n in r.notes)
+    assert any("1 hot and 0 dead pixels" in n for n in r.notes)
+    assert r.window == 5 or r.window % 2 == 1
+    assert 0 < r.flow_noise < 0.05
