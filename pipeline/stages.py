@@ -27,6 +27,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Callable
 
+from schlieren.pipeline import capture as _capture
 from schlieren.pipeline import flow as _flow
 from schlieren.pipeline import hull as _hull
 from schlieren.pipeline import masks as _masks
@@ -66,6 +67,7 @@ class RunConfig:
     direct: _tomo.RefractivityParams = field(default_factory=_tomo.RefractivityParams)
     spacetime: _spacetime.SpaceTimeParams = field(default_factory=_spacetime.SpaceTimeParams)
     uncertainty: _unc.UncertaintyParams = field(default_factory=_unc.UncertaintyParams)
+    capture: _capture.CaptureParams = field(default_factory=_capture.CaptureParams)
 
     @property
     def flow_factor(self) -> int:
@@ -172,8 +174,14 @@ STAGES: tuple[Stage, ...] = (
           after=(("sync", "all"),), cost=0.001),
     # a raw frame of the rolling-shutter margins is processed only if an output instant
     # needs it, which the clock decides (docs/tuning.md, "Frame quality")
-    Stage("deflection", _flow.deflection_stage, "flow", ("images",), ("flow_raw", "frame_quality"),
-          ("camera", "raw_frame"), after=(("clock", "margin"),), batch=True, cost=0.014),
+    # defective pixels from the reference frames and a sample of the capture frames (issue 33)
+    Stage("capture", _capture.find_defective_pixels, "capture", ("images",), ("defective_pixels",), ("camera",),
+          cost=0.05),
+    # the flow of each raw frame with the camera's motion, the lighting's change and the
+    # defective pixels removed (pipeline/capture/correction.py; params "flow" and "capture")
+    Stage("deflection", _capture.corrected_deflection, "flow", ("images", "defective_pixels"),
+          ("flow_raw", "frame_quality", "background_motion", "photometric", "capture_fit"),
+          ("camera", "raw_frame"), after=(("clock", "margin"), ("capture", "same")), batch=True, cost=0.014),
     Stage("resample", _sync.resample_flow, "resample", ("flow_raw", "time_offset", "time"),
           ("flow",), ("camera", "frame"), after=(("clock", "all"), ("deflection", "window")),
           frame_halo=2, batch=True, cost=0.02, grid="flow"),

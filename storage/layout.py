@@ -22,6 +22,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from schlieren.pipeline.capture import CAPTURE_STATS, MOTION_PARAMS
 from schlieren.pipeline.frame_quality import QUALITY_NAMES
 from schlieren.pipeline.geometry import Grid
 
@@ -116,7 +117,9 @@ def _f32(name, dims, shape, chunks, attrs, fill=np.nan, dtype="float32", zstd_le
 def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tuple[int, int],
                   grid: Grid, first_frame: int = 0, n_raw: int | None = None,
                   raw_first: int | None = None, n_summary: int = 2001,
-                  flow_factor: int | None = None, per_frame_gradient: bool = False) -> list[ArraySpec]:
+                  flow_factor: int | None = None, image_shape: tuple[int, int] | None = None,
+                  row_knots: Sequence[float] | None = None,
+                  per_frame_gradient: bool = False) -> list[ArraySpec]:
     """Every array of a run's store (SPEC section 2 and docs/design.md).
 
     Parameters
@@ -144,6 +147,12 @@ def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tup
     flow_factor : int, optional
         Image pixels per flow cell (``FlowGrid.factor``): with it the ``u`` and ``v``
         coordinates give the image position (pixels) of every flow cell's centre.
+    image_shape : (int, int), optional
+        ``(rows, columns)`` of the camera images: with it (and ``row_knots``), the capture
+        corrections' arrays (:func:`_capture_arrays`).
+    row_knots : sequence of float, optional
+        Image rows of the knots of the photometric profiles
+        (:func:`schlieren.pipeline.capture.row_knots`).
     per_frame_gradient : bool
         Also ``gradient_frame``, each frame's own tomographic solve, when a space-time stage
         computes ``gradient`` from it (``spacetime.window > 0``).
@@ -161,8 +170,9 @@ def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tup
     if raw_first is None and R == F:
         raw_first = first_frame
     h, w = (int(s) for s in flow_shape)
+    capture = [] if image_shape is None else _capture_arrays(C, R, image_shape, row_knots)
     return (_coordinates(camera_names, F, R, first_frame, raw_first, grid, (h, w), flow_factor)
-            + _camera_arrays(C, F, R, (h, w), n_summary) + _volumes(F, grid)
+            + _camera_arrays(C, F, R, (h, w), n_summary) + capture + _volumes(F, grid)
             + (_per_frame_gradient(F, grid) if per_frame_gradient else []))
 
 
@@ -262,6 +272,44 @@ def _camera_arrays(C: int, F: int, R: int, flow_shape: tuple[int, int], n_summar
     ]
 
 
+def _capture_arrays(C: int, R: int, image_shape: tuple[int, int], row_knots) -> list[ArraySpec]:
+    """The capture corrections (issue 33, :mod:`schlieren.pipeline.capture`): each camera's
+    defective pixels, and each raw frame's background motion, gain and offset profiles and
+    fit statistics, with the coordinates that label their small axes."""
+    H, W = (int(v) for v in image_shape)
+    knots = np.asarray([0.0] if row_knots is None else row_knots, np.float64)
+    K = len(knots)
+    cam: dict = {}
+    return [
+        ArraySpec("motion", ("motion",), (len(MOTION_PARAMS),), (len(MOTION_PARAMS),), "str", "",
+                  {"long_name": "term of the background motion (docs/store.md)"},
+                  data=np.asarray(MOTION_PARAMS, dtype=object)),
+        ArraySpec("photometric_term", ("photometric_term",), (2,), (2,), "str", "",
+                  {"long_name": "term of the photometric profile"}, data=np.asarray(["gain", "offset"], dtype=object)),
+        ArraySpec("row_knot", ("row_knot",), (K,), (K,), "float64", np.nan,
+                  {"long_name": "image row of each knot of the photometric profiles", "units": "pixel"}, data=knots),
+        ArraySpec("capture_stat", ("capture_stat",), (len(CAPTURE_STATS),), (len(CAPTURE_STATS),), "str", "",
+                  {"long_name": "entry of capture_fit"}, data=np.asarray(CAPTURE_STATS, dtype=object)),
+        ArraySpec("defective_pixels", ("camera", "row", "column"), (C, H, W), (1, H, W), "uint8", 0,
+                  {"long_name": "defective sensor pixels (1 hot, 2 dead, 4 stuck; bit sum), excluded from the flow",
+                   "units": "1", "stage": "capture", **cam}),
+        _f32("background_motion", ("camera", "raw_frame", "motion"), (C, R, len(MOTION_PARAMS)),
+             (1, 1, len(MOTION_PARAMS)),
+             {"long_name": "motion of the background against the reference (u, v: pixels at the image centre; "
+                           "a, b, c, d: linear terms; g, h: projective terms, per pixel)",
+              "units": "pixel", "stage": "deflection", **cam}, dtype="float64"),
+        _f32("photometric", ("camera", "raw_frame", "photometric_term", "row_knot"), (C, R, 2, K), (1, 1, 2, K),
+             {"long_name": "gain and offset (grey levels) of each frame against the reference at the knot rows",
+              "units": "1", "stage": "deflection", **cam}),
+        _f32("capture_fit", ("camera", "raw_frame", "capture_stat"), (C, R, len(CAPTURE_STATS)),
+             (1, 1, len(CAPTURE_STATS)),
+             {"long_name": "static fraction of the image, registration residual (grey levels), its samples, "
+                           "motion the flow still showed (pixels), flags (1 motion removed, 2 gain and offset "
+                           "removed, 4 measured on every pixel, 8 not converged)",
+              "units": "1", "stage": "deflection", **cam}),
+    ]
+
+
 def _volumes(F: int, grid: Grid) -> list[ArraySpec]:
     """The volume arrays, one frame per chunk, with the grid's ``origin`` and ``voxel_size``."""
     nz, ny, nx = grid.shape
@@ -331,6 +379,7 @@ def stage_markers() -> dict[str, tuple[str, ...]]:
     return {
         "sync": ("camera",),
         "clock": (),
+        "capture": ("camera",),
         "deflection": ("camera", "raw_frame"),
         "resample": ("camera", "frame"),
         "potential": ("camera", "frame"),

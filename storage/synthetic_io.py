@@ -26,6 +26,29 @@ array              dims                                 meaning
 ``deflection_rs``  (camera, frame, v, u, 2) float32     the rolling-shutter deflection of raw
                                                         frame ``A + frame`` (area mean per cell)
 =================  ===================================  ==========================================
+
+A capture rendered with lab effects (:mod:`schlieren.pipeline.synthetic.lab`) also has
+``lab.json`` beside ``truth.zarr`` (:func:`write_lab_truth`, :func:`read_lab_truth`): the
+effects' parameters and, per camera, what was drawn, indexed by raw frame (0 = the
+capture's first frame, as the frame files are numbered) and by reference frame:
+
+================  ==================  =========================================================
+key               shape               meaning
+================  ==================  =========================================================
+``shift``         (raw, 2)            image displacement of the principal point against the
+                                      reference (u, v pixels)
+``roll``          (raw,)              rotation about the optical axis (radians, +u towards +v)
+``homography``    (raw, 3, 3)         reference pixel -> frame pixel, undistorted coordinates
+``gain``          (raw,)              lamp gain of the frame
+``offset``        (raw,)              grey levels (8-bit scale) added to the frame
+``phase``         (raw,)              row banding phase at row 0 (radians): rows times
+                                      ``1 + banding sin(2 pi f v line_time + phase)``
+``ref_gain``,     (ref,)              the same for each reference frame
+``ref_offset``,
+``ref_phase``
+``hot``, ``dead`` (k, 2)              (row, column) of pixels stuck at full scale / at 0
+``stuck``         (k, 2)              (row, column) of pixels stuck at ``stuck_value`` (8-bit)
+================  ==================  =========================================================
 """
 
 from __future__ import annotations
@@ -61,11 +84,15 @@ __all__ = [
     "read_store_refractivity",
     "write_json",
     "export_background",
+    "write_lab_truth",
+    "read_lab_truth",
+    "LAB_FORMAT",
 ]
 
 log = logging.getLogger(__name__)
 
 TRUTH_FORMAT = "schlieren-truth/1"
+LAB_FORMAT = "schlieren-lab/1"
 
 
 def frame_pattern(camera_name: str) -> str:
@@ -390,6 +417,34 @@ def read_store_frames(path: str | os.PathLike) -> np.ndarray:
     if "frame" in g:
         return np.asarray(g["frame"][:], dtype=np.int64)
     return np.arange(int(g["time"].shape[0]), dtype=np.int64)
+
+
+def write_lab_truth(path: str | os.PathLike, record: dict) -> Path:
+    """Write the lab effects drawn for a capture (``lab.json``, module notes) with its format tag."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    p.write_text(json.dumps({"format": LAB_FORMAT, **record}))
+    return p
+
+
+def read_lab_truth(path: str | os.PathLike) -> dict:
+    """Read ``lab.json`` (the file, or the session folder / ``truth.zarr`` beside it).
+
+    Returns the record with each camera's entries as float64 arrays (int64 for the pixel
+    positions), or raises :class:`StoreError` when there is none (a clean capture).
+    """
+    p = Path(path)
+    if p.is_dir():
+        p = (p.parent if p.name.endswith(".zarr") else p) / "lab.json"
+    if not p.is_file():
+        raise StoreError("no lab effects recorded (a clean capture?)", file=str(p))
+    rec = json.loads(p.read_text())
+    if rec.get("format") != LAB_FORMAT:
+        raise StoreError(f"not a lab record (format {rec.get('format')!r})", file=str(p), field="format")
+    ints = {"hot", "dead", "stuck"}
+    rec["cameras"] = {name: {k: np.asarray(v, dtype=np.int64 if k in ints else np.float64).reshape(
+        (-1, 2) if k in ints else np.shape(v)) for k, v in cam.items()} for name, cam in rec["cameras"].items()}
+    return rec
 
 
 def write_json(path: str | os.PathLike, obj: Any) -> None:

@@ -26,21 +26,33 @@ def _frames(frames: list[int], limit: int = 8) -> str:
     return f"frame{'s' if len(frames) > 1 else ''} {text}" + (f" (and {more} more)" if more > 0 else "")
 
 
-def diagnose(receipts, *, n_voxels: int, flash_frames=None) -> list[str]:
+def diagnose(receipts, *, n_voxels: int, flash_frames=None, motion_warning: float | None = None) -> list[str]:
     """One-line warnings naming camera and frames, with a likely cause.
 
     Parameters
     ----------
     receipts : iterable of dict
         Task receipts of a run (``stage``, ``camera``, ``frame`` and the stage's fields:
-        hull ``voxels``, mask ``fraction``, deflection ``max_px``).
+        hull ``voxels``, mask ``fraction``, deflection ``max_px``, ``motion_px`` and
+        ``capture_flags``).
     n_voxels : int
         Voxels in the reconstruction box.
     flash_frames : mapping of str to (int, int), optional
         Camera -> first and last frame the strobe flash lit (the stored ``flash_frames``;
         ``(-1, -1)``: none). Their large deflections are the flash, which the sync already
         excludes from the reconstruction: no warning.
+    motion_warning : float, optional
+        Pixels: camera-frames whose background moved more than this against the
+        reference are named (``capture.motion_warning``); None: no such warning.
     """
+    receipts = list(receipts)
+    out = _flow_warnings(receipts, n_voxels, flash_frames)
+    out += _capture_warnings(receipts, motion_warning)
+    return out
+
+
+def _flow_warnings(receipts, n_voxels: int, flash_frames=None) -> list[str]:
+    """The hull, mask and deflection warnings of :func:`diagnose`."""
     flash = {str(c): (int(lo), int(hi)) for c, (lo, hi) in (flash_frames or {}).items()}
     full, empty = [], []
     masks: dict[str, list[int]] = defaultdict(list)
@@ -76,4 +88,32 @@ def diagnose(receipts, *, n_voxels: int, flash_frames=None) -> list[str]:
         out.append(f"camera {cam}, {_frames([f for f, _ in items])}: deflections up to {worst:.3g} px (BOS "
                    "deflections are sub-pixel to about 1 px): the camera was bumped, or the frame does not "
                    "match the reference (focus, exposure)?")
+    return out
+
+
+def _capture_warnings(receipts, motion_warning: float | None) -> list[str]:
+    """Per camera: the frames whose background moved more than ``motion_warning`` pixels
+    against the reference, and the frames whose motion had to be measured on every pixel."""
+    from schlieren.pipeline.capture import FALLBACK
+
+    moved: dict[str, list[tuple[int, float]]] = defaultdict(list)
+    fallback: dict[str, list[int]] = defaultdict(list)
+    for r in receipts:
+        if r.get("skipped") or r.get("stage") != "deflection":
+            continue
+        cam, frame = r.get("camera", "?"), r.get("frame")
+        if motion_warning is not None and r.get("motion_px", 0.0) > motion_warning:
+            moved[cam].append((frame, float(r["motion_px"])))
+        if int(r.get("capture_flags", 0)) & FALLBACK:
+            fallback[cam].append(frame)
+    out = []
+    for cam, items in sorted(moved.items()):
+        worst = max(v for _, v in items)
+        out.append(f"camera {cam}, {_frames([f for f, _ in items])}: the background moved by up to {worst:.3g} px "
+                   f"against the reference (more than capture.motion_warning, {motion_warning:g} px); it was "
+                   "removed from the flow, but re-record the reference or fix the camera's mount?")
+    for cam, frames in sorted(fallback.items()):
+        out.append(f"camera {cam}, {_frames(frames)}: less of the image sees the background beside the volume than "
+                   "capture.min_static_fraction: its motion was measured on every pixel (the plume told apart by "
+                   "robust weights); a wider view or a smaller volume box measures it better")
     return out

@@ -30,6 +30,7 @@ from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Callable
 
+from schlieren.pipeline.capture import row_knots
 from schlieren.pipeline.geometry import FlowGrid
 from schlieren.pipeline.overrides import bind_run, records, session_overrides
 from schlieren.pipeline.stages import STAGES, RunConfig, check_config, config_to_dict, run_stages
@@ -157,6 +158,8 @@ def run_layout(session: Session, cfg: RunConfig) -> tuple[list, Extents]:
                            flow_shape=fg.shape, grid=session.grid, first_frame=a,
                            n_raw=ext.raw_frame, raw_first=raw_first,
                            n_summary=cfg.masks.n_quantiles + 1, flow_factor=fg.factor,
+                           image_shape=(session.cameras[0].height, session.cameras[0].width),
+                           row_knots=row_knots(session.cameras[0].height, cfg.capture.banding_rows),
                            per_frame_gradient=cfg.spacetime.window > 0)
     if cfg.uncertainty.enabled:  # the optional stage's standard errors beside the values
         layout = with_uncertainty(layout)
@@ -383,7 +386,8 @@ def _run_leased(session, out_path, cfg, overrides, *, client, serial, report, on
     _record_run_attrs(store, out_path, plan, summary, clock, overrides)
     from schlieren.workers.diagnostics import diagnose
 
-    summary.warnings = diagnose(receipts, n_voxels=math.prod(session.grid.shape), flash_frames=flash_spans(store))
+    summary.warnings = diagnose(receipts, n_voxels=math.prod(session.grid.shape), flash_frames=flash_spans(store),
+                                motion_warning=cfg.capture.motion_warning)
     for w in summary.warnings:
         log.warning("%s", w)
     if dropper is not None and summary.ok:  # complete: the arrays left without chunks go

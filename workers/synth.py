@@ -15,6 +15,7 @@ Output instant ``k`` is ``time[k] = (4 + k) / frame_rate + mean(off) + 0.5 * H *
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time as _time
 from dataclasses import dataclass, field
@@ -24,13 +25,14 @@ import numpy as np
 
 from schlieren.pipeline.geometry import Camera, FlowGrid, Grid, Medium
 from schlieren.pipeline.synthetic import render as R
-from schlieren.pipeline.synthetic.background import make_background, wavelet_noise_tile
+from schlieren.pipeline.synthetic import lab as L
+from schlieren.pipeline.synthetic.background import Texture, make_background, make_texture_background, wavelet_noise_tile
 from schlieren.pipeline.synthetic.phantoms import make_phantom
 from schlieren.pipeline.synthetic.rig import make_rig
 from schlieren.pipeline.synthetic.tracer import active_box, field_stack
 from schlieren.storage import synthetic_io as sio
 
-__all__ = ["SynthResult", "synthesize", "FIRST_FRAME", "FLASH_FRAME", "DISTORTION"]
+__all__ = ["SynthResult", "synthesize", "FIRST_FRAME", "FLASH_FRAME", "DISTORTION", "LAB_STREAM"]
 
 log = logging.getLogger(__name__)
 
@@ -40,6 +42,10 @@ TAIL_FRAMES = 2   # raw frames rendered after the processed range (rolling-shutt
 DEFAULT_BOX = ((-0.075, -0.075, 0.0), (0.075, 0.075, 0.3))
 #: Lens distortion of ``distortion=True`` (OpenCV k1 k2 p1 p2 k3).
 DISTORTION = (-0.05, 0.02, 0.0005, -0.0003, 0.0)
+#: The lab effects draw from their own generator, ``default_rng((seed, LAB_STREAM))``, so
+#: the main generator's sequence (offsets, sensor noise) is the same with and without them:
+#: a case's clean and lab captures share their sensor noise.
+LAB_STREAM = 33
 
 
 @dataclass
@@ -98,7 +104,8 @@ def synthesize(out_dir, *, cameras: int = 16, ring: str = "half", phantom: str =
                exposure: float = 1.0 / 120.0, medium: Medium = Medium(), knot_dt: float | None = None,
                step: float | None = None, name: str | None = None, video_codec: str = "ffv1",
                video_bits_per_pixel: float = 0.16, reference_frames: int = 0,
-               manifest_voxel: bool = True) -> SynthResult:
+               manifest_voxel: bool = True, lab: L.LabParams | None = None,
+               texture: Texture | None = None) -> SynthResult:
     """Render a synthetic session and its ground truth into ``out_dir``.
 
     Parameters
@@ -154,6 +161,15 @@ def synthesize(out_dir, *, cameras: int = 16, ring: str = "half", phantom: str =
         Phantom time-knot spacing; default ``1 / (4 frame_rate)``.
     step : float, optional
         RK4 step (metres); default the phantom voxel size.
+    lab : LabParams, optional
+        What a lab records beyond the ideal capture (:mod:`schlieren.pipeline.synthetic.lab`:
+        camera motion against the reference, lamp flicker and banding, defocus, vignetting,
+        sensor defects); what was drawn is written to ``lab.json`` beside ``truth.zarr``
+        (:func:`schlieren.storage.synthetic_io.read_lab_truth`). The truth's deflections are
+        the flow's alone, on the calibrated (reference) pose.
+    texture : Texture, optional
+        The background pattern and its scale; default Wavelet Noise with its finest
+        spacing 1.5 camera pixels.
     """
     t_all = _time.perf_counter()
     timings: dict[str, float] = {}
@@ -171,7 +187,8 @@ def synthesize(out_dir, *, cameras: int = 16, ring: str = "half", phantom: str =
                    video_bits_per_pixel=video_bits_per_pixel, reference_frames=reference_frames, strobe=strobe,
                    supersample=supersample, exposure=exposure, frame_rate=frame_rate, line_time=line_time,
                    step=step, medium=medium,
-                   knot_dt=knot_dt if knot_dt is not None else 1.0 / (4.0 * frame_rate))
+                   knot_dt=knot_dt if knot_dt is not None else 1.0 / (4.0 * frame_rate),
+                   lab=lab if lab is not None and lab.active else None, texture=texture)
     rng = np.random.default_rng(seed)
     grid = Grid(box[0], box[1], recon_voxel)
     fine = Grid(box[0], box[1], voxel_size if voxel_size is not None else recon_voxel / 2.0)
@@ -184,10 +201,12 @@ def synthesize(out_dir, *, cameras: int = 16, ring: str = "half", phantom: str =
     timings["phantom"] = _time.perf_counter() - t0
     tw = _write_truth_volumes(out / "truth.zarr", opt, ph, fine, grid, times, offsets, phantom)
     t0 = _time.perf_counter()
-    cams = _backgrounds_and_references(out, opt, rig, rng)
+    cams = _backgrounds_and_references(out, opt, rig, rng, _lab_draws(opt, rig))
     timings["references"] = _time.perf_counter() - t0
     timings["frames_total"], timings["truth_traces"] = _render_frames(out, opt, cams, ph, fine, offsets, times,
                                                                       tw, rng)
+    if opt.lab is not None:
+        sio.write_lab_truth(out / "lab.json", _lab_record(opt, cams))
     files = {c.camera.name: c.files for c in cams}
     session = sio.write_manifest(out, name=name or f"synthetic-{phantom}-{cameras}{ring}", frame_rate=frame_rate,
                                  frames=(A, A + frames), grid=grid, medium=medium, cameras=rig, camera_files=files,
@@ -223,6 +242,8 @@ class _Options:
     step: float | None
     medium: Medium
     knot_dt: float
+    lab: L.LabParams | None = None
+    texture: Texture | None = None
 
     @property
     def n_raw(self) -> int:
@@ -274,6 +295,8 @@ def _write_truth_volumes(truth_path: Path, opt: _Options, ph, fine: Grid, grid: 
              "strobe": opt.strobe, "supersample": opt.supersample, "exposure": opt.exposure,
              "knot_dt": opt.knot_dt, "voxel_size": fine.voxel_size,
              "video": (opt.video_codec if opt.video else None), "reference_frames": opt.reference_frames,
+             **({"lab": dataclasses.asdict(opt.lab)} if opt.lab is not None else {}),
+             **({"texture": dataclasses.asdict(opt.texture)} if opt.texture is not None else {}),
              "r_ambient": opt.medium.refractivity_ambient,
              "volume": {"min": list(grid.vmin), "max": list(grid.vmax), "voxel_size": grid.voxel_size},
              "time_note": "time[k] = (A + k)/frame_rate + mean(time_offset) + 0.5*H*line_time; "
@@ -290,50 +313,101 @@ def _write_truth_volumes(truth_path: Path, opt: _Options, ph, fine: Grid, grid: 
 
 @dataclass
 class _CameraOutput:
-    """One camera's background, noise-free reference image and capture output."""
+    """One camera's background, noise-free reference image and capture output, and its
+    drawn lab effects (with the vignetting map they share)."""
 
     camera: Camera
     background: object  # the background pattern (make_background)
     reference: np.ndarray
     files: tuple  # the manifest's (frames, reference) entries
     sink: sio.VideoSink | None = None  # the capture video (video mode)
+    lab: L.CameraLab | None = None
+    vignette: np.ndarray | None = None
 
 
-def _backgrounds_and_references(out: Path, opt: _Options, rig, rng) -> list[_CameraOutput]:
+def _lab_draws(opt: _Options, rig) -> list[L.CameraLab | None]:
+    """Every camera's lab effects (:func:`~schlieren.pipeline.synthetic.lab.draw_camera`),
+    from the generator of :data:`LAB_STREAM`; Nones without ``opt.lab``."""
+    if opt.lab is None:
+        return [None] * len(rig)
+    lab_rng = np.random.default_rng((opt.seed, LAB_STREAM))
+    lamp_phase = float(lab_rng.uniform(0.0, 2.0 * np.pi))
+    return [L.draw_camera(opt.lab, cam, lab_rng, n_raw=opt.n_raw, n_ref=opt.reference_frames,
+                          frame_rate=opt.frame_rate, lamp_phase=lamp_phase) for cam in rig]
+
+
+def _background(opt: _Options, cam: Camera, i: int, tile: np.ndarray):
+    """Camera ``i``'s background pattern: Wavelet Noise 1.5 pixels fine by default, else ``opt.texture``."""
+    zbg = float(np.linalg.norm(cam.center - cam.bg_point))
+    if opt.texture is None:
+        return make_background(cam.bg_point, cam.bg_normal, spacing=1.5 * zbg / cam.K[0, 0], tile=tile,
+                               seed=opt.seed * 1000 + i + 1)
+    return make_texture_background(cam.bg_point, cam.bg_normal, opt.texture, pixel_footprint=zbg / cam.K[0, 0],
+                                   tile=tile, seed=opt.seed * 1000 + i + 1)
+
+
+def _backgrounds_and_references(out: Path, opt: _Options, rig, rng, labs) -> list[_CameraOutput]:
     """Every camera's background pattern and reference image, the reference written (one
     noise-free image, or ``reference_frames`` noisy frames or a video of them), and in video
     mode the capture video opened."""
     W, H = opt.W, opt.H
     tile = wavelet_noise_tile(256, seed=opt.seed)
     cams = []
-    for i, cam in enumerate(rig):
-        zbg = float(np.linalg.norm(cam.center - cam.bg_point))
-        bg = make_background(cam.bg_point, cam.bg_normal, spacing=1.5 * zbg / cam.K[0, 0], tile=tile,
-                             seed=opt.seed * 1000 + i + 1)
+    for i, (cam, lab) in enumerate(zip(rig, labs)):
+        bg = _background(opt, cam, i, tile)
         ref = R.reference_image(cam, bg, supersample=opt.supersample, stride=opt.flow_factor)
-        rel_ref = _write_reference(out, opt, cam.name, ref, rng)
+        vig = L.vignette(cam, opt.lab.vignetting) if lab is not None and opt.lab.vignetting > 0 else None
+        co = _CameraOutput(cam, bg, ref, (), lab=lab, vignette=vig)
+        rel_ref = _write_reference(out, opt, co, rng)
         if opt.video:
-            sink = sio.VideoSink(out, cam.name, opt.frame_rate, (W, H), codec=opt.video_codec,
-                                 bits_per_pixel=opt.video_bits_per_pixel)
-            cams.append(_CameraOutput(cam, bg, ref, (sink.rel, rel_ref), sink))
+            co.sink = sio.VideoSink(out, cam.name, opt.frame_rate, (W, H), codec=opt.video_codec,
+                                    bits_per_pixel=opt.video_bits_per_pixel)
+            co.files = (co.sink.rel, rel_ref)
         else:
-            cams.append(_CameraOutput(cam, bg, ref, (sio.frame_pattern(cam.name), rel_ref)))
+            co.files = (sio.frame_pattern(cam.name), rel_ref)
+        cams.append(co)
     return cams
 
 
-def _write_reference(out: Path, opt: _Options, name: str, ref: np.ndarray, rng) -> str:
-    """Write camera ``name``'s reference recording; its path relative to ``out``."""
+def _lab_frame(opt: _Options, cam: _CameraOutput, image: np.ndarray, *, rng, noise: float, gain: float = 1.0,
+               offset: float = 0.0, phase: float = 0.0, lit: np.ndarray | None = None) -> np.ndarray:
+    """A noise-free render through the camera's lab photometry (defocus, vignetting, lamp),
+    the flash on the ``lit`` rows, the sensor, and the camera's defective pixels."""
+    if cam.lab is not None:
+        image = L.photometry(image, opt.lab, cam.camera, gain=gain, offset=offset, phase=phase,
+                             vignetting=cam.vignette)
+    if lit is not None and lit.any():
+        image = R.apply_flash(image, lit, R.RenderParams().flash_gain)
+    frame = R.sensor(image, noise=noise, bit_depth=opt.bit_depth, rng=rng)
+    return frame if cam.lab is None else L.apply_defects(frame, cam.lab)
+
+
+def _write_reference(out: Path, opt: _Options, cam: _CameraOutput, rng) -> str:
+    """Write the camera's reference recording; its path relative to ``out``. With lab effects
+    each reference frame has its own lamp gain, offset and banding phase; a single noise-free
+    reference (``reference_frames`` 0) is the ideal average: no flicker, no banding."""
+    name, ref, lab = cam.camera.name, cam.reference, cam.lab
     if opt.reference_frames <= 0:
+        if lab is not None:
+            img = L.photometry(ref, dataclasses.replace(opt.lab, banding=0.0), cam.camera, gain=1.0, offset=0.0,
+                               phase=0.0, vignetting=cam.vignette)
+            return sio.write_reference(out, name, L.apply_defects(
+                R.sensor(img, noise=0.0, bit_depth=opt.bit_depth, rng=rng), lab))
         return sio.write_reference(out, name, R.sensor(ref, noise=0.0, bit_depth=opt.bit_depth, rng=rng))
+
+    def frames():
+        for r in range(opt.reference_frames):
+            yield _lab_frame(opt, cam, ref, rng=rng, noise=opt.noise, **({} if lab is None else dict(
+                gain=lab.ref_gain[r], offset=lab.ref_offset[r], phase=lab.ref_phase[r])))
+
     if opt.video:
         sink = sio.VideoSink(out, name, opt.frame_rate, (opt.W, opt.H), codec=opt.video_codec,
                              bits_per_pixel=opt.video_bits_per_pixel, name="reference")
-        for _ in range(opt.reference_frames):
-            sink.write(R.sensor(ref, noise=opt.noise, bit_depth=opt.bit_depth, rng=rng))
+        for img in frames():
+            sink.write(img)
         sink.close()
         return sink.rel
-    return sio.write_reference_frames(out, name, (R.sensor(ref, noise=opt.noise, bit_depth=opt.bit_depth, rng=rng)
-                                                  for _ in range(opt.reference_frames)))
+    return sio.write_reference_frames(out, name, frames())
 
 
 def _render_frames(out: Path, opt: _Options, cams: list[_CameraOutput], ph, fine: Grid, offsets: np.ndarray,
@@ -369,20 +443,39 @@ def _render_frames(out: Path, opt: _Options, cams: list[_CameraOutput], ph, fine
 def _capture_frame(out: Path, opt: _Options, cam: _CameraOutput, f: int, rng, *, fields, knot_times, fine,
                    lattice, clip_box) -> np.ndarray:
     """Render, flash, digitise and write raw frame ``f`` of one camera (rolling shutter:
-    each row at its own time); returns its image-plane deflections (pixels)."""
-    tr = R.trace_lattice(cam.camera, lattice, fields, knot_times, fine, frame=f, frame_rate=opt.frame_rate,
+    each row at its own time; with lab motion, from the camera's moved pose and every pixel
+    rendered); returns its image-plane deflections (pixels)."""
+    camera = cam.camera
+    moved = cam.lab is not None and opt.lab.moves
+    if moved:
+        camera = L.moved_camera(cam.camera, cam.lab.rotation[f])
+    tr = R.trace_lattice(camera, lattice, fields, knot_times, fine, frame=f, frame_rate=opt.frame_rate,
                          step=opt.step, n_ambient=opt.medium.n_ambient, clip_box=clip_box)
-    img, dpx = R.render_image(cam.camera, cam.background, tr, lattice, cam.reference, supersample=opt.supersample)
-    if opt.strobe:
-        lit = R.flash_rows(cam.camera, f, frame_rate=opt.frame_rate, exposure=opt.exposure)
-        if lit.any():
-            img = R.apply_flash(img, lit, R.RenderParams().flash_gain)
-    frame_img = R.sensor(img, noise=opt.noise, bit_depth=opt.bit_depth, rng=rng)
+    if moved:
+        img, dpx = R.render_frame(camera, cam.background, tr, lattice, supersample=opt.supersample)
+    else:
+        img, dpx = R.render_image(camera, cam.background, tr, lattice, cam.reference, supersample=opt.supersample)
+    lit = R.flash_rows(cam.camera, f, frame_rate=opt.frame_rate, exposure=opt.exposure) if opt.strobe else None
+    lamp = {} if cam.lab is None else dict(gain=cam.lab.gain[f], offset=cam.lab.offset[f], phase=cam.lab.phase[f])
+    frame_img = _lab_frame(opt, cam, img, rng=rng, noise=opt.noise, lit=lit, **lamp)
     if cam.sink is not None:
         cam.sink.write(frame_img)
     else:
         sio.write_frame(out, cam.camera.name, f, frame_img)
     return dpx
+
+
+def _lab_record(opt: _Options, cams: list[_CameraOutput]) -> dict:
+    """The drawn lab effects as JSON-able lists, per camera (``lab.json``, see
+    :func:`schlieren.storage.synthetic_io.write_lab_truth`)."""
+    per = {}
+    for c in cams:
+        lab = c.lab
+        per[c.camera.name] = {k: np.asarray(getattr(lab, k)).tolist() for k in (
+            "shift", "roll", "homography", "gain", "offset", "phase", "ref_gain", "ref_offset", "ref_phase", "hot",
+            "dead", "stuck", "stuck_value")}
+    return {"params": dataclasses.asdict(opt.lab), "raw_frames": opt.n_raw, "reference_frames": opt.reference_frames,
+            "frame_rate": opt.frame_rate, "line_time": opt.line_time, "bit_depth": opt.bit_depth, "cameras": per}
 
 
 def _truth_frame(opt: _Options, cam: _CameraOutput, i: int, k: int, t: float, dpx: np.ndarray, fg: FlowGrid,

@@ -11,10 +11,10 @@ short, except the tomography solves, which are chained inside each warm-start bl
 B frames (frame k starts from frame k-1's solution). So the model splits the run in three
 phases:
 
-* **A, before the barrier**: sync, clock, deflection, resample,
+* **A, before the barrier**: sync, clock, capture, deflection, resample,
   potential, and the once-per-session ``geometry`` task (nothing in A waits for it;
   tomography does). Work ``W_A`` = sum over those stages of tasks x seconds per task;
-  longest chain ``L_A`` = max(sync + clock, deflection) + resample + potential.
+  longest chain ``L_A`` = max(sync + clock, capture + deflection) + resample + potential.
 * **B, the barrier**: the threshold task alone, ``T_B`` = C x F summaries x its fitted
   seconds per summary (it reads every summary: its cost grows with the capture).
 * **C, after the barrier**: mask, hull, tomography, integrate: ``W_C``, and the chain of
@@ -58,7 +58,7 @@ from schlieren.workers.plan import batch_sizes
 __all__ = ["StageCosts", "Prediction", "fit_costs", "predict", "ready_gaps", "task_counts",
            "PHASE_A", "BARRIER", "PHASE_C"]
 
-PHASE_A = ("sync", "clock", "deflection", "resample", "potential", "geometry")
+PHASE_A = ("sync", "clock", "capture", "deflection", "resample", "potential", "geometry")
 BARRIER = "threshold"
 PHASE_C = ("mask", "regularisation", "hull", "tomography", "integrate")
 _OVER = {s.name: s.over for s in STAGES}
@@ -214,9 +214,10 @@ def predict(costs: StageCosts, *, cameras: int, frames: int, workers: int, warm_
             work[s.name] = _indices(s.name, cameras, frames, raw_margin) * t[s.name]
     fpt = batch_sizes(frames_per_task)
     k = (lambda s: fpt[s] if _BATCH[s] else 1)  # indices per task along a chain
-    # the pre-barrier chain: one camera's sync and the clock, or one deflection; then its
-    # resample and potential (geometry is not on it: nothing before the barrier needs it)
-    L_A = max(t["sync"] + t["clock"], k("deflection") * t["deflection"]) \
+    # the pre-barrier chain: one camera's sync and the clock, or its defective pixels and one
+    # deflection; then its resample and potential (geometry is not on it: nothing before the
+    # barrier needs it)
+    L_A = max(t["sync"] + t["clock"], t["capture"] + k("deflection") * t["deflection"]) \
         + k("resample") * t["resample"] + k("potential") * t["potential"]
     T_B = work[BARRIER]
     # after the masks: the frame's hull and the run's regularisation weight (one task, on

@@ -30,13 +30,18 @@ log = logging.getLogger(__name__)
 
 
 def _pyramid_flow(level_solver, prep: PreparedReference, frame_pyr, *, iterations,
-                  fine_iterations, keep=None, weights=None, cells=0, **kw):
+                  fine_iterations, keep=None, weights=None, cells=0, start=None, **kw):
     """Coarse to fine: ``level_solver`` (:func:`_lk_level`, :func:`_hs_level`) on each level
-    of the prepared pyramid, from zero flow, each level's flow prolonged to start the next."""
+    of the prepared pyramid, from zero flow (or from ``start``, a displacement field
+    ``start(x, y) -> (dx, dy)`` in full-resolution pixels), each level's flow prolonged to
+    start the next."""
     kw0 = kw
     h, w = prep.pyramid[-1].shape
-    u = np.zeros((h, w), np.float32)
-    v = np.zeros((h, w), np.float32)
+    if start is None:
+        u = np.zeros((h, w), np.float32)
+        v = np.zeros((h, w), np.float32)
+    else:
+        u, v = _level_field(start, len(prep.pyramid) - 1, (h, w))
     for lev in range(len(prep.pyramid) - 1, -1, -1):
         if "gradient" in kw0:  # coarse levels only initialise: frame gradient (cheapest)
             kw = dict(kw0, gradient=kw0["gradient"] if lev == 0 else "frame")
@@ -52,6 +57,16 @@ def _pyramid_flow(level_solver, prep: PreparedReference, frame_pyr, *, iteration
         if lev > 0 and cells > 1:  # a coarse level's cells -> its pixels, for the prolongation
             u, v = _upsample_cells(u, v, cells, prep.pyramid[lev].shape)
     return u, v
+
+
+def _level_field(field, lev: int, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """A full-resolution displacement field ``field(x, y) -> (dx, dy)`` on pyramid level
+    ``lev`` (its pixel ``i`` sits on full-resolution pixel ``2^lev i``, its pixels are
+    ``2^lev`` wide), as two float32 arrays."""
+    s = float(2 ** lev)
+    y, x = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
+    dx, dy = field(s * x, s * y)
+    return (np.asarray(dx, np.float64) / s).astype(np.float32), (np.asarray(dy, np.float64) / s).astype(np.float32)
 
 
 def deflection_field(
@@ -106,13 +121,15 @@ def deflection_field(
 def _flow_components(reference, frame, *, method, window, window_type, levels, iterations,
                      fine_iterations, presmooth, regularisation, gradient, alpha,
                      inner_iterations, dis_preset, corr_window, corr_step, corr_taper,
-                     ici_gamma, ici_min_window, keep=None, valid=None, info=None, cells=0):
+                     ici_gamma, ici_min_window, keep=None, valid=None, info=None, cells=0, start=None):
     """:func:`deflection_field` as two (H, W) float32 arrays (u, v); for LK, ``keep``
     (a dict) receives the full-resolution frame gradients ``gx``, ``gy``. ``valid``
     (H, W) bool: pixels the flow may use (LK and HS weight the others out; every method
     gets NaN-free images). ``cells`` = f > 1 with LK (frame gradient, no ICI): the finest
     level is solved per f x f cell (:func:`_lk_cells`) and (u, v) are (H // f, W // f);
-    ``keep["mom"]`` then holds the block moments. Other methods ignore it."""
+    ``keep["mom"]`` then holds the block moments. Other methods ignore it. ``start``
+    (LK and HS): the displacement field ``start(x, y) -> (dx, dy)`` the pyramid starts from
+    (:func:`_pyramid_flow`); the other methods ignore it."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     frm = _as_image(frame, "frame")
@@ -142,11 +159,11 @@ def _flow_components(reference, frame, *, method, window, window_type, levels, i
             u, v = _pyramid_flow(_lk_level, prep, fpyr, window=window, window_type=window_type,
                                  iterations=iterations, fine_iterations=fine_iterations,
                                  regularisation=regularisation, gradient=gradient,
-                                 keep=keep, weights=weights, ici=ici, cells=cells)
+                                 keep=keep, weights=weights, ici=ici, cells=cells, start=start)
         else:
             u, v = _pyramid_flow(_hs_level, prep, fpyr, iterations=iterations,
                                  fine_iterations=fine_iterations, alpha=alpha,
-                                 inner_iterations=inner_iterations, weights=weights)
+                                 inner_iterations=inner_iterations, weights=weights, start=start)
     else:
         ref = _standardise(prep.image, prep.mean, prep.scale, 0.0)
         frs = _standardise(frm, prep.mean, prep.scale, 0.0)
@@ -158,8 +175,9 @@ def _flow_components(reference, frame, *, method, window, window_type, levels, i
     return u, v
 
 
+# over 80 lines only by its numpydoc docstring: the steps are the functions it calls
 def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowParams(), *,
-                     info: dict | None = None) -> np.ndarray:
+                     info: dict | None = None, motion=None, invalid: np.ndarray | None = None) -> np.ndarray:
     """Per camera-frame deflection stage: flow, area downsampling, outliers, smoothing.
 
     Paper sec. 4: full-resolution optical flow, downsampled to the flow grid
@@ -194,6 +212,16 @@ def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowPara
     info : dict, optional
         Receives what the data chose (with ICI: the image noise, the median window, the
         fraction of pixels per window and the median predicted flow noise in pixels).
+    motion : callable, optional
+        The background's own displacement against the reference, ``motion(x, y) -> (dx,
+        dy)`` at full-resolution image positions (a camera that moved:
+        :mod:`schlieren.pipeline.capture`). LK and HS start their pyramid from it, so the
+        flow only has to find the deflections (a Lucas-Kanade step underestimates large
+        displacements); it is subtracted from the result, which is then the deflection alone.
+    invalid : ndarray, shape (H, W), bool, optional
+        Pixels known to be unusable (defective sensor pixels, mostly isolated): weighted out
+        like those of ``invalid_check`` (whether or not that is on), but the cells they
+        alone empty get their nearest valid cell's deflection rather than NaN.
 
     Returns
     -------
@@ -203,7 +231,10 @@ def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowPara
     f = params.factor
     H, W = np.shape(frame)[:2]
     rows, cols = FlowGrid((W, H), f).shape
-    valid = _valid_pixels(reference, frame, params.texture_threshold) if params.invalid_check else None
+    checked = _valid_pixels(reference, frame, params.texture_threshold) if params.invalid_check else None
+    valid = checked
+    if invalid is not None and np.any(invalid):
+        valid = ~np.asarray(invalid, bool) if valid is None else valid & ~np.asarray(invalid, bool)
     on_cells = uses_cell_solve(params)
     ici = params.method == "lk" and params.ici_gamma > 0 and params.gradient == "frame"
     texture = params.method == "lk" and params.texture_correction and not ici
@@ -215,18 +246,20 @@ def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowPara
                             alpha=p.alpha, inner_iterations=p.inner_iterations, dis_preset=p.dis_preset,
                             corr_window=p.corr_window, corr_step=p.corr_step, corr_taper=p.corr_taper,
                             ici_gamma=p.ici_gamma, ici_min_window=p.ici_min_window,
-                            keep=keep, valid=valid, info=info, cells=f if on_cells else 0)
+                            keep=keep, valid=valid, info=info, cells=f if on_cells else 0, start=motion)
     if u.shape == (rows, cols) and on_cells:
         comps = [u, v]
     else:
         comps = [_block_mean(u, f, (rows, cols)), _block_mean(v, f, (rows, cols))]
+    if motion is not None:  # the deflection alone: the flow minus the motion (at the cells' centres)
+        centres = FlowGrid((W, H), f).pixel_centres()
+        mx, my = motion(centres[..., 0], centres[..., 1])
+        comps = [comps[0] - np.asarray(mx, np.float32), comps[1] - np.asarray(my, np.float32)]
     bad_cells = None
     if valid is not None:
-        bad_cells = _bad_cells(valid, params.window, params.window_type, f, (rows, cols))
-        if bad_cells.all():
+        comps, bad_cells = _fill_bad_cells(comps, valid, checked, params)
+        if comps is None:
             return np.full((rows, cols, 2), np.nan, np.float32)
-        filled = _nearest_fill(np.dstack(comps), bad_cells)
-        comps = [np.ascontiguousarray(filled[..., 0]), np.ascontiguousarray(filled[..., 1])]
     if params.outlier_threshold > 0:
         comps = _replace_outliers(comps, params.outlier_threshold, params.outlier_epsilon)
     if keep and params.texture_correction:
@@ -238,6 +271,23 @@ def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowPara
     if bad_cells is not None and bad_cells.any():
         out[bad_cells] = np.nan
     return out
+
+
+def _fill_bad_cells(comps: list, valid: np.ndarray, checked: np.ndarray | None, params: FlowParams):
+    """The flow-grid cells that ``valid`` leaves without support (:func:`_bad_cells`) filled
+    from their nearest good cell, and the cells to return as NaN: those of ``checked`` (the
+    ``invalid_check`` map; the cells that only the caller's ``invalid`` pixels emptied keep
+    their filled value). ``(None, None)`` when no cell has support."""
+    shape = comps[0].shape
+    bad = _bad_cells(valid, params.window, params.window_type, params.factor, shape)
+    if bad.all():
+        return None, None
+    filled = _nearest_fill(np.dstack(comps), bad)
+    comps = [np.ascontiguousarray(filled[..., 0]), np.ascontiguousarray(filled[..., 1])]
+    if checked is not valid:
+        bad = _bad_cells(checked, params.window, params.window_type, params.factor, shape) \
+            if checked is not None else None
+    return comps, bad
 
 
 def _valid_pixels(reference, frame: np.ndarray, texture_threshold: float) -> np.ndarray | None:

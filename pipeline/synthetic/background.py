@@ -7,7 +7,9 @@ The pattern is evaluated *procedurally* at any point as a sum of quadratic B-spl
 weighted by the tile coefficients, over several octaves (bands), so the renderer never
 resamples an image: the background is exact at every sample position.
 
-A :class:`Background` maps world points on a camera's background plane to grey levels.
+A :class:`Background` maps world points on a camera's background plane to grey levels:
+Wavelet Noise by default, or a printed random dot pattern (:mod:`.dots`); a
+:class:`Texture` chooses between them and sets their scale in camera pixels.
 """
 
 from __future__ import annotations
@@ -17,7 +19,13 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-__all__ = ["wavelet_noise_tile", "Background", "make_background", "noise_values", "background_image"]
+from schlieren.pipeline.synthetic.dots import _dots_many, dot_params, dot_table
+
+__all__ = ["wavelet_noise_tile", "Background", "make_background", "noise_values", "background_image", "Texture",
+           "make_texture_background", "TEXTURE_KINDS"]
+
+#: Background kinds: the renderer's kernel selects the pattern by the index in this tuple.
+TEXTURE_KINDS = ("noise", "dots")
 
 
 def _refinement_matrix(n: int) -> np.ndarray:
@@ -107,7 +115,7 @@ def _pattern_many(tile, a, b, inv_spacing, offset_a, offset_b, weights, out):
 
 @dataclass(frozen=True, eq=False)
 class Background:
-    """A Wavelet Noise pattern on a plane.
+    """A Wavelet Noise pattern (or a dot pattern, ``kind="dots"``) on a plane.
 
     Attributes
     ----------
@@ -124,6 +132,11 @@ class Background:
     point, e1, e2 : ndarray, shape (3,)
         Plane origin and in-plane orthonormal axes (world); plane coordinates
         ``a = (X - point) . e1``, ``b = (X - point) . e2``.
+    kind : {"noise", "dots"}
+        ``"dots"``: ``spacing`` is the dot pitch, ``bands`` is 1, ``dots`` the
+        :func:`~schlieren.pipeline.synthetic.dots.dot_table` and ``dot_par`` its
+        :func:`~schlieren.pipeline.synthetic.dots.dot_params` (``tile`` is unused).
+    dots, dot_par : ndarray or None
     """
 
     tile: np.ndarray
@@ -135,6 +148,9 @@ class Background:
     point: np.ndarray
     e1: np.ndarray
     e2: np.ndarray
+    kind: str = "noise"
+    dots: np.ndarray | None = None
+    dot_par: np.ndarray | None = None
 
     @property
     def inv_spacing(self) -> np.ndarray:
@@ -149,6 +165,12 @@ class Background:
         """Arguments for the numba evaluation kernels (tile, inv_spacing, offsets a, b, weights)."""
         return (np.ascontiguousarray(self.tile), self.inv_spacing, np.ascontiguousarray(self.offsets[:, 0]),
                 np.ascontiguousarray(self.offsets[:, 1]), self.weights)
+
+    def texture_args(self) -> tuple:
+        """The kernel's pattern selector: (kind index in :data:`TEXTURE_KINDS`, dot table, dot parameters)."""
+        if self.kind == "dots":
+            return 1, np.ascontiguousarray(self.dots), np.asarray(self.dot_par, dtype=np.float64)
+        return 0, np.zeros((1, 1, 2)), np.zeros(4)
 
     def plane_coords(self, X: np.ndarray) -> np.ndarray:
         """Plane coordinates ``(a, b)`` (metres) of world points, shape (..., 2)."""
@@ -167,6 +189,11 @@ def noise_values(bg: Background, ab: np.ndarray) -> np.ndarray:
     flat = ab.reshape(-1, 2)
     out = np.empty(flat.shape[0])
     tile, inv, oa, ob, w = bg.kernel_args()
+    if bg.kind == "dots":
+        _, table, par = bg.texture_args()
+        _dots_many(table, np.ascontiguousarray(flat[:, 0] * inv[0] + oa[0]),
+                   np.ascontiguousarray(flat[:, 1] * inv[0] + ob[0]), par, out)
+        return out.reshape(shp)
     _pattern_many(tile, np.ascontiguousarray(flat[:, 0]), np.ascontiguousarray(flat[:, 1]), inv, oa, ob, w, out)
     return out.reshape(shp)
 
@@ -191,6 +218,15 @@ def make_background(point: np.ndarray, normal: np.ndarray, *, spacing: float, ti
     mean, contrast : float
         Grey levels (8-bit scale) of the mean and of one standard deviation.
     """
+    e1, e2 = _plane_axes(normal)
+    rng = np.random.default_rng(seed)
+    offsets = rng.uniform(0, tile.shape[0], (bands, 2))
+    return Background(tile=tile, spacing=float(spacing), bands=int(bands), offsets=offsets, mean=float(mean),
+                      contrast=float(contrast), point=np.asarray(point, dtype=np.float64), e1=e1, e2=e2)
+
+
+def _plane_axes(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """In-plane axes: ``e1`` horizontal, ``e2`` completing a right-handed frame with the normal."""
     nrm = np.asarray(normal, dtype=np.float64)
     nrm = nrm / np.linalg.norm(nrm)
     up = np.array([0.0, 0.0, 1.0])
@@ -198,11 +234,61 @@ def make_background(point: np.ndarray, normal: np.ndarray, *, spacing: float, ti
     if np.linalg.norm(e1) < 1e-6:
         e1 = np.cross(np.array([1.0, 0.0, 0.0]), nrm)
     e1 /= np.linalg.norm(e1)
-    e2 = np.cross(nrm, e1)
-    rng = np.random.default_rng(seed)
-    offsets = rng.uniform(0, tile.shape[0], (bands, 2))
-    return Background(tile=tile, spacing=float(spacing), bands=int(bands), offsets=offsets, mean=float(mean),
-                      contrast=float(contrast), point=np.asarray(point, dtype=np.float64), e1=e1, e2=e2)
+    return e1, np.cross(nrm, e1)
+
+
+@dataclass(frozen=True)
+class Texture:
+    """What is printed on the background, scaled to the camera's pixels.
+
+    Attributes
+    ----------
+    kind : {"noise", "dots"}
+        Wavelet Noise (the paper's, sec. 4) or a random dot pattern (:mod:`.dots`).
+    scale : float
+        Noise: the finest band's coefficient spacing; dots: the dot pitch; in camera
+        pixels at the background plane (the default noise, 1.5, gives features 2-3 px wide).
+    bands : int
+        Noise octaves (band ``k`` has spacing ``scale * 2**k``); dots ignore it.
+    dot_diameter : float
+        Dot diameter in units of the pitch.
+    dot_edge : float
+        Sigma of a dot's soft rim in units of the pitch.
+    """
+
+    kind: str = "noise"
+    scale: float = 1.5
+    bands: int = 3
+    dot_diameter: float = 0.6
+    dot_edge: float = 0.1
+
+    def __post_init__(self):
+        if self.kind not in TEXTURE_KINDS:
+            raise ValueError(f"texture kind must be one of {TEXTURE_KINDS}, not {self.kind!r}")
+        if not self.scale > 0 or self.bands < 1:
+            raise ValueError("texture scale must be positive and bands at least 1")
+
+
+def make_texture_background(point: np.ndarray, normal: np.ndarray, texture: Texture, *, pixel_footprint: float,
+                            tile: np.ndarray | None = None, seed: int = 0, mean: float = 128.0,
+                            contrast: float = 40.0) -> Background:
+    """A :class:`Texture` on the plane through ``point`` with ``normal``.
+
+    ``pixel_footprint`` is one camera pixel on the plane (metres); noise needs ``tile``
+    (:func:`wavelet_noise_tile`); a dot pattern draws its own table from ``seed``.
+    """
+    spacing = texture.scale * float(pixel_footprint)
+    if texture.kind == "noise":
+        if tile is None:
+            raise ValueError("a noise texture needs a wavelet noise tile")
+        return make_background(point, normal, spacing=spacing, tile=tile, bands=texture.bands, seed=seed,
+                               mean=mean, contrast=contrast)
+    table = dot_table(seed=seed)
+    e1, e2 = _plane_axes(normal)
+    offsets = np.random.default_rng(seed).uniform(0, table.shape[0], (1, 2))
+    return Background(tile=np.zeros((2, 2)), spacing=spacing, bands=1, offsets=offsets, mean=float(mean),
+                      contrast=float(contrast), point=np.asarray(point, dtype=np.float64), e1=e1, e2=e2, kind="dots",
+                      dots=table, dot_par=dot_params(table, diameter=texture.dot_diameter, edge=texture.dot_edge))
 
 
 def background_image(bg: Background, width_px: int, height_px: int, *, pixel_size: float,

@@ -37,6 +37,7 @@ from scipy import ndimage
 
 from schlieren.pipeline.geometry import Camera, FlowGrid, Grid
 from schlieren.pipeline.synthetic.background import Background, _noise_at
+from schlieren.pipeline.synthetic.dots import _dots_at
 from schlieren.pipeline.synthetic.tracer import trace_rays_timed
 
 __all__ = [
@@ -47,6 +48,7 @@ __all__ = [
     "trace_lattice",
     "trace_cells",
     "render_image",
+    "render_frame",
     "reference_image",
     "row_times",
     "flash_rows",
@@ -242,7 +244,7 @@ def _spline_eval(coef, x, y):
 
 @njit(cache=True, parallel=True)
 def _render_block(r0, r1, c0, c1, s, has_delta, dcoef, lat_o, lat_s, kinv, use_xy, xycoef, hom,
-                  tile, inv_sp, oa, ob, wts, mean, contrast, img, dmean):
+                  tile, inv_sp, oa, ob, wts, kind, dots, dot_par, mean, contrast, img, dmean):
     inv_s = 1.0 / s
     inv_ls = 1.0 / lat_s
     for r in prange(r0, r1):
@@ -271,8 +273,11 @@ def _render_block(r0, r1, c0, c1, s, has_delta, dcoef, lat_o, lat_s, kinv, use_x
                     a = hom[0] + hom[2] * num_a / den
                     b = hom[1] + hom[2] * num_b / den
                     val = 0.0
-                    for k in range(inv_sp.shape[0]):
-                        val += wts[k] * _noise_at(tile, a * inv_sp[k] + oa[k], b * inv_sp[k] + ob[k])
+                    if kind == 0:
+                        for k in range(inv_sp.shape[0]):
+                            val += wts[k] * _noise_at(tile, a * inv_sp[k] + oa[k], b * inv_sp[k] + ob[k])
+                    else:
+                        val = _dots_at(dots, a * inv_sp[0] + oa[0], b * inv_sp[0] + ob[0], dot_par)
                     acc += val
                     dx_acc += du
                     dy_acc += dv
@@ -320,9 +325,10 @@ class _CameraRenderer:
         dmean = np.zeros((r1 - r0, c1 - c0, 2))
         has = dcoef is not None
         tile, inv, oa, ob, w = self.bg.kernel_args()
+        kind, dots, dot_par = self.bg.texture_args()
         _render_block(r0, r1, c0, c1, int(supersample), has, dcoef if has else np.zeros((1, 1, 2)),
                       self.lattice.origin, float(self.lattice.stride), self.kinv, self.use_xy, self.xycoef,
-                      self.hom, tile, inv, oa, ob, w, self.bg.mean, self.bg.contrast, img, dmean)
+                      self.hom, tile, inv, oa, ob, w, kind, dots, dot_par, self.bg.mean, self.bg.contrast, img, dmean)
         return img, dmean
 
 
@@ -390,6 +396,27 @@ def render_image(camera: Camera, bg: Background, trace: LatticeTrace, lattice: L
     image[r0:r1, c0:c1] = img
     delta[r0:r1, c0:c1] = dm
     return image, delta
+
+
+def render_frame(camera: Camera, bg: Background, trace: LatticeTrace, lattice: Lattice, *,
+                 supersample: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Noise-free frame through the flow, every pixel rendered, and the pixel-mean deflection.
+
+    As :func:`render_image`, for a camera whose pose differs from its reference's (a
+    camera that moved: :mod:`.lab`), where no pixel equals the reference image.
+
+    Returns
+    -------
+    image : ndarray, shape (H, W) float64
+    delta : ndarray, shape (H, W, 2) float32
+    """
+    dcoef = None
+    if np.any(trace.marched):
+        dcoef = np.stack([ndimage.spline_filter(trace.delta[..., k], order=3, mode="mirror") for k in range(2)],
+                         axis=-1)
+    img, dm = _renderer(camera, bg, lattice).render(slice(0, camera.height), slice(0, camera.width), supersample,
+                                                    dcoef)
+    return img, dm.astype(np.float32)
 
 
 def cell_average(delta: np.ndarray, flow_grid: FlowGrid) -> np.ndarray:

@@ -28,8 +28,11 @@ log = logging.getLogger(__name__)
 EXPECTED_ARRAYS = ("time", "flow", "mask", "potential", "hull", "gradient", "refractivity", "density",
                    "temperature")
 VOLUME_ARRAYS = ("hull", "gradient", "refractivity", "density", "temperature")
-#: Arrays read when present and never listed as missing: the optional stages' (``uncertainty``).
-OPTIONAL_ARRAYS = ("refractivity_sigma", "density_sigma", "temperature_sigma")
+#: Arrays read when present and never listed as missing: the optional stages' (``uncertainty``),
+#: and those stores of older versions lack (the capture corrections of issue 33, the raw frames'
+#: coordinate).
+OPTIONAL_ARRAYS = ("refractivity_sigma", "density_sigma", "temperature_sigma", "background_motion",
+                   "photometric", "capture_fit", "defective_pixels", "row_knot", "raw_frame")
 
 
 # ---------------------------------------------------------------------------------------
@@ -391,6 +394,11 @@ class ReportReader:
                 return None
             v = v.astype(np.float64)
         return v
+
+    def whole(self, name: str) -> np.ndarray | None:
+        """All of a present (small) array, e.g. ``background_motion`` (camera, raw_frame, 8);
+        None if absent."""
+        return np.asarray(self._arrays[name][...]) if name in self._arrays else None
 
     def camera_frame(self, name: str, c: int, f: int) -> np.ndarray | None:
         """``name[c, f]`` of a per-camera array (float64 if floating), or None if missing or unfinished."""

@@ -70,7 +70,7 @@ def test_the_store_page_lists_every_array_of_the_layout():
     text = (REPO / "docs" / "store.md").read_text()
     grid = Grid((0.0, 0.0, 0.0), (0.1, 0.1, 0.1), 0.01)
     for spec in result_layout(camera_names=["a"], n_frames=2, flow_shape=(4, 5), grid=grid, flow_factor=3,
-                              n_raw=4, raw_first=0):
+                              n_raw=4, raw_first=0, image_shape=(12, 15), row_knots=[0.0, 11.0]):
         assert f"`{spec.name}`" in text, spec.name
         units = spec.attrs.get("units")
         if units and units != "1":

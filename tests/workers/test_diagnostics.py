@@ -29,6 +29,21 @@ def test_warnings_name_camera_frames_and_a_likely_cause():
     assert diagnose([{"stage": "hull", "frame": 1, "voxels": 40}], n_voxels=100) == []
 
 
+def test_camera_motion_warned_once_per_camera_with_its_frames():
+    from schlieren.pipeline.capture import FALLBACK, MOTION_APPLIED
+
+    receipts = ([{"stage": "deflection", "camera": "cam01", "frame": f, "motion_px": 0.2 * f,
+                  "capture_flags": MOTION_APPLIED} for f in range(1, 6)]
+                + [{"stage": "deflection", "camera": "cam02", "frame": 3, "motion_px": 0.1,
+                    "capture_flags": FALLBACK | MOTION_APPLIED}])
+    w = diagnose(receipts, n_voxels=100, motion_warning=0.5)
+    assert len(w) == 2, w
+    assert w[0].startswith("camera cam01, frames 3, 4, 5: the background moved by up to 1 px") and "0.5 px" in w[0]
+    assert w[1].startswith("camera cam02, frame 3: less of the image sees the background")
+    assert diagnose(receipts[:1], n_voxels=100, motion_warning=0.5) == []
+    assert len(diagnose(receipts, n_voxels=100)) == 1  # no threshold: only the fallback
+
+
 def test_a_moved_camera_is_named_in_a_warning(tiny_session, tmp_path):
     """cam01's reference shifted by 8 pixels (the camera was bumped after recording it)."""
     from schlieren.workers.run import run_session

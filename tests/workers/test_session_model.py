@@ -11,7 +11,7 @@ from schlieren.workers import throughput as tp
 from schlieren.workers.plan import Extents, critical_path_priorities, make_plan
 
 # known seconds per index of each stage
-COST = {"sync": 0.05, "clock": 0.01, "deflection": 0.2, "resample": 0.1, "potential": 0.1,
+COST = {"sync": 0.05, "clock": 0.01, "capture": 0.02, "deflection": 0.2, "resample": 0.1, "potential": 0.1,
         "mask": 0.1, "geometry": 10.0, "hull": 1.0, "integrate": 0.5, "regularisation": 0.5}
 COLD, WARM, PER_SUMMARY = 3.0, 2.0, 0.001
 
@@ -37,6 +37,8 @@ def synthetic_receipts(cameras: int, frames: int, *, block: int = 4, margin: int
                 add(s, (c, k), COST[s])
         for j in range(frames + 2 * margin):
             add("deflection", (c, j), COST["deflection"])
+    for c in range(cameras):  # apart from the loop above, whose even count per camera would give sync one sign
+        add("capture", (c,), COST["capture"])
     add("clock", (), COST["clock"])
     add("geometry", (), COST["geometry"])
     add("threshold", (), PER_SUMMARY * cameras * frames)
@@ -75,8 +77,9 @@ def test_fit_refuses_an_incomplete_run():
 def test_task_counts():
     n = tp.task_counts(16, 1000, raw_margin=2, frames_per_task=1)
     assert n["deflection"] == 16 * 1004 and n["mask"] == 16000 and n["tomography"] == 1000
-    assert n["threshold"] == n["clock"] == n["geometry"] == n["regularisation"] == 1 and n["sync"] == 16
-    assert sum(n.values()) == 67084
+    assert n["threshold"] == n["clock"] == n["geometry"] == n["regularisation"] == 1
+    assert n["sync"] == n["capture"] == 16
+    assert sum(n.values()) == 67100
     b = tp.task_counts(8, 16, raw_margin=2, frames_per_task=8)
     assert b["resample"] == 8 * 2 and b["deflection"] == 8 * 3 and b["hull"] == 16
 
@@ -85,19 +88,19 @@ def test_prediction_by_hand():
     """16 cameras x 1000 frames on 8 workers, worked out term by term."""
     costs = tp.fit_costs(synthetic_receipts(2, 8), cameras=2, frames=8).with_overheads(0.005, 0.0)
     p = tp.predict(costs, cameras=16, frames=1000, workers=8, warm_start_block=4, raw_margin=2)
-    W_A = 16 * 0.05 + 0.01 + 16 * 1004 * 0.2 + 16000 * 0.1 + 16000 * 0.1 + 10.0  # 6423.61
+    W_A = 16 * 0.05 + 0.01 + 16 * 0.02 + 16 * 1004 * 0.2 + 16000 * 0.1 + 16000 * 0.1 + 10.0  # 6423.93
     W_C = 16000 * 0.1 + 0.5 + 1000 * 1.0 + (250 * 3.0 + 750 * 2.0) + 1000 * 0.5  # 5350.5
-    L_A = max(0.05 + 0.01, 0.2) + 0.1 + 0.1
+    L_A = max(0.05 + 0.01, 0.02 + 0.2) + 0.1 + 0.1
     L_C = 0.1 + max(1.0, 0.5) + 3.0 + 3 * 2.0 + 0.5   # mask, hull or regularisation, solves, integrate
     T_B = 16000 * 0.001
-    overhead = 0.005 * (67084 / 8 + 12)
+    overhead = 0.005 * (67100 / 8 + 12)
     assert p.seconds == pytest.approx(W_A / 8 + W_C / 8 + (1 - 1 / 8) * (L_A + L_C) + T_B + overhead)
-    assert p.seconds == pytest.approx(1497.38875 + 0.005 * (67084 / 8 + 12))
+    assert p.seconds == pytest.approx(1497.44625 + 0.005 * (67100 / 8 + 12))
     W_A_needed = W_A - 10.0  # the geometry may run after the barrier
     # here the phases bind: the barrier's wait (T_B) is more than the geometry's share of the work
     assert W_A_needed / 8 + T_B + W_C / 8 > (W_A + T_B + W_C) / 8
     assert p.lower == pytest.approx(W_A_needed / 8 + T_B + W_C / 8)
-    assert p.tasks == 67084
+    assert p.tasks == 67100
     assert p.limiting == "deflection: work / N"
     assert p.terms["geometry wait"] == 0.0
     assert sum(v for k, v in p.terms.items() if "not added" not in k) == pytest.approx(p.seconds)
@@ -110,9 +113,9 @@ def test_limiting_terms():
     base = tp.fit_costs(synthetic_receipts(2, 8), cameras=2, frames=8)
     # one scheduler for ~67k tasks at 5 ms each outlasts 128 workers' share of the work
     p = tp.predict(base.with_overheads(0.0, 0.005), cameras=16, frames=1000, workers=128)
-    assert p.limiting.startswith("scheduler throughput") and p.seconds == pytest.approx(0.005 * 67084)
+    assert p.limiting.startswith("scheduler throughput") and p.seconds == pytest.approx(0.005 * 67100)
     q = tp.predict(base.with_overheads(0.0, 0.005), cameras=16, frames=1000, workers=128, planning=1000.0)
-    assert q.limiting.startswith("planning") and q.seconds == pytest.approx(1000.0 + 0.005 * 67084)
+    assert q.limiting.startswith("planning") and q.seconds == pytest.approx(1000.0 + 0.005 * 67100)
     # a slow barrier dominates once the work is spread thin
     slow = tp.StageCosts(per_index=base.per_index, tomography_cold=COLD, tomography_warm=WARM,
                          threshold_per_summary=0.01)
@@ -122,7 +125,7 @@ def test_limiting_terms():
     assert chain.limiting.startswith("warm-start chain")
     # a short run: the single geometry task outlasts everything before the solves
     geo = tp.predict(base, cameras=1, frames=1, workers=4)
-    W_A = 0.05 + 0.01 + 5 * 0.2 + 0.1 + 0.1 + 10.0  # phase A's work / 4 outlasts its chain
+    W_A = 0.05 + 0.01 + 0.02 + 5 * 0.2 + 0.1 + 0.1 + 10.0  # phase A's work / 4 outlasts its chain
     assert geo.terms["geometry wait"] == pytest.approx(10.0 - W_A / 4 - 0.001 - 0.1 - 1.0)
 
 

@@ -3,11 +3,12 @@
 ``table1`` reproduces the paper's Table 1 (sec. 6) on the project's synthetic plume and
 writes ``benchmarks/results/table1.md`` and ``table1.json`` (see
 :mod:`schlieren.workers.bench`). ``realistic`` runs the realistic capture family (CFD
-flows, weak deflections, lossy video; :mod:`schlieren.workers.realistic`) and writes
-``benchmarks/results/realistic[_LABEL].md`` / ``.json``. ``spacetime`` runs the family's cases
-rendered with more frames (``--frames``, default 7) with space-time reconstruction on and
-scores it against the same run's per-frame solve (:mod:`schlieren.workers.bench.spacetime`,
-``benchmarks/results/spacetime[_LABEL].md`` / ``.json``).
+flows, weak deflections, lossy video, each capture clean and as a lab records it;
+:mod:`schlieren.workers.realistic`) and writes ``benchmarks/results/realistic[_LABEL].md``
+/ ``.json``. ``spacetime`` runs the family's cases rendered with more frames (``--frames``,
+default 7) with space-time reconstruction on and scores it against the same run's per-frame
+solve (:mod:`schlieren.workers.bench.spacetime`, ``benchmarks/results/spacetime[_LABEL].md`` /
+``.json``).
 """
 
 from __future__ import annotations
@@ -49,6 +50,8 @@ def add_parser(subparsers) -> None:
     r = p.add_argument_group("realistic")
     r.add_argument("--cases", default=None, help="comma-separated case names or prefixes (default: all)")
     r.add_argument("--role", choices=["tune", "report"], default=None, help="only the tune or the report cases")
+    r.add_argument("--variant", choices=["clean", "lab"], default=None,
+                   help="only the clean cases, or only the lab captures (the -lab and -laball cases); default both")
     p.add_argument("--params", metavar="FILE", default=None,
                    help="run parameters (YAML) instead of the defaults (table1: flow.factor is the "
                         "benchmark's rendering factor, the largest flow.auto_factor may take)")
@@ -90,7 +93,8 @@ def _config(args):
         if args.workers < 0:
             raise CLIError("--workers must be >= 0")
         kw["workers"] = args.workers
-    only_realistic = {"--cases": args.cases, "--role": args.role, "--label": args.label or None,
+    only_realistic = {"--cases": args.cases, "--role": args.role, "--variant": args.variant,
+                      "--label": args.label or None,
                       "--manifest-voxel": args.manifest_voxel, "--no-truth-rows": args.no_truth_rows or None,
                       "--keep-stores": args.keep_stores or None}
     given = [k for k, v in only_realistic.items() if v is not None]
@@ -139,7 +143,7 @@ def _realistic(args) -> int:
     if args.label and not re.fullmatch(r"[A-Za-z0-9_.-]+", args.label):
         raise CLIError("--label may hold letters, digits, '_', '.' and '-' only")
     try:
-        cases = rb.QUICK_CASES if args.quick else rb.select_cases(args.cases, role=args.role)
+        cases = rb.QUICK_CASES if args.quick else rb.select_cases(args.cases, role=args.role, variant=args.variant)
     except ValueError as exc:
         raise CLIError(f"--cases: {exc}") from None
     if not cases:
@@ -161,6 +165,7 @@ def _realistic(args) -> int:
             from schlieren.workers.cluster import ClusterOptions, open_client
 
             client, _info = stack.enter_context(open_client(ClusterOptions(workers=workers, dashboard_address=":0")))
+            _numba_follows_environment()
         result = rb.run_family(work, cases, config=config, client=client, label=args.label,
                                truth_rows=not args.no_truth_rows, progress=lambda m: console.print(m),
                                voxel=args.manifest_voxel, keep_stores=args.keep_stores or not args.label)
@@ -222,6 +227,7 @@ def _spacetime(args) -> int:
             from schlieren.workers.cluster import ClusterOptions, open_client
 
             client, _info = stack.enter_context(open_client(ClusterOptions(workers=workers, dashboard_address=":0")))
+            _numba_follows_environment()
         result = sb.run_family(Path(args.out or "realistic-out"), cases, config=config, client=client,
                                label=args.label, keep_stores=args.keep_stores or not args.label,
                                progress=lambda m: console.print(m))
@@ -233,6 +239,23 @@ def _spacetime(args) -> int:
         (f" --params {args.params}" if args.params else "")
     return _write_family(Path(args.results), name,
                          sb.spacetime_markdown(result, machine=result["machine"], command=command), result, console)
+
+
+def _numba_follows_environment() -> None:
+    """Make this process's numba read the thread cap the local cluster's nannies just exported.
+
+    The nannies run in this process and put ``NUMBA_NUM_THREADS=1`` into its environment
+    (``workers/cluster/settings.py``), but numba reads the environment only when it compiles.
+    The benchmark runs numba kernels here too (rendering, the truth rows): if the first of
+    them runs from the disk cache, numba starts its pool at the old count, and the next
+    compile refuses the changed variable ("Cannot set NUMBA_NUM_THREADS to a different
+    value once the threads have been launched"). Reading it now starts the pool at the cap.
+    """
+    from numba.core import config
+    from numba.np.ufunc import parallel
+
+    if not parallel._is_initialized:
+        config.reload_config()
 
 
 def _has_bench_extra() -> bool:
@@ -271,6 +294,7 @@ def handler(args) -> int:
 
             client, _info = stack.enter_context(open_client(ClusterOptions(workers=cfg.workers,
                                                                            dashboard_address=":0")))
+            _numba_follows_environment()
             executor = f"local Dask cluster, {cfg.workers} workers x 1 thread"
         result = run_table1(work, cfg, client=client, progress=lambda m: console.print(m))
     wall = time.perf_counter() - t0

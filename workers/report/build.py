@@ -32,6 +32,7 @@ from schlieren.pipeline.geometry import Grid, Medium
 from schlieren.storage import location
 from schlieren.storage.report import ReportPage, ReportReader, ReportWriter, fmt_number, frame_range, html_table
 from schlieren.workers.report._common import _finite, _get
+from schlieren.workers.report.capture_section import capture_section
 from schlieren.workers.report.residual_section import _residual_section
 from schlieren.workers.report.sections import (_deflection_section, _hull_section, _render_section,
                                                _slices_section, _timings_section)
@@ -104,6 +105,7 @@ def build_report(store_path: str | os.PathLike, out_dir: str | os.PathLike, *, f
         _accuracy_section(page, evaluation)
     _completion_section(page, rd)
     _deflection_section(page, rd, writer, shown, cameras, max_cameras)
+    capture_section(page, rd, writer, cameras)
     if grid is not None:
         _hull_section(page, rd, grid, writer, shown)
         _slices_section(page, rd, grid, writer, shown, times)

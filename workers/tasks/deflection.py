@@ -1,9 +1,12 @@
 """The ``deflection`` task: one camera's optical flow at one raw frame (paper sec. 4).
 
-The frame is compared with the camera's reference (:func:`~schlieren.pipeline.flow.deflection_stage`,
-the reference's pyramid prepared once per process) and its frame-quality vector is
-stored beside the flow: dark, saturated or frozen frames are flagged here and excluded
-by the resampling. A dropped frame, or a margin frame no output instant reads, stores a
+The frame is compared with the camera's reference
+(:func:`~schlieren.pipeline.capture.corrected_deflection`: the flow of
+:func:`~schlieren.pipeline.flow.deflection_stage` with the camera's motion against the
+reference, the frame's gain and offset and the defective pixels removed; the reference's
+pyramid prepared once per process); the corrections (``background_motion``,
+``photometric``, ``capture_fit``) and the frame-quality vector are stored beside the flow:
+dark, saturated or frozen frames are flagged here and excluded by the resampling. A dropped frame, or a margin frame no output instant reads, stores a
 NaN field and its flags without computing a flow.
 """
 
@@ -14,10 +17,12 @@ import logging
 
 import numpy as np
 
+from schlieren.pipeline import capture
 from schlieren.pipeline import flow as flowmod
 from schlieren.pipeline import frame_quality as fq
 from schlieren.pipeline.stages import stage
 from schlieren.storage.errors import SessionError
+from schlieren.workers.tasks.capture import defective_pixels, static_region
 from schlieren.workers.tasks.resample import raw_range, resample_window
 from schlieren.workers.tasks.run_context import RunContext
 
@@ -42,12 +47,16 @@ def deflection_task(ctx: RunContext, c: int, j: int) -> dict:
     img = ctx.frame(c, f)
     parity = src.parity(f) if hasattr(src, "parity") else None  # interlaced fields
     params = flow_params(ctx, c)
-    d = flowmod.deflection_stage(ctx.prepared_reference(c, parity), img, params)
+    d, corr = capture.corrected_deflection(ctx.prepared_reference(c, parity), img, params, ctx.config.capture,
+                                           static=static_region(ctx, c), defects=defective_pixels(ctx, c))
     ctx.store.write("flow_raw", (c, j), d.astype(np.float32))
+    _write_capture(ctx, c, j, corr)
     # dark, saturated or frozen frames: flagged here, excluded by resampling
     q = quality_vector(ctx, c, f, img)
     ctx.store.write("frame_quality", (c, j), q)
-    out = {"max_px": float(np.nanmax(np.abs(d))) if np.isfinite(d).any() else 0.0, "window": params.window}
+    out = {"max_px": float(np.nanmax(np.abs(d))) if np.isfinite(d).any() else 0.0, "window": params.window,
+           "motion_px": capture.motion_extent(corr.motion, ctx.cameras[c].image_size),
+           "capture_flags": int(corr.flags)}
     bad = fq.flag_names(q[3])
     if bad:
         out["excluded"] = bad
@@ -58,9 +67,21 @@ def deflection_task(ctx: RunContext, c: int, j: int) -> dict:
 
 def _write_no_flow(ctx: RunContext, c: int, j: int, quality: np.ndarray) -> None:
     """Raw frame ``j`` of camera ``c`` has no flow (dropped, or not needed): a NaN field and
-    its quality vector, so every chunk of the task exists."""
+    its quality vector (and NaN capture corrections), so every chunk of the task exists."""
     ctx.store.write("flow_raw", (c, j), np.full(tuple(ctx.flow_grid.shape) + (2,), np.nan, np.float32))
     ctx.store.write("frame_quality", (c, j), quality)
+    for name in ("background_motion", "photometric", "capture_fit"):
+        shape = ctx.store.array(name).shape[2:]
+        ctx.store.write(name, (c, j), np.full(shape, np.nan, ctx.store.array(name).dtype))
+
+
+def _write_capture(ctx: RunContext, c: int, j: int, corr) -> None:
+    """The capture corrections of camera ``c``'s raw frame ``j``: the background's motion,
+    the frame's gain and offset profiles, and the fit's statistics."""
+    ph = corr.fit.photometric
+    ctx.store.write("background_motion", (c, j), np.asarray(corr.motion, np.float64))
+    ctx.store.write("photometric", (c, j), np.stack([ph.gain, ph.offset]).astype(np.float32))
+    ctx.store.write("capture_fit", (c, j), corr.stats())
 
 
 def raw_frame_needed(ctx: RunContext, c: int, f: int) -> bool:

@@ -15,6 +15,7 @@ import time
 
 from schlieren.pipeline.stages import stage
 from schlieren.workers.monitoring import log_receipt
+from schlieren.workers.tasks.capture import capture_task
 from schlieren.workers.tasks.deflection import deflection_task
 from schlieren.workers.tasks.geometry import geometry_task
 from schlieren.workers.tasks.hull import hull_task
@@ -34,7 +35,7 @@ log = logging.getLogger(__package__)  # the package's logger: log records name i
 
 #: Each stage's task: ``task(ctx, *index) -> dict`` of extra receipt fields.
 STAGE_TASKS = {
-    "sync": sync_task, "clock": clock_task, "deflection": deflection_task,
+    "sync": sync_task, "clock": clock_task, "capture": capture_task, "deflection": deflection_task,
     "regularisation": regularisation_task,
     "resample": resample_task, "potential": potential_task, "threshold": threshold_task, "mask": mask_task,
     "geometry": geometry_task, "hull": hull_task, "tomography": tomography_task,

@@ -1,0 +1,206 @@
+"""One camera-frame's flow with the capture's defects removed: the per camera-frame
+kernel of the ``deflection`` stage with :class:`~.params.CaptureParams`.
+
+1. :func:`~.registration.register_background` measures the background's motion and the
+   frame's gain and offset profiles on the pixels whose rays miss the volume;
+2. the frame's gain and offset are removed (when they depart from 1 and 0 by more than
+   their tolerances);
+3. the flow (:func:`~schlieren.pipeline.flow.deflection_stage`) starts from the motion
+   (or, beyond ``warp_above``, runs against the reference resampled at the moved
+   positions), gives the defective pixels no weight, and returns the deflection alone;
+4. what motion the flow still shows on the static cells is fitted robustly
+   (:func:`~.motion.fit_flow_motion`) and removed too: where the static region is too
+   small the registration used every pixel, and this fit on the flow's low-deflection
+   cells is what separates the plume from the motion;
+5. with ``motion_source: camera`` the deflections are moved back onto the reference's
+   pixel grid (a camera that turned sees the plume through other pixels: the calibrated
+   ray of pixel ``q`` is seen at ``q - motion(q)`` in the frame).
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from schlieren.pipeline.flow import FlowParams, deflection_stage, prepare_reference
+from schlieren.pipeline.flow.splines import warp_image
+
+from .motion import fit_flow_motion, motion_displacement, motion_extent, motion_field
+from .params import CaptureParams
+from .photometric import normalise_frame
+from .registration import BackgroundFit, register_background
+from .static_region import static_cells
+
+__all__ = ["CaptureCorrection", "corrected_deflection", "to_reference_grid", "MOTION_APPLIED",
+           "PHOTOMETRIC_APPLIED", "FALLBACK", "NOT_CONVERGED", "CAPTURE_STATS"]
+
+#: Bits of :attr:`CaptureCorrection.flags`.
+MOTION_APPLIED, PHOTOMETRIC_APPLIED, FALLBACK, NOT_CONVERGED = 1, 2, 4, 8
+#: Entries of :meth:`CaptureCorrection.stats` (the store's ``capture_fit``).
+CAPTURE_STATS = ("static_fraction", "noise", "samples", "residual_motion", "flags")
+
+
+@dataclass(frozen=True)
+class CaptureCorrection:
+    """What :func:`corrected_deflection` measured and removed.
+
+    Attributes
+    ----------
+    motion : ndarray, shape (8,)
+        The background's motion (:data:`~.motion.MOTION_PARAMS`): the registration's plus
+        what the flow still showed on the static cells.
+    fit : BackgroundFit
+        The registration (its gain and offset profiles are the frame's).
+    residual : float
+        Largest displacement (pixels) of the motion the flow still showed on the static
+        cells after the registration's was removed (before that, too, was removed).
+    flags : int
+        Bit sum of :data:`MOTION_APPLIED`, :data:`PHOTOMETRIC_APPLIED`, :data:`FALLBACK`
+        and :data:`NOT_CONVERGED`.
+    """
+
+    motion: np.ndarray
+    fit: BackgroundFit
+    residual: float
+    flags: int
+
+    def stats(self) -> np.ndarray:
+        """:data:`CAPTURE_STATS`: the static fraction of the image, the registration's
+        residual noise (grey levels), its samples, :attr:`residual` and :attr:`flags`."""
+        f = self.fit
+        return np.array([f.static_fraction, f.noise, f.samples, self.residual, self.flags], np.float32)
+
+
+def corrected_deflection(reference, frame: np.ndarray, flow: FlowParams = FlowParams(),
+                         capture: CaptureParams = CaptureParams(), *, static: np.ndarray | None = None,
+                         defects: np.ndarray | None = None, info: dict | None = None
+                         ) -> tuple[np.ndarray, CaptureCorrection]:
+    """The deflection stage of one camera-frame with its motion, lighting and defective
+    pixels removed.
+
+    Parameters
+    ----------
+    reference : PreparedReference or ndarray, shape (H, W)
+        The camera's reference background (prepared with ``flow``'s pre-smoothing and levels).
+    frame : ndarray, shape (H, W)
+    flow : FlowParams
+    capture : CaptureParams
+    static : ndarray, shape (H, W), bool, optional
+        Pixels whose rays miss the volume (:func:`~.static_region.static_region`); None:
+        every pixel may carry motion only (the plume is then told apart by the robust fits).
+    defects : ndarray, shape (H, W), optional
+        Defective pixels (non-zero; :func:`~.defects.find_defective_pixels`).
+    info : dict, optional
+        Passed to :func:`~schlieren.pipeline.flow.deflection_stage`.
+
+    Returns
+    -------
+    flow : ndarray, shape (H // f, W // f, 2), float32
+    correction : CaptureCorrection
+    """
+    from schlieren.pipeline.flow.reference import PreparedReference
+
+    prep = reference if isinstance(reference, PreparedReference) else \
+        prepare_reference(reference, presmooth=flow.presmooth, levels=flow.levels)
+    H, W = prep.shape
+    size = (W, H)
+    bad = None if defects is None or not np.any(defects) else np.asarray(defects) != 0
+    valid = None if bad is None else ~cv2.dilate(bad.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    fit = register_background(prep, frame, static=static, valid=valid, model=capture.motion_model,
+                              photometric=capture.photometric, banding_rows=capture.banding_rows,
+                              min_static_fraction=capture.min_static_fraction)
+    flags = (FALLBACK if fit.fallback else 0) | (0 if fit.converged else NOT_CONVERGED)
+    img = frame
+    ph = fit.photometric
+    if capture.photometric and ph.departs(gain_tolerance=capture.gain_tolerance,
+                                          offset_tolerance=capture.offset_tolerance / prep.scale, mean=prep.mean,
+                                          gain_sigma=fit.gain_sigma, level_sigma=fit.level_sigma,
+                                          significance=capture.significance):
+        img = normalise_frame(frame, ph)
+        flags |= PHOTOMETRIC_APPLIED
+    warp_above, source = capture.warp_above, capture.motion_source
+    motion = fit.motion.copy()
+    extent = motion_extent(motion, size)
+    moved = capture.motion_model != "none" and extent > capture.motion_tolerance and \
+        not extent <= capture.significance * fit.motion_sigma
+    if moved:  # the frame's border shows what the reference does not hold
+        bad = _border(bad, (H, W), int(np.ceil(extent)) + 1)
+    if moved and extent > warp_above:
+        d = _flow_on_moved_reference(prep, img, flow, motion, size, bad, info)
+    else:
+        start = functools.partial(motion_displacement, motion, image_size=size) if moved else None
+        d = deflection_stage(prep, img, flow, info=info, motion=start, invalid=bad)
+    residual = float("nan")
+    if capture.motion_model != "none":
+        cells = _fit_cells(d, static, flow.factor, fit.fallback)
+        extra, _ = fit_flow_motion(d, cells, size, flow.factor, model=capture.motion_model)
+        residual = motion_extent(extra, size)
+        if moved and residual > capture.motion_tolerance:
+            d = d - motion_field(extra, size, flow.factor)
+            motion = motion + extra
+        if moved:
+            flags |= MOTION_APPLIED
+            if source == "camera":
+                d = to_reference_grid(d, motion, size, flow.factor)
+    return d.astype(np.float32), CaptureCorrection(motion, fit, residual, flags)
+
+
+def _flow_on_moved_reference(prep, frame, flow: FlowParams, motion, size, bad, info) -> np.ndarray:
+    """The deflection against the reference resampled at ``p + motion(p)`` (exact cubic
+    B-splines), for motions beyond ``capture.warp_above``. The reference's defective pixels
+    move with it: the invalid pixels grow by the motion's reach."""
+    W, H = size
+    y, x = np.mgrid[0:H, 0:W].astype(np.float64)
+    mx, my = motion_displacement(motion, x, y, size)
+    ref = np.where(np.isfinite(prep.image), prep.image, np.float32(prep.mean)).astype(np.float32)
+    moved = warp_image(ref, np.dstack([mx, my]).astype(np.float32))
+    if bad is not None:
+        r = int(np.ceil(motion_extent(motion, size))) + 2
+        bad = cv2.dilate(bad.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8)).astype(bool)
+    return deflection_stage(prepare_reference(moved, presmooth=flow.presmooth, levels=flow.levels), frame, flow, info=info, invalid=bad)
+
+
+def _border(bad: np.ndarray | None, shape: tuple[int, int], width: int) -> np.ndarray:
+    """``bad`` with a band of ``width`` pixels along the image's edges."""
+    out = np.zeros(shape, bool) if bad is None else bad.copy()
+    out[:width] = True
+    out[-width:] = True
+    out[:, :width] = True
+    out[:, -width:] = True
+    return out
+
+
+def _fit_cells(flow: np.ndarray, static: np.ndarray | None, factor: int, fallback: bool) -> np.ndarray:
+    """Flow cells to measure the remaining motion on: the static ones, or every cell when
+    the static region is too small (the fit's weights then drop the plume's), every
+    second one along each axis (their windows overlap anyway)."""
+    h, w = flow.shape[:2]
+    cells = np.ones((h, w), bool) if static is None or fallback else static_cells(static, factor)
+    thin = np.zeros_like(cells)
+    thin[::2, ::2] = True
+    return cells & thin
+
+
+def to_reference_grid(flow: np.ndarray, motion, image_size, factor: int) -> np.ndarray:
+    """Deflections of a frame whose camera moved, on the reference's pixel grid:
+    ``out(q) = flow(q - motion(q))`` (cubic B-spline interpolation on the flow grid; cells
+    whose source lies next to a NaN cell stay NaN).
+
+    Parameters
+    ----------
+    flow : ndarray, shape (h, w, 2)
+    motion : array_like, shape (8,)
+    image_size : (int, int)
+    factor : int
+    """
+    shift = -motion_field(motion, image_size, factor) / np.float32(factor)  # flow cells
+    bad = ~np.isfinite(flow).all(axis=-1)
+    src = np.where(bad[..., None], 0.0, flow).astype(np.float32)
+    out = np.dstack([warp_image(src[..., k], shift) for k in range(2)])
+    if bad.any():
+        near = cv2.dilate(bad.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+        out[near] = np.nan
+    return out

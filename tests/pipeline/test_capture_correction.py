@@ -1,0 +1,138 @@
+"""The deflection stage with the capture corrections (issue 33): a moved, flickering,
+defective capture gives the deflections of the clean one; a clean capture gives exactly
+the flow it gave before."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from flow_helpers import NoiseBackground, pixel_truth, plume_deflection, render
+
+from schlieren.pipeline.capture import (FALLBACK, MOTION_APPLIED, PHOTOMETRIC_APPLIED, CaptureParams,
+                                        corrected_deflection, motion_displacement, motion_field, to_reference_grid)
+from schlieren.pipeline.flow import FlowParams, deflection_stage, prepare_reference
+
+SHAPE = (192, 256)
+SIZE = (SHAPE[1], SHAPE[0])
+FLOW = FlowParams(window=9, factor=2, auto_factor=False)
+
+
+@pytest.fixture(scope="module")
+def background():
+    return NoiseBackground(SHAPE, rng=np.random.default_rng(31), feature_px=1.0)
+
+
+@pytest.fixture(scope="module")
+def prep(background):
+    ref = render(background, SHAPE, noise=0.4, rng=np.random.default_rng(1))
+    return prepare_reference(ref, presmooth=FLOW.presmooth, levels=FLOW.levels)
+
+
+def _static():
+    s = np.ones(SHAPE, bool)
+    s[:, 70:186] = False
+    return s
+
+
+def _cells(d):
+    return np.sqrt(np.nanmean(np.sum(d * d, axis=-1)))
+
+
+@pytest.mark.parametrize("shift", [0.3, 1.2])  # the flow starts from the motion / the reference is moved
+def test_static_scene_with_a_known_motion_gives_no_deflection(background, prep, shift):
+    m = np.array([shift, -0.6 * shift, 1e-4, -3e-4, 3e-4, 0.0, 0, 0])
+    frame = render(background, SHAPE, lambda u, v: motion_displacement(m, u, v, SIZE), noise=1.5,
+                   rng=np.random.default_rng(2))
+    d, corr = corrected_deflection(prep, frame, FLOW, static=_static())
+    assert corr.flags & MOTION_APPLIED
+    W, H = SIZE
+    y, x = np.mgrid[0:H:4, 0:W:4]
+    dx, dy = motion_displacement(corr.motion - m, x, y, SIZE)
+    assert np.sqrt(np.mean(dx * dx + dy * dy)) < 0.005  # the motion, px RMS over the image
+    assert np.abs(np.nanmean(d, axis=(0, 1))).max() < 0.003  # no uniform deflection left
+    assert _cells(d) < 0.03  # the flow's own noise (uncompensated: 0.36 px)
+    assert _cells(deflection_stage(prep, frame, FLOW)) > 0.3
+
+
+def test_clean_capture_keeps_its_flow_bit_for_bit(background, prep):
+    frame = render(background, SHAPE, plume_deflection(SHAPE, peak=0.4, width=15.0), noise=1.5,
+                   rng=np.random.default_rng(3))
+    d, corr = corrected_deflection(prep, frame, FLOW, static=_static())
+    assert corr.flags == 0
+    np.testing.assert_array_equal(d, deflection_stage(prep, frame, FLOW))
+
+
+def test_moved_flickering_capture_gives_the_clean_deflections(background, prep):
+    plume = plume_deflection(SHAPE, peak=0.4, width=15.0)
+    m = np.array([0.25, 0.15, 0.0, -2e-4, 2e-4, 0.0, 0, 0])
+
+    def camera_turned(u, v):  # the plume is seen through other pixels too: frame(p) = clean(T(p))
+        mx, my = motion_displacement(m, u, v, SIZE)
+        du, dv = plume(u + mx, v + my)
+        return du + mx, dv + my
+
+    rows = np.arange(SHAPE[0])[:, None]
+    rng = np.random.default_rng(4)
+    clean = render(background, SHAPE, plume, noise=1.5, rng=rng)
+    moved = render(background, SHAPE, camera_turned, noise=1.5, rng=rng)
+    lab = (1.02 * (1 + 0.01 * np.sin(rows / 40.0)) * moved + 1.0).astype(np.float32)
+    truth = pixel_truth(plume, SHAPE)
+    t = truth.reshape(SHAPE[0] // 2, 2, SHAPE[1] // 2, 2, 2).mean(axis=(1, 3))
+    d_clean = deflection_stage(prep, clean, FLOW)
+    d, corr = corrected_deflection(prep, lab, FLOW, static=_static())
+    assert corr.flags & MOTION_APPLIED and corr.flags & PHOTOMETRIC_APPLIED
+    e_clean, e_lab = _cells(d_clean - t), _cells(d - t)
+    assert e_lab < 1.25 * e_clean + 0.002  # px; uncorrected it is 10x the clean error
+    d_off, _ = corrected_deflection(prep, lab, FLOW, CaptureParams(motion_model="none", photometric=False),
+                                    static=_static())
+    assert _cells(d_off - t) > 5 * e_clean
+
+
+def test_small_static_region_falls_back_to_the_low_deflection_cells(background, prep):
+    plume = plume_deflection(SHAPE, peak=0.4, width=15.0)
+    m = np.array([0.2, -0.1, 0, 0, 0, 0, 0, 0.0])
+    frame = render(background, SHAPE, lambda u, v: tuple(a + b for a, b in zip(plume(u, v),
+                                                                                   motion_displacement(m, u, v, SIZE))),
+                   noise=1.5, rng=np.random.default_rng(5))
+    static = np.zeros(SHAPE, bool)
+    static[:, :4] = True  # 1.6 % of the image
+    d, corr = corrected_deflection(prep, frame, FLOW, CaptureParams(motion_source="background"), static=static)
+    assert corr.flags & FALLBACK
+    assert np.abs(corr.motion[:2] - m[:2]).max() < 0.01
+
+
+def test_defective_pixels_get_no_weight_and_no_nan(background):
+    # a uniform 0.3 px deflection: hot pixels that stay put pin the flow around them to 0
+    frame = render(background, SHAPE, lambda u, v: (np.full_like(u, 0.3), np.zeros_like(v)), noise=1.5,
+                   rng=np.random.default_rng(6))
+    ref = render(background, SHAPE, noise=0.4, rng=np.random.default_rng(7))
+    defects = np.zeros(SHAPE, np.uint8)
+    rows, cols = np.array([30, 90, 150, 40]), np.array([40, 200, 120, 230])
+    defects[rows, cols] = 1
+    off = CaptureParams(motion_model="none", photometric=False)
+    d_clean, _ = corrected_deflection(prepare_reference(ref, presmooth=FLOW.presmooth, levels=FLOW.levels), frame, FLOW, off)
+    frame[rows, cols] = 255.0
+    ref[rows, cols] = 255.0
+    prep_hot = prepare_reference(ref, presmooth=FLOW.presmooth, levels=FLOW.levels)
+    d, _ = corrected_deflection(prep_hot, frame, FLOW, off, defects=defects)
+    assert np.isfinite(d).all()
+    d_blind, _ = corrected_deflection(prep_hot, frame, FLOW, off)
+    around = np.zeros(d.shape[:2], bool)
+    for r, c in zip(rows // 2, cols // 2):
+        around[r - 2:r + 3, c - 2:c + 3] = True
+    err = np.abs(d - d_clean)[around].mean()
+    err_blind = np.abs(d_blind - d_clean)[around].mean()
+    assert err_blind > 0.01  # px: pulled towards 0 around the hot pixels
+    assert err < 0.5 * err_blind
+
+
+def test_flow_moved_back_onto_the_reference_grid():
+    f = 2
+    m = np.array([0.6, -0.4, 0, 0, 0, 0, 0, 0.0])  # 0.3 x -0.2 flow cells
+    h, w = SHAPE[0] // f, SHAPE[1] // f
+    y, x = np.mgrid[0:h, 0:w].astype(float)
+    field = lambda yy, xx: np.dstack([np.sin(xx / 7.0), np.cos(yy / 9.0)]).astype(np.float32)
+    seen = field(y - 0.2, x + 0.3)  # frame cell q shows the reference's q + m / f
+    back = to_reference_grid(seen, m, SIZE, f)
+    np.testing.assert_allclose(back[3:-3, 3:-3], field(y, x)[3:-3, 3:-3], atol=2e-3)
+    assert motion_field(m, SIZE, f)[0, 0, 0] == pytest.approx(0.6)

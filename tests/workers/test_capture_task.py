@@ -1,0 +1,57 @@
+"""The capture corrections in a run (issue 33): the ``capture`` stage's defective pixels, the
+deflection tasks' motion, gain and offset, and a camera moved against its reference."""
+
+from __future__ import annotations
+
+import shutil
+
+import cv2
+import numpy as np
+
+from schlieren.pipeline.capture import CAPTURE_STATS, MOTION_APPLIED, MOTION_PARAMS
+from schlieren.storage.store import ResultStore
+
+
+def test_a_clean_run_stores_its_measurements_and_corrects_nothing(serial_store):
+    st = ResultStore.open(serial_store, mode="r")
+    C = st.array("camera").shape[0]
+    d = np.asarray(st.array("defective_pixels")[:])
+    assert d.shape[0] == C and not d.any()
+    assert np.asarray(st.array("status/capture")[:]).all()
+    motion = np.asarray(st.array("background_motion")[:])
+    fit = np.asarray(st.array("capture_fit")[:])
+    ph = np.asarray(st.array("photometric")[:])
+    assert motion.shape[1:] == (st.array("raw_frame").shape[0], len(MOTION_PARAMS))
+    done = np.isfinite(fit[..., 0])
+    assert done.any()
+    assert np.nanmax(np.abs(motion[..., :2])) < 0.01  # pixels
+    assert np.all(fit[..., CAPTURE_STATS.index("flags")][done] == 0)
+    assert np.nanmax(np.abs(ph[:, :, 0] - 1.0)) < 0.01  # gain
+    assert ph.shape[-1] == st.array("row_knot").shape[0]
+
+
+def test_a_camera_moved_against_its_reference_is_measured_and_corrected(tiny_session, serial_store, tmp_path):
+    """cam01's reference recorded one pixel to the left of its frames: the run measures +1 px
+    and its flows match those of the unmoved run."""
+    from schlieren.workers.run import run_session
+
+    sess = tmp_path / "session"
+    shutil.copytree(tiny_session.session.parent, sess, ignore=shutil.ignore_patterns("truth.zarr"))
+    ref = sess / "cam01" / "reference.png"
+    img = cv2.imread(str(ref), cv2.IMREAD_UNCHANGED)
+    moved = np.concatenate([img[:, :1], img[:, :-1]], axis=1)  # ref'(q) = ref(q - 1): frame(p) = ref'(p + 1)
+    cv2.imwrite(str(ref), moved)
+    out = tmp_path / "out.zarr"
+    summary = run_session(sess, out, serial=True)
+    assert summary.ok
+    st = ResultStore.open(out, mode="r")
+    base = ResultStore.open(serial_store, mode="r")
+    m = np.asarray(st.array("background_motion")[:])
+    flags = np.asarray(st.array("capture_fit")[:])[..., CAPTURE_STATS.index("flags")]
+    done = np.isfinite(flags[1])
+    assert np.all(np.abs(m[1, done, 0] - 1.0) < 0.02) and np.all(np.abs(m[1, done, 1]) < 0.02)
+    assert np.all(flags[1, done].astype(int) & MOTION_APPLIED)
+    assert np.nanmax(np.abs(m[0, :, :2])) < 0.01  # the other cameras did not move
+    f1, f0 = np.asarray(st.array("flow")[1]), np.asarray(base.array("flow")[1])
+    inner = (slice(None), slice(3, -3), slice(3, -3))
+    assert np.sqrt(np.nanmean((f1 - f0)[inner] ** 2)) < 0.05  # against 1 px uncorrected

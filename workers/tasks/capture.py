@@ -1,0 +1,74 @@
+"""The ``capture`` task: one camera's defective pixels (issue 33), before its flows.
+
+:func:`~schlieren.pipeline.capture.find_defective_pixels` reads each reference frame (not
+their mean: a pixel must stand out in every one) and a few capture frames spread over the
+processed range; the map is stored (``defective_pixels``) for the camera's deflection
+tasks, which give those pixels no weight. The camera's static region (the pixels whose
+rays miss the volume) needs only the calibration: each process computes it once
+(:func:`static_region`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from schlieren.pipeline import capture
+from schlieren.storage.errors import SessionError
+from schlieren.storage.frames import open_frames
+from schlieren.workers.tasks.run_context import RunContext
+
+__all__ = ["capture_task", "static_region", "defective_pixels"]
+
+
+def capture_task(ctx: RunContext, c: int) -> dict:
+    """Camera ``c``'s defective pixels (stored ``defective_pixels``) and their counts."""
+    params = ctx.config.capture
+    cam = ctx.cameras[c]
+    if not params.defective_pixels:
+        ctx.store.write("defective_pixels", (c,), np.zeros((1, cam.height, cam.width), np.uint8))
+        return {}
+    d = capture.find_defective_pixels(_frames(ctx, c), threshold=params.defect_threshold,
+                                      stuck_ratio=params.stuck_ratio)
+    ctx.store.write("defective_pixels", (c,), d[None])
+    return capture.defect_counts(d)
+
+
+def _frames(ctx: RunContext, c: int):
+    """Camera ``c``'s reference frames (one by one; none for interlaced cameras, whose
+    fields are compared with per-field references) and ``defect_frames`` capture frames
+    evenly spread over the processed range (dropped or unreadable ones skipped)."""
+    s = ctx.session.sources[c]
+    if not getattr(s, "interlaced", None):
+        try:
+            ref = open_frames(s.reference, camera_name=s.name)
+            for i in ref.present():
+                yield ref.read(i)
+        except SessionError:  # one reference image (not a sequence): the mean below stands for it
+            yield ctx.reference(c)
+    n = ctx.config.capture.defect_frames
+    src = ctx.frames(c)
+    frames = np.unique(np.linspace(ctx.first_frame, ctx.first_frame + ctx.n_frames - 1, max(n, 0)).round()
+                       .astype(int)) if n > 0 else []
+    for f in frames:
+        if int(f) in src.dropped:
+            continue
+        try:
+            yield src.read(int(f))
+        except SessionError:  # its own deflection task reports it
+            continue
+
+
+def static_region(ctx: RunContext, c: int) -> np.ndarray:
+    """Camera ``c``'s pixels whose rays miss the volume (computed once per process)."""
+    def make():
+        g = ctx.session.grid
+        return capture.static_region(ctx.cameras[c], g.vmin, g.vmax, margin=ctx.config.capture.static_margin)
+    return ctx.once(("static_region", c), make)
+
+
+def defective_pixels(ctx: RunContext, c: int) -> np.ndarray | None:
+    """Camera ``c``'s stored defective pixels (None when it has none; read once per process)."""
+    def read():
+        d = np.asarray(ctx.store.read("defective_pixels", (c,)))
+        return d if d.any() else None
+    return ctx.once(("defective_pixels", c), read)
