@@ -9,6 +9,7 @@ links resolved). A reader's error is re-raised with the manifest field in front
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any, Callable
 
@@ -76,7 +77,10 @@ def _check_camera_files(i: int, cam: Camera, source: CameraSource, *, contained=
     if len(fs) == 0:
         raise SessionError("the video holds no frames", file=source.frames, camera=cam.name,
                            field=f"cameras[{i}].frames")
-    if isinstance(fs, ImageSequence):  # its header first: never decode a frame of an absurd size
+    # a local file's header first: never decode a frame of an absurd size (from an object store
+    # the frame is fetched whole once, and OpenCV's own pixel limit refuses an absurd one: a
+    # ranged header read first would fetch frame 0 twice)
+    if isinstance(fs, ImageSequence) and not location.is_url(os.fspath(fs.file_of(0))):
         size = image_header(fs.file_of(0))
         if size is not None and size != (W, H):
             raise SessionError(f"frame 0 is {size[0]}x{size[1]} pixels but image_size is [{W}, {H}]",
