@@ -11,6 +11,13 @@ TINY = dict(cameras=4, ring="half", phantom="blob", frames=3, size=(192, 144), s
 
 
 @pytest.fixture(scope="session")
+def tiny_spec():
+    """The tiny session's synthesis parameters (``TINY``), for tests that vary them (``from
+    conftest import`` names another conftest module in a full run)."""
+    return dict(TINY)
+
+
+@pytest.fixture(scope="session")
 def tiny_session(tmp_path_factory):
     from schlieren.workers.synth import synthesize
 
