@@ -28,6 +28,7 @@ also differs from these kernels', so every result would change.
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
@@ -62,7 +63,7 @@ class CGResult:
     residual: np.ndarray
 
 
-class CGVectors:
+class CGVectors(ABC):
     """The vectors of one CG run and the kernels that update them (the pluggable part).
 
     A subclass holds the iterate ``x``, the residual ``r``, the search direction ``p``,
@@ -71,30 +72,30 @@ class CGVectors:
     scalar passed in or returned is an array of shape (k,).
     """
 
+    @abstractmethod
     def start(self) -> np.ndarray:
         """Compute the initial residual; returns the stopping rule's measure per column."""
-        raise NotImplementedError
 
+    @abstractmethod
     def converged(self, measure: np.ndarray) -> np.ndarray:
         """Which columns meet the stopping rule (bool, shape (k,))."""
-        raise NotImplementedError
 
     def precondition(self, measure: np.ndarray) -> np.ndarray:
         """``z = M r``; returns ``r . z`` per column. Without a preconditioner (this
         default) ``z`` is ``r`` and ``r . z`` is the measure :meth:`update` returned."""
         return measure
 
+    @abstractmethod
     def direction(self, beta: np.ndarray | None) -> None:
         """``p = z + beta p``; the first direction ``p = z`` when ``beta`` is None."""
-        raise NotImplementedError
 
+    @abstractmethod
     def curvature(self) -> np.ndarray:
         """``q = A p``; returns ``p . q`` per column."""
-        raise NotImplementedError
 
+    @abstractmethod
     def update(self, alpha: np.ndarray) -> np.ndarray:
         """``x += alpha p``, ``r -= alpha q``; returns the stopping rule's measure per column."""
-        raise NotImplementedError
 
     def early_stop(self) -> str | None:
         """Checked before every iteration: a stop reason (e.g. the discrepancy principle's)
