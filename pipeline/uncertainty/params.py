@@ -32,6 +32,16 @@ class UncertaintyParams:
         1.0, unit="voxels", ge=0, le=10,
         help="Gaussian width of the local average of the samples' variance (the noise term is a smooth field; "
              "averaging a few voxels lets a few samples estimate it).")
+    bias_scale: float = param(
+        0.0, unit="1", ge=0, le=100,
+        help="Weight of the bias term: the local RMS of what one more regularised solve of the estimate's own "
+             "projection does to it, integrated (`schlieren.pipeline.uncertainty.regularisation_bias`): the "
+             "regularisation's bias, larger where the views are few. Costs one tomography solve and one Poisson "
+             "solve per frame; 0 leaves it out.",
+        see="benchmarks/results/uncertainty_fit.md", tuned=True)
+    bias_smoothing: float = param(
+        2.0, unit="voxels", ge=0, le=20,
+        help="Gaussian width of the bias term's local RMS.")
     boundary_scale: float = param(
         5.0, unit="1", ge=0, le=100,
         help="Weight of the boundary term: the local RMS of the difference between the integration with a "

@@ -67,9 +67,10 @@ def frame_regions(truth: np.ndarray, r_amb: float, hull: np.ndarray) -> dict:
             "outside_hull": ~plume & ~hull}
 
 
-def decompose(ctx, k: int, params: unc.UncertaintyParams) -> unc.FrameUncertainty:
-    """Frame ``k``'s terms through the pipeline's kernel, with both scales 1 (the fit's raw fields);
-    ``ctx`` is the store's run context (:func:`schlieren.workers.tasks.context`)."""
+def decompose(ctx, k: int, params: unc.UncertaintyParams, *, only_bias: bool = False) -> unc.FrameUncertainty:
+    """Frame ``k``'s terms through the pipeline's kernel, with every scale 1 (the fit's raw fields;
+    the bias term not smoothed: ``|d|``, :func:`terms_sigma` smooths it); ``ctx`` is the store's
+    run context (:func:`schlieren.workers.tasks.context`). ``only_bias``: the bias term alone."""
     from schlieren.workers.tasks.geometry import cached_geometry, geometry_key
     from schlieren.workers.tasks.tomography import flow_blur, tomo_params
     from schlieren.workers.tasks.uncertainty import noise_window
@@ -77,7 +78,9 @@ def decompose(ctx, k: int, params: unc.UncertaintyParams) -> unc.FrameUncertaint
     C = len(ctx.cameras)
     flows = np.stack(ctx.store.read_many("flow", [(c, k) for c in range(C)]))
     masks = np.stack(ctx.store.read_many("mask", [(c, k) for c in range(C)]))
-    raw = dataclasses.replace(params, boundary_scale=1.0, structure_scale=1.0)
+    raw = dataclasses.replace(params, boundary_scale=1.0, structure_scale=1.0, bias_scale=1.0, bias_smoothing=0.0)
+    if only_bias:
+        raw = dataclasses.replace(raw, samples=0, boundary_scale=0.0, structure_scale=0.0)
     return unc.frame_uncertainty(
         cached_geometry(ctx.store_path, geometry_key(ctx)), flows, ~masks, ctx.store.read("hull", (k,)),
         ctx.store.read("gradient", (k,)), ctx.store.read("refractivity", (k,)), ctx.session.grid,
@@ -86,9 +89,14 @@ def decompose(ctx, k: int, params: unc.UncertaintyParams) -> unc.FrameUncertaint
         **flow_blur(ctx))
 
 
-def combine(noise: np.ndarray, boundary: np.ndarray, structure: np.ndarray, a: float, b: float) -> np.ndarray:
-    """``sqrt(noise^2 + (a boundary)^2 + (b structure)^2)`` (the unscaled terms of :func:`decompose`)."""
-    return np.sqrt(noise * noise + (a * boundary) ** 2 + (b * structure) ** 2)
+def combine(noise: np.ndarray, boundary: np.ndarray, structure: np.ndarray, a: float, b: float,
+            bias: np.ndarray | None = None, c: float = 0.0) -> np.ndarray:
+    """``sqrt(noise^2 + (a boundary)^2 + (b structure)^2 + (c bias)^2)`` (the unscaled terms of
+    :func:`decompose`, the bias term already smoothed)."""
+    out = noise * noise + (a * boundary) ** 2 + (b * structure) ** 2
+    if bias is not None and c > 0:
+        out = out + (c * bias) ** 2
+    return np.sqrt(out)
 
 
 def fit_scales(frames: list[dict], *, boundary=np.arange(2.0, 10.01, 0.25),
@@ -157,16 +165,23 @@ def store_coverage(store_path, truth_path, sigma=None) -> dict:
 
 def cached_terms(ctx, k: int, params: unc.UncertaintyParams, cache: Path | None) -> dict:
     """Frame ``k``'s unscaled terms (:func:`decompose`) as ``{"noise", "boundary", "structure",
-    "seconds"}``, read from / written to ``cache`` (an ``.npz`` path) when given."""
+    "bias", "seconds", "bias_seconds"}``, read from / written to ``cache`` (an ``.npz`` path) when
+    given; a cache without the bias term gets it added (one tomography and one Poisson solve)."""
     import time
 
     if cache is not None and Path(cache).exists():
-        z = dict(np.load(cache))
-        return {n: np.asarray(v, dtype=np.float64) for n, v in z.items()}
+        z = {n: np.asarray(v, dtype=np.float64) for n, v in dict(np.load(cache)).items()}
+        if "bias" in z:
+            return z
+        t0 = time.perf_counter()
+        z["bias"] = decompose(ctx, k, params, only_bias=True).bias_sigma
+        z["bias_seconds"] = np.float64(time.perf_counter() - t0)
+        np.savez(cache, **{n: np.asarray(v, dtype=np.float32) for n, v in z.items()})
+        return z
     t0 = time.perf_counter()
     res = decompose(ctx, k, params)
     z = {"noise": res.noise_sigma, "boundary": res.boundary_sigma, "structure": res.structure_sigma,
-         "seconds": np.float64(time.perf_counter() - t0)}
+         "bias": res.bias_sigma, "seconds": np.float64(time.perf_counter() - t0)}
     if cache is not None:
         Path(cache).parent.mkdir(parents=True, exist_ok=True)
         np.savez(cache, **{n: np.asarray(v, dtype=np.float32) for n, v in z.items()})
@@ -175,8 +190,13 @@ def cached_terms(ctx, k: int, params: unc.UncertaintyParams, cache: Path | None)
 
 def terms_sigma(terms: dict, params: unc.UncertaintyParams, hull: np.ndarray) -> np.ndarray:
     """The stage's ``refractivity_sigma`` from the unscaled terms and ``params``' scales (0 outside the hull)."""
-    s = combine(terms["noise"], terms["boundary"], terms["structure"], params.boundary_scale, params.structure_scale)
-    return np.where(np.asarray(hull, dtype=bool), s, 0.0)
+    hull = np.asarray(hull, dtype=bool)
+    bias = None
+    if params.bias_scale > 0 and "bias" in terms:
+        bias = np.sqrt(unc.masked_mean(terms["bias"] ** 2, hull, params.bias_smoothing))
+    s = combine(terms["noise"], terms["boundary"], terms["structure"], params.boundary_scale, params.structure_scale,
+                bias, params.bias_scale)
+    return np.where(hull, s, 0.0)
 
 
 def stage_seconds(store_path) -> dict:
