@@ -11,7 +11,7 @@ of the linear-Gaussian model the solve's normal equations define (the priors per
 too, :func:`prior_perturbation`).
 """
 
-from schlieren.pipeline.uncertainty.bias import bias_solve, regularisation_bias, regulariser_pull
+from schlieren.pipeline.uncertainty.bias import ResolutionLoss, bias_solve, regulariser_pull, resolution_loss, smooth_probe
 from schlieren.pipeline.uncertainty.boundary import boundary_sensitivity, natural_integration
 from schlieren.pipeline.uncertainty.ensemble import NoiseEnsemble, noise_ensemble, perturbation_solve, prior_perturbation
 from schlieren.pipeline.uncertainty.frame import (FrameUncertainty, density_sigma, frame_rng, frame_uncertainty,
@@ -24,5 +24,5 @@ from schlieren.pipeline.uncertainty.structure import curvature_rms
 
 __all__ = ["UncertaintyParams", "FrameUncertainty", "frame_uncertainty", "frame_rng", "temperature_sigma", "density_sigma",
            "NoiseEnsemble", "noise_ensemble", "perturbation_solve", "prior_perturbation", "LinearisedIntegration",
-           "regularisation_bias", "bias_solve", "regulariser_pull", "boundary_sensitivity", "natural_integration", "masked_mean", "curvature_rms", "flow_noise_level",
+           "ResolutionLoss", "resolution_loss", "smooth_probe", "bias_solve", "regulariser_pull", "boundary_sensitivity", "natural_integration", "masked_mean", "curvature_rms", "flow_noise_level",
            "correlated_flow_noise", "noise_correlation"]

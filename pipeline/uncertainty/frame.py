@@ -6,9 +6,10 @@ visual hull:
 * ``sigma_noise``: the flows' measured noise propagated through the frame's tomography
   and integration (:func:`~schlieren.pipeline.uncertainty.noise_ensemble`), its variance
   averaged locally (``UncertaintyParams.smoothing``);
-* ``sigma_bias``: ``bias_scale`` times the local RMS of the regularisation's bias on the
-  frame's own estimate (:func:`~schlieren.pipeline.uncertainty.regularisation_bias`: one more
-  regularised solve of the estimate's projection, integrated), which grows where the views are few;
+* ``sigma_bias``: ``bias_scale`` times the share of a smooth field the frame's solve and
+  integration lose there (:func:`~schlieren.pipeline.uncertainty.resolution_loss`, random
+  probes through the regularised inverse) times the estimate's local amplitude
+  ``|r - r_ambient|``: the regularisation's bias, which grows where the views are few;
 * ``sigma_boundary``: ``boundary_scale`` times the local RMS of the integration's
   sensitivity to its boundary condition (:func:`~schlieren.pipeline.uncertainty.boundary_sensitivity`):
   the slowly varying error the gradient accumulates, and a hull that cuts the plume;
@@ -40,7 +41,7 @@ from schlieren.pipeline.tomography.blur import MeasurementBlur, VolumeBlur
 from schlieren.pipeline.tomography.geometry import TomoGeometry
 from schlieren.pipeline.tomography.params import TomoParams
 from schlieren.pipeline.tomography.solve import prepare_frame, valid_rays
-from schlieren.pipeline.uncertainty.bias import regularisation_bias
+from schlieren.pipeline.uncertainty.bias import resolution_loss
 from schlieren.pipeline.uncertainty.boundary import boundary_sensitivity
 from schlieren.pipeline.uncertainty.ensemble import noise_ensemble
 from schlieren.pipeline.uncertainty.linear_integration import LinearisedIntegration
@@ -70,8 +71,8 @@ class FrameUncertainty:
     iterations : tuple of int
         Conjugate-gradient iterations of each sample's tomography solve.
     seconds : float
-    bias_iterations : int
-        Conjugate-gradient iterations of the bias term's solve (0 without it).
+    bias_iterations : tuple of int
+        Conjugate-gradient iterations of the bias term's probe solves.
     """
 
     refractivity_sigma: np.ndarray
@@ -83,7 +84,7 @@ class FrameUncertainty:
     iterations: tuple = field(default=())
     seconds: float = 0.0
     bias_sigma: np.ndarray | None = None
-    bias_iterations: int = 0
+    bias_iterations: tuple = field(default=())
 
 
 def frame_uncertainty(geom: TomoGeometry, flows: np.ndarray, quiet: np.ndarray, hull: np.ndarray,
@@ -134,7 +135,7 @@ def frame_uncertainty(geom: TomoGeometry, flows: np.ndarray, quiet: np.ndarray, 
     if params.samples > 0 and not noise_wanted:
         log.warning("uncertainty: no noise measurable outside the masks; the noise term is left out")
     system = None
-    if (noise_wanted or params.bias_scale > 0) and hull.any():
+    if (noise_wanted or (params.bias_scale > 0 and params.bias_probes > 0)) and hull.any():
         ray_flows = bin_cells(flows, binning) if binning > 1 else flows
         system = prepare_frame(geom, hull, dilation=tomography.hull_dilation, rows=valid_rays(ray_flows),
                                prior=tomography.prior, curl=tomography.curl_weight > 0)
@@ -143,11 +144,10 @@ def frame_uncertainty(geom: TomoGeometry, flows: np.ndarray, quiet: np.ndarray, 
                              params=tomography, samples=params.samples, rng=rng, blur=blur,
                              volume_blur=volume_blur, flow_shape=flows.shape[:3], prior=params.prior_samples)
         noise_var, samples, its = masked_mean(ens.variance, hull, params.smoothing), ens.samples, ens.iterations
-    bias, bias_its = zero, 0
+    bias, bias_its = zero, ()
     if params.bias_scale > 0 and system is not None:
-        G = VolumeBlur(system.inset, volume_blur) if volume_blur > 0 and system.inset.any() else None
-        d, bias_its = regularisation_bias(system, gradient, integration, tomography, blur=blur, volume=G)
-        bias = params.bias_scale * np.sqrt(masked_mean(d * d, hull, params.bias_smoothing))
+        bias, bias_its = _bias_term(system, integration, refractivity, hull, grid, tomography, params, rng,
+                                    blur=blur, volume_blur=volume_blur)
     bound = zero
     if params.boundary_scale > 0 and hull.any():
         d = boundary_sensitivity(gradient, integration, grid, poisson=poisson)
@@ -160,6 +160,18 @@ def frame_uncertainty(geom: TomoGeometry, flows: np.ndarray, quiet: np.ndarray, 
     return FrameUncertainty(refractivity_sigma=total, noise_sigma=noise, boundary_sigma=bound,
                             structure_sigma=struct, flow_noise=level, samples=samples, iterations=its,
                             seconds=time.perf_counter() - t0, bias_sigma=bias, bias_iterations=bias_its)
+
+
+def _bias_term(system, integration: LinearisedIntegration, refractivity: np.ndarray, hull: np.ndarray, grid: Grid,
+               tomography: TomoParams, params: UncertaintyParams, rng: np.random.Generator, *,
+               blur: MeasurementBlur | None, volume_blur: float) -> tuple[np.ndarray, tuple]:
+    """``bias_scale * loss * local RMS(r - r_ambient)`` and the probes' iterations (module notes)."""
+    G = VolumeBlur(system.inset, volume_blur) if volume_blur > 0 and system.inset.any() else None
+    res = resolution_loss(system, integration, tomography, h=float(grid.voxel_size), width=params.bias_width,
+                          probes=params.bias_probes, smoothing=params.bias_smoothing, rng=rng, blur=blur, volume=G)
+    dev = np.asarray(refractivity, dtype=np.float64) - (tomography.n_ambient - 1.0)
+    amplitude = np.sqrt(masked_mean(dev * dev, hull, params.bias_smoothing))
+    return params.bias_scale * res.loss * amplitude, res.iterations
 
 
 def frame_rng(params: UncertaintyParams, frame: int) -> np.random.Generator:

@@ -34,14 +34,21 @@ class UncertaintyParams:
              "averaging a few voxels lets a few samples estimate it).")
     bias_scale: float = param(
         0.0, unit="1", ge=0, le=100,
-        help="Weight of the bias term: the local RMS of what one more regularised solve of the estimate's own "
-             "projection does to it, integrated (`schlieren.pipeline.uncertainty.regularisation_bias`): the "
-             "regularisation's bias, larger where the views are few. Costs one tomography solve and one Poisson "
-             "solve per frame; 0 leaves it out.",
-        see="benchmarks/results/uncertainty_fit.md", tuned=True)
+        help="Weight of the bias term: the share of a smooth random field the frame's solve and integration lose "
+             "at each voxel (`schlieren.pipeline.uncertainty.resolution_loss`) times the estimate's local "
+             "amplitude `|r - r_ambient|`: the regularisation's bias, larger where the views are few. Costs "
+             "`bias_probes` tomography solves per frame; 0 leaves it out.",
+        see="benchmarks/results/uncertainty_coverage.md", tuned=True)
+    bias_probes: int = param(
+        2, unit="1", ge=1, le=64,
+        help="Random fields the bias term probes the regularised inverse with (one tomography solve and two "
+             "Poisson solves each).")
+    bias_width: float = param(
+        2.0, unit="voxels", gt=0, le=20,
+        help="Gaussian width of the bias term's random fields: the scale of structure whose loss it measures.")
     bias_smoothing: float = param(
         2.0, unit="voxels", ge=0, le=20,
-        help="Gaussian width of the bias term's local RMS.")
+        help="Gaussian width of the local averages of the bias term (its loss and the estimate's amplitude).")
     boundary_scale: float = param(
         5.0, unit="1", ge=0, le=100,
         help="Weight of the boundary term: the local RMS of the difference between the integration with a "

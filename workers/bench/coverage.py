@@ -68,9 +68,9 @@ def frame_regions(truth: np.ndarray, r_amb: float, hull: np.ndarray) -> dict:
 
 
 def decompose(ctx, k: int, params: unc.UncertaintyParams, *, only_bias: bool = False) -> unc.FrameUncertainty:
-    """Frame ``k``'s terms through the pipeline's kernel, with every scale 1 (the fit's raw fields;
-    the bias term not smoothed: ``|d|``, :func:`terms_sigma` smooths it); ``ctx`` is the store's
-    run context (:func:`schlieren.workers.tasks.context`). ``only_bias``: the bias term alone."""
+    """Frame ``k``'s terms through the pipeline's kernel, with every scale 1 (the fit's raw fields);
+    ``ctx`` is the store's run context (:func:`schlieren.workers.tasks.context`). ``only_bias``:
+    the bias term alone."""
     from schlieren.workers.tasks.geometry import cached_geometry, geometry_key
     from schlieren.workers.tasks.tomography import flow_blur, tomo_params
     from schlieren.workers.tasks.uncertainty import noise_window
@@ -78,7 +78,7 @@ def decompose(ctx, k: int, params: unc.UncertaintyParams, *, only_bias: bool = F
     C = len(ctx.cameras)
     flows = np.stack(ctx.store.read_many("flow", [(c, k) for c in range(C)]))
     masks = np.stack(ctx.store.read_many("mask", [(c, k) for c in range(C)]))
-    raw = dataclasses.replace(params, boundary_scale=1.0, structure_scale=1.0, bias_scale=1.0, bias_smoothing=0.0)
+    raw = dataclasses.replace(params, boundary_scale=1.0, structure_scale=1.0, bias_scale=1.0)
     if only_bias:
         raw = dataclasses.replace(raw, samples=0, boundary_scale=0.0, structure_scale=0.0)
     return unc.frame_uncertainty(
@@ -92,7 +92,7 @@ def decompose(ctx, k: int, params: unc.UncertaintyParams, *, only_bias: bool = F
 def combine(noise: np.ndarray, boundary: np.ndarray, structure: np.ndarray, a: float, b: float,
             bias: np.ndarray | None = None, c: float = 0.0) -> np.ndarray:
     """``sqrt(noise^2 + (a boundary)^2 + (b structure)^2 + (c bias)^2)`` (the unscaled terms of
-    :func:`decompose`, the bias term already smoothed)."""
+    :func:`decompose`)."""
     out = noise * noise + (a * boundary) ** 2 + (b * structure) ** 2
     if bias is not None and c > 0:
         out = out + (c * bias) ** 2
@@ -191,9 +191,7 @@ def cached_terms(ctx, k: int, params: unc.UncertaintyParams, cache: Path | None)
 def terms_sigma(terms: dict, params: unc.UncertaintyParams, hull: np.ndarray) -> np.ndarray:
     """The stage's ``refractivity_sigma`` from the unscaled terms and ``params``' scales (0 outside the hull)."""
     hull = np.asarray(hull, dtype=bool)
-    bias = None
-    if params.bias_scale > 0 and "bias" in terms:
-        bias = np.sqrt(unc.masked_mean(terms["bias"] ** 2, hull, params.bias_smoothing))
+    bias = terms.get("bias")
     s = combine(terms["noise"], terms["boundary"], terms["structure"], params.boundary_scale, params.structure_scale,
                 bias, params.bias_scale)
     return np.where(hull, s, 0.0)
