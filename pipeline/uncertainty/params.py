@@ -14,7 +14,7 @@ class UncertaintyParams:
     enabled: bool = param(
         False,
         help="Compute the `refractivity_sigma`, `temperature_sigma` and `density_sigma` arrays (a stage of its "
-             "own after the integration, one task per frame). Off by default: it costs about `samples` "
+             "own after the integration, one task per frame). Off by default: it costs about `samples + bias_probes` "
              "tomography solves per frame (docs/uncertainty.md).",
         see="benchmarks/results/uncertainty_coverage.md")
     samples: int = param(
