@@ -1,12 +1,13 @@
 """Uncertainty per voxel: the standard error of every voxel's refractivity, temperature and
 density (beyond the paper; docs/uncertainty.md).
 
-:func:`frame_uncertainty` (:mod:`.frame`) adds three terms: the flows' measured noise
-(:mod:`.noise`) propagated through the frame's tomography solve and integration by an
-ensemble of perturbation solves (:mod:`.ensemble`, :mod:`.linear_integration`); the
-integration's sensitivity to its boundary condition (:mod:`.boundary`); and the estimate's
-fine structure (:mod:`.structure`), the last two scaled on the realistic family's tune
-cases. With ``UncertaintyParams.prior_samples`` the ensemble's samples are posterior samples
+:func:`frame_uncertainty` (:mod:`.frame`) adds four terms in quadrature: the flows'
+measured noise (:mod:`.noise`) propagated through the frame's tomography solve and
+integration by an ensemble of perturbation solves (:mod:`.ensemble`,
+:mod:`.linear_integration`); the regularisation's bias, from the share of smooth random
+fields the solve's resolution operator loses (:mod:`.bias`); the integration's sensitivity
+to its boundary condition (:mod:`.boundary`); and the estimate's fine structure
+(:mod:`.structure`), the last three scaled on the realistic family's tune cases. With ``UncertaintyParams.prior_samples`` the ensemble's samples are posterior samples
 of the linear-Gaussian model the solve's normal equations define (the priors perturbed
 too, :func:`prior_perturbation`).
 """
