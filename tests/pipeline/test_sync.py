@@ -224,6 +224,28 @@ def test_excluded_flash_frame_is_never_read(moving_case):
     assert np.sqrt(np.mean((out - truth) ** 2)) < 0.1
 
 
+@pytest.mark.parametrize("method", ["motion", "linear", "nearest"])
+def test_invalid_cells_stay_where_they_are(moving_case, method):
+    # a few invalid cells at the image border (the capture stage's moved border) stay
+    # invalid where the output reads them and change nothing further away
+    offset, f0, raw = moving_case
+    T = 0.1
+    kw = dict(offset=offset, frame_rate=FR, line_time=LT_SMALL, flow_grid=GRID,
+              params=S.ResampleParams(method=method))
+    clean = S.resample_flow(raw, f0, T, **kw)
+    holed = raw.copy()
+    holed[:, 40:45, 0:3] = np.nan
+    out = S.resample_flow(holed, f0, T, **kw)
+    bad = ~np.isfinite(out).all(axis=-1)
+    assert bad[40:45, 0:3].all()
+    near = np.zeros_like(bad)
+    near[30:55, 0:13] = True
+    assert not bad[~near].any()  # before: NaN over whole rows, columns and pyramid blocks
+    far = np.ones_like(bad)
+    far[20:65, 0:25] = False
+    np.testing.assert_allclose(out[far], clean[far], atol=2e-3)
+
+
 def test_instants_outside_the_frames_are_clamped():
     raw = np.stack([blob_field(0.0), blob_field(0.5)])
     out = S.resample_flow(raw, 0, -1.0, offset=0.0, frame_rate=FR, line_time=LT_SMALL,
