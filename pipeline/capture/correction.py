@@ -10,9 +10,9 @@ kernel of the ``deflection`` stage with :class:`~.params.CaptureParams`.
    positions), gives the defective pixels no weight, and returns the deflection alone;
 4. what motion the flow still shows on the static cells is fitted robustly
    (:func:`~.motion.fit_flow_motion`) and, whenever a motion was applied, removed too,
-   however small: the registration's error (a thousandth of a pixel) is a bias on every
-   cell, which the masks' potential (:func:`~schlieren.pipeline.masks.flow_potential`)
-   integrates into a ramp across the image; where the static region is too small the
+   however small: the registration's error is a bias on every cell, which the masks'
+   potential (:func:`~schlieren.pipeline.masks.flow_potential`) integrates into a ramp
+   across the image; where the static region is too small the
    registration used every pixel, and this fit on the flow's low-deflection cells is what
    separates the plume from the motion;
 5. with ``motion_source: camera`` the deflections are moved back onto the reference's
@@ -141,7 +141,7 @@ def corrected_deflection(reference, frame: np.ndarray, flow: FlowParams = FlowPa
         cells = _fit_cells(d, static, flow.factor, fit.fallback)
         extra, _ = fit_flow_motion(d, cells, size, flow.factor, model=capture.motion_model)
         residual = motion_extent(extra, size)
-        if moved:  # a bias left on every cell moves the mask potential's median by a ramp
+        if moved:  # a bias left on every cell becomes a ramp of the masks' potential
             d = d - motion_field(extra, size, flow.factor)
             motion = motion + extra
         if moved:

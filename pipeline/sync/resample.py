@@ -158,7 +158,8 @@ def _blend_rows(raw: np.ndarray, j0: np.ndarray, j1: np.ndarray, alpha: np.ndarr
         wa = _warp_channel_rows(coefs(a), rows, -al * mr)
         wb = _warp_channel_rows(coefs(b), rows, (1 - al) * mr)
         if reach is not None:
-            reach[(a, b)] = int(np.ceil(float(np.max(np.abs(mr), initial=0.0)))) + 2
+            far = float(np.nanmax(np.abs(mr), initial=0.0))
+            reach[(a, b)] = int(min(np.ceil(far), max(h, w))) + 2
         out[rows] = (1 - al) * wa + al * wb
     return out
 
@@ -186,8 +187,8 @@ def _cells_reading_invalid(invalid: np.ndarray, j0: np.ndarray, j1: np.ndarray, 
         if a != b and np.any(al > 0):
             bad[rows] |= invalid[b][rows]
         r = reach.get((a, b), 0)
-        if r:  # a warp reads the pair's fields within r cells (rows of other pairs too)
-            src = invalid[a] | invalid[b]
-            bad[rows] |= ndimage.binary_dilation(src, np.ones((2 * r + 1, 2 * r + 1), bool))[rows]
+        src = invalid[a] | invalid[b]
+        if r and src.any():  # a warp reads the pair's fields within r cells (rows of other pairs too)
+            bad[rows] |= ndimage.distance_transform_cdt(~src, metric="chessboard")[rows] <= r
         out |= bad
     return out
