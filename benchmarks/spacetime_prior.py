@@ -35,30 +35,40 @@ from spacetime_bounds import load  # noqa: E402
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def measure(store: Path, scales, iters, window: int, k: int | None = None) -> dict:
+def _window(store: Path, window: int, k: int | None):
+    """The run's context around output frame ``k`` (default the middle one): its window's
+    hulls, the run's per-frame solves and the stage's motion between them (onto frame ``k``)."""
+    from types import SimpleNamespace
+
     from schlieren.pipeline import spacetime, tomography
     from schlieren.pipeline.spacetime.average import _motion
     from schlieren.pipeline.tomography.solve import basis_set
     from schlieren.workers import tasks
 
     ctx, geom, truth, r_amb = load(store)
-    F = ctx.n_frames
-    k = F // 2 if k is None else int(k)
+    k = ctx.n_frames // 2 if k is None else int(k)
     st = ctx.config.spacetime
-    frames = list(spacetime.window_frames(k, F, window))
+    frames = list(spacetime.window_frames(k, ctx.n_frames, window))
     dil = ctx.config.tomography.hull_dilation
     hulls = {j: ctx.store.read("hull", (j,)) for j in frames}
     support = basis_set(hulls[k], dil)
-    params = tasks.tomo_params(ctx)
-    blur = tasks.flow_blur(ctx)
     per = {j: np.asarray(ctx.store.read("gradient_frame", (j,)), dtype=np.float32) for j in frames}
-    region = tomography.block_support([hulls[j] for j in frames], dil)
-    box = spacetime.support_box(region | support)
-    # the stage's motion: between the run's per-frame solves, once per neighbour
+    box = spacetime.support_box(tomography.block_support([hulls[j] for j in frames], dil) | support)
     t0 = time.perf_counter()
     motion = {j: _motion(np.ascontiguousarray(per[k][box]), np.ascontiguousarray(per[j][box]), st)
               for j in frames if j != k}
-    motion_s = (time.perf_counter() - t0) / max(len(motion), 1)
+    return SimpleNamespace(ctx=ctx, geom=geom, truth=truth, r_amb=r_amb, k=k, st=st, frames=frames, hulls=hulls,
+                           support=support, per=per, box=box, motion=motion, params=tasks.tomo_params(ctx),
+                           blur=tasks.flow_blur(ctx), motion_s=(time.perf_counter() - t0) / max(len(motion), 1))
+
+
+def measure(store: Path, scales, iters, window: int, k: int | None = None) -> dict:
+    from schlieren.pipeline import spacetime, tomography
+
+    w_ = _window(store, window, k)
+    ctx, geom, truth, r_amb, k, st = w_.ctx, w_.geom, w_.truth, w_.r_amb, w_.k, w_.st
+    frames, hulls, support, per, box, motion = w_.frames, w_.hulls, w_.support, w_.per, w_.box, w_.motion
+    params, blur, motion_s = w_.params, w_.blur, w_.motion_s
 
     def score(g) -> dict:
         whole, plume = integrate_and_score(ctx, g, hulls[k], truth[k], r_amb)
@@ -112,23 +122,12 @@ def diagnose(store: Path, scale: float, iters: int, window: int, k: int | None =
     neighbours' ``d_j`` moved onto frame ``k`` (the stage's motion) and averaged. Independent
     errors would shrink by ``sqrt(n)``; also the ray errors' frame-to-frame correlation."""
     from schlieren.pipeline import metrics, spacetime, tomography
-    from schlieren.pipeline.spacetime.average import _motion
     from schlieren.pipeline.tomography.blur import VolumeBlur
-    from schlieren.workers import tasks
 
-    ctx, geom, truth, r_amb = load(store)
-    F = ctx.n_frames
-    k = F // 2 if k is None else int(k)
-    st = ctx.config.spacetime
-    frames = list(spacetime.window_frames(k, F, window))
-    dil = ctx.config.tomography.hull_dilation
-    hulls = {j: ctx.store.read("hull", (j,)) for j in frames}
-    params = tasks.tomo_params(ctx)
+    w_ = _window(store, window, k)
+    ctx, geom, truth, r_amb, k, st = w_.ctx, w_.geom, w_.truth, w_.r_amb, w_.k, w_.st
+    frames, hulls, per, box, motion, params, blur = w_.frames, w_.hulls, w_.per, w_.box, w_.motion, w_.params, w_.blur
     p = dataclasses.replace(params, reg_weight=params.reg_weight * scale, max_iter=int(iters), tol=1e-6)
-    blur = tasks.flow_blur(ctx)
-    per = {j: np.asarray(ctx.store.read("gradient_frame", (j,)), dtype=np.float32) for j in frames}
-    region = tomography.block_support([hulls[j] for j in frames], dil)
-    box = spacetime.support_box(region)
     plume = metrics.plume_mask(truth[k], r_amb)
     d, e, sig = {}, {}, {}
     for j in frames:
@@ -152,9 +151,6 @@ def diagnose(store: Path, scale: float, iters: int, window: int, k: int | None =
 
     out = {"scale": scale, "iters": iters, "rms_error_alone": rms(d[k]),
            "score model rays alone (bias only)": score(sig[k]), "score run rays alone": score(sig[k] + d[k])}
-    motion = {j: _motion(np.ascontiguousarray(per[k][box]), np.ascontiguousarray(per[j][box]), st)
-              for j in frames if j != k}
-
     def mean(vols, sel):
         acc = np.zeros_like(vols[k])
         for j in sel:
