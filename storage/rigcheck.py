@@ -38,6 +38,9 @@ class CameraInputs:
     Attributes
     ----------
     reference_frames : ndarray, shape (n, H, W), float32
+        At most :data:`MAX_REFERENCE_FRAMES` of the reference's frames.
+    n_reference : int
+        Frames the reference holds (the run averages them all).
     frames : ndarray, shape (k, H, W), float32, or None
     frame_indices : tuple of int
     strobe_rows : ndarray, shape (F, H), or None
@@ -48,6 +51,7 @@ class CameraInputs:
     """
 
     reference_frames: np.ndarray
+    n_reference: int
     frames: np.ndarray | None
     frame_indices: tuple
     strobe_rows: np.ndarray | None
@@ -55,16 +59,17 @@ class CameraInputs:
     n_frames: int
 
 
-def _reference_frames(src) -> np.ndarray:
+def _reference_frames(src) -> tuple[np.ndarray, int]:
+    """At most :data:`MAX_REFERENCE_FRAMES` reference frames, and how many it holds."""
     kind = frames_kind(src.reference)
     if kind is None:
         img, _ = read_image(src.reference, camera_name=src.name, field="reference")
-        return img[None]
+        return img[None], 1
     fs = open_frames(src.reference, camera_name=src.name)
     if src.interlaced:
         fs = InterlacedFields(fs, src.interlaced)
-    idx = fs.present()[:MAX_REFERENCE_FRAMES]
-    return np.stack([fs.read(i) for i in idx])
+    present = fs.present()
+    return np.stack([fs.read(i) for i in present[:MAX_REFERENCE_FRAMES]]), len(present)
 
 
 def _spread(rng: tuple[int, int], k: int, skip) -> list[int]:
@@ -88,12 +93,11 @@ def _read(fs, indices) -> list[np.ndarray]:
 def camera_inputs(session, c: int, *, motion_frames: int = 3) -> CameraInputs:
     """Read camera ``c``'s reference frames, ``motion_frames`` frames spread over the
     frames to process (all frames beside the strobe window when the session gives none)
-    and the strobe window's row means."""
+    and the strobe window's row means; each file decoded once."""
     src = session.sources[c]
-    refs = _reference_frames(src)
+    refs, n_ref = _reference_frames(src)
     fs = open_frames(src)
     n = len(fs)
-    full = 65535.0 if np.dtype(fs.raw_dtype).itemsize > 1 else 255.0
     strobe = session.strobe_search
     rng = session.frames if session.frames is not None else frames_beside_strobe(n, strobe)
     rng = (min(rng[0], n), min(rng[1], n))
@@ -104,9 +108,11 @@ def camera_inputs(session, c: int, *, motion_frames: int = 3) -> CameraInputs:
     if strobe is not None and strobe[1] <= n:
         rows = np.stack([row_means(f) for f in _read(fs, range(*strobe))])
         rows = rows if len(rows) >= 3 else None
+    full = 65535.0 if np.dtype(fs.raw_dtype).itemsize > 1 else 255.0  # known once a frame was read
     if hasattr(fs, "close"):
         fs.close()
-    return CameraInputs(refs.astype(np.float32), np.stack(frames) if frames else None, tuple(idx), rows, full, n)
+    return CameraInputs(refs.astype(np.float32, copy=False), n_ref, np.stack(frames) if frames else None,
+                        tuple(idx), rows, full, n)
 
 
 def family_cases(results_dir: str | os.PathLike) -> tuple[list[FamilyCase], list[str]]:
