@@ -170,11 +170,12 @@ class CameraCheck:
         return max(self.motions, key=lambda s: s.extent) if self.motions else None
 
 
-def _noise(reference_frames: np.ndarray, frames: np.ndarray | None, full_scale: float) -> tuple[float, str]:
+def _noise(reference_frames: np.ndarray, frames: np.ndarray | None, full_scale: float,
+           static: np.ndarray) -> tuple[float, str]:
     if len(reference_frames) >= 2:
         return sensor_noise(reference_frames, full_scale=full_scale), f"{len(reference_frames)} reference frames"
     if frames is not None and len(frames) >= 2:
-        return sensor_noise_from_pairs(frames), f"{len(frames)} consecutive frames"
+        return sensor_noise_from_pairs(frames, where=static), f"{len(frames)} frames, where the volume is not seen"
     return float("nan"), "unknown (one reference image, fewer than 2 frames)"
 
 
@@ -195,7 +196,7 @@ def _flash(cam: Camera, strobe_rows, first: int, frame_rate: float) -> tuple[str
 
 
 def frame_motions(cam: Camera, grid: Grid, reference: np.ndarray, frames, *, frame_indices=None,
-                  defects: np.ndarray | None = None, flow: FlowParams = FlowParams(),
+                  defects: np.ndarray | None = None, static: np.ndarray | None = None, flow: FlowParams = FlowParams(),
                   capture: CaptureParams = CaptureParams()) -> tuple[FrameMotion, ...]:
     """Each frame's motion against the reference, measured as the run measures it: the
     registration (:func:`~schlieren.pipeline.capture.register_background`) on the pixels
@@ -215,11 +216,14 @@ def frame_motions(cam: Camera, grid: Grid, reference: np.ndarray, frames, *, fra
         The frames' indices (default 0, 1, ...).
     defects : ndarray, shape (H, W), optional
         :func:`~schlieren.pipeline.capture.find_defective_pixels`' map.
+    static : ndarray, shape (H, W), bool, optional
+        The camera's static region, when already computed.
     """
     if frames is None or len(frames) == 0:
         return ()
     prep = prepare_reference(reference, presmooth=flow.presmooth, levels=flow.levels)
-    static = cap.static_region(cam, grid.vmin, grid.vmax, margin=capture.static_margin)
+    if static is None:
+        static = cap.static_region(cam, grid.vmin, grid.vmax, margin=capture.static_margin)
     valid = cap.valid_pixels(defects)
     size = tuple(cam.image_size)
     idx = range(len(frames)) if frame_indices is None else frame_indices
@@ -306,7 +310,8 @@ def check_camera(cam: Camera, grid: Grid, reference_frames: np.ndarray, frames: 
     """
     refs = np.asarray(reference_frames, dtype=np.float32)
     reference = refs.mean(axis=0)
-    noise, source = _noise(refs, frames, full_scale)
+    static = cap.static_region(cam, grid.vmin, grid.vmax, margin=capture.static_margin)
+    noise, source = _noise(refs, frames, full_scale, static)
     fp = footprint(cam, grid)
     window = window_for_voxel(fp.px_per_voxel, flow.window_per_voxel) if flow.window_per_voxel > 0 else flow.window
     n_ref = len(refs) if n_reference is None else max(int(n_reference), 1)
@@ -318,8 +323,8 @@ def check_camera(cam: Camera, grid: Grid, reference_frames: np.ndarray, frames: 
     hot, dead, stuck = ((np.argwhere(defects & bit) if defects is not None else np.zeros((0, 2), np.int64))
                         for bit in (cap.HOT, cap.DEAD, cap.STUCK))
     motions = () if capture.motion_model == "none" else \
-        frame_motions(cam, grid, reference, frames, frame_indices=frame_indices, defects=defects, flow=flow,
-                      capture=capture)
+        frame_motions(cam, grid, reference, frames, frame_indices=frame_indices, defects=defects, static=static,
+                      flow=flow, capture=capture)
     flash, offset = _flash(cam, strobe_rows, strobe_first, frame_rate)
     notes = _notes(flow_noise, motions, clipped, hot, dead, stuck, flash, offset, fp, strobe_rows is not None, params)
     return CameraCheck(cam.name, noise, source, flow_noise, window, focus, clipped, motions, hot, dead, flash,
@@ -329,10 +334,14 @@ def check_camera(cam: Camera, grid: Grid, reference_frames: np.ndarray, frames: 
 def _flow_noise(reference: np.ndarray, fp: Footprint, *, noise: float, n_reference: int, window: int,
                 flow: FlowParams) -> float:
     """Median predicted flow noise over the volume's footprint (the whole image when the
-    volume is not in it)."""
-    sigma = predicted_flow_noise(reference, noise=noise, n_reference=n_reference, window=window,
+    volume is not in it), computed on the footprint and the filters' reach around it only
+    (the same values inside it; the regularisation's mean tensor is the crop's)."""
+    H, W = reference.shape
+    c0, r0, c1, r1 = fp.box if fp.size[0] > 0 and fp.size[1] > 0 else (0, 0, W, H)
+    reach = 2 * int(np.ceil(3.0 * flow.presmooth)) + window // 2 + 4  # two pre-smoothings, the gradient, the window
+    a0, b0 = max(r0 - reach, 0), max(c0 - reach, 0)
+    crop = reference[a0:min(r1 + reach, H), b0:min(c1 + reach, W)]
+    sigma = predicted_flow_noise(crop, noise=noise, n_reference=n_reference, window=window,
                                  window_type=flow.window_type, presmooth=flow.presmooth,
                                  regularisation=flow.regularisation)
-    c0, r0, c1, r1 = fp.box
-    region = sigma[r0:r1, c0:c1] if (c1 > c0 and r1 > r0) else sigma
-    return float(np.median(region))
+    return float(np.median(sigma[r0 - a0:r1 - a0, c0 - b0:c1 - b0]))

@@ -12,6 +12,8 @@ Hot, dead and stuck pixels are the run's own test
 
 from __future__ import annotations
 
+import functools
+
 import cv2
 import numpy as np
 
@@ -22,6 +24,7 @@ def _blur(img: np.ndarray, sigma: float) -> np.ndarray:
     return cv2.GaussianBlur(img, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
 
 
+@functools.lru_cache(maxsize=8)
 def _noise_gain(sigma_fine: float, sigma_coarse: float) -> tuple[float, float]:
     """The fraction of white noise's variance passed by ``1 - G_fine`` and by ``1 - G_coarse``
     (measured on a white-noise image, so the result matches OpenCV's kernels exactly)."""

@@ -9,7 +9,8 @@ white noise; :func:`~schlieren.pipeline.flow.lk._lk_ici` uses the same variance)
 flow noise a run will have is known from the reference's texture and the sensor's noise:
 :func:`predicted_flow_noise`. The noise itself is the temporal standard deviation of the
 reference's frames (:func:`sensor_noise`), or, with one reference image, the robust
-spread of the difference of consecutive frames (:func:`sensor_noise_from_pairs`).
+spread of the difference of capture frames where their rays miss the volume
+(:func:`sensor_noise_from_pairs`).
 """
 
 from __future__ import annotations
@@ -20,7 +21,11 @@ import numpy as np
 from schlieren.pipeline.flow.images import _gaussian_taps, _gradients
 from schlieren.pipeline.flow.windows import _window_filter, _window_taps
 
-__all__ = ["sensor_noise", "sensor_noise_from_pairs", "predicted_flow_noise"]
+__all__ = ["sensor_noise", "sensor_noise_from_pairs", "predicted_flow_noise", "MIN_NOISE_PIXELS"]
+
+#: Samples :func:`sensor_noise_from_pairs` needs from the pixels it is given (a median's
+#: relative standard error of about 1 %).
+MIN_NOISE_PIXELS = 10_000
 
 
 def _stack(frames) -> np.ndarray:
@@ -68,14 +73,25 @@ def sensor_noise(frames, *, full_scale: float | None = None) -> float:
     return float(np.sqrt(var[ok].mean())) if ok.any() else float("nan")
 
 
-def sensor_noise_from_pairs(frames) -> float:
-    """Sensor noise (grey levels) from consecutive frames that may carry flow: ``1.4826``
-    times the median absolute deviation of ``(f_k - f_k+1) / sqrt 2`` over every pixel and
-    pair (each frame's mean level removed); the flow's pixels are a minority, so the
-    median measures the noise."""
-    a = _stack(frames)
+def sensor_noise_from_pairs(frames, *, where: np.ndarray | None = None) -> float:
+    """Sensor noise (grey levels) from frames of one view that may carry flow: ``1.4826``
+    times the median absolute deviation of ``(f_k - f_k+1) / sqrt 2`` over every 4th pixel
+    and every pair of successive frames (each frame's mean level removed).
+
+    Where the flow changes between frames the difference holds more than noise, so the
+    pixels ``where`` (those whose rays miss the volume: no flow there) are used when they
+    hold at least :data:`MIN_NOISE_PIXELS` samples; else every pixel, assuming the flow's
+    pixels are a minority. Every 4th pixel is plenty: the median of ``n`` values has a
+    relative standard error of about ``1.2 / sqrt(n)``, 0.4 % for 10^5 of them.
+    """
+    a = _stack(np.asarray(frames)[:, ::2, ::2])
     a = a - a.mean(axis=(1, 2), keepdims=True)
-    d = (a[1:] - a[:-1]).ravel() / np.sqrt(2.0)
+    d = (a[1:] - a[:-1]) / np.sqrt(2.0)
+    if where is not None:
+        m = np.asarray(where, bool)[::2, ::2]
+        if np.count_nonzero(m) * len(d) >= MIN_NOISE_PIXELS:
+            d = d[:, m]
+    d = d.ravel()
     return float(1.4826 * np.median(np.abs(d - np.median(d))))
 
 
