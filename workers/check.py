@@ -73,12 +73,12 @@ def check_session(path, *, results: str | os.PathLike | None = None, params: Che
 
     The cameras are checked in ``threads`` threads (default: one per core, at most 8):
     decoding, OpenCV, numpy and numba release the GIL, and each kernel runs
-    single-threaded (:func:`~schlieren.workers.serial.single_threaded_kernels`) so the
+    single-threaded (:func:`~schlieren.workers.kernel_threads.single_threaded_kernels`) so the
     threads do not oversubscribe the cores."""
     from schlieren.storage.readers.kinds import is_video
     from schlieren.storage.rigcheck import family_cases
     from schlieren.storage.session import load_session
-    from schlieren.workers.serial import single_threaded_kernels
+    from schlieren.workers.kernel_threads import single_threaded_kernels
 
     t0 = time.perf_counter()
     session = load_session(path, check_files=False)

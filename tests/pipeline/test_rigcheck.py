@@ -66,6 +66,15 @@ def test_sensor_noise_from_frames_whose_flow_covers_most_pixels(tex):
     assert sensor_noise_from_pairs(np.stack(frames), where=static) == pytest.approx(2.0, rel=0.03)
 
 
+def test_sensor_noise_from_quantised_frame_pairs():
+    """8-bit frames: their differences are integers (the median absolute deviation would
+    read 1.05 grey levels here); the noise includes the quantisation, like the reference's."""
+    tex8 = Texture(SHAPE, seed=4)
+    rng = np.random.default_rng(2)
+    frames = np.stack([noisy(tex8.render(), 1.5, rng, quantise=True) for _ in range(3)])
+    assert sensor_noise_from_pairs(frames) == pytest.approx(np.sqrt(1.5 ** 2 + 1 / 12), rel=0.03)
+
+
 @pytest.mark.parametrize("noise", [1.0, 3.0])
 def test_predicted_flow_noise_matches_the_measured_flow_noise_without_flow(tex, noise):
     """The run's deflection stage (default FlowParams, window 9, factor 2) on a no-flow
