@@ -102,21 +102,28 @@ def against_truth(session: str) -> dict | None:
         if (Path(session) / "case.json").is_file() else None
     s = load_session(session, check_files=False)
     errs, found, injected, false, noises = [], 0, 0, 0, []
+    found_any = injected_any = false_any = 0
     for c, cam in enumerate(s.cameras):
         inp = camera_inputs(s, c)
         r = check_camera(cam, s.grid, inp.reference_frames, inp.frames, frame_indices=inp.frame_indices,
                          n_reference=inp.n_reference, strobe_rows=inp.strobe_rows, full_scale=inp.full_scale)
         truth = lab["cameras"][cam.name]
         errs += [_truth_rms(m.motion, truth["homography"][m.frame], cam.image_size) for m in r.motions]
+        flagged = {tuple(p) for a in (r.hot, r.dead, r.stuck) for p in a.tolist()}
         hot = {tuple(p) for p in r.hot.tolist()}
         true_hot = {tuple(p) for p in truth["hot"]}
+        defects = {tuple(p) for k in ("hot", "dead", "stuck") for p in truth.get(k, [])}
         found += len(hot & true_hot)
         injected += len(true_hot)
         false += len(hot - true_hot)
+        found_any += len(flagged & defects)
+        injected_any += len(defects)
+        false_any += len(flagged - defects)
         noises.append(r.noise)
     e = np.asarray(errs)
     return {"params": lab["params"], "motion_rms": float(np.sqrt((e ** 2).mean())), "motion_max": float(e.max()),
             "camera_frames": len(e), "hot_found": found, "hot_injected": injected, "hot_false": false,
+            "defects_found": found_any, "defects_injected": injected_any, "defects_false": false_any,
             "noise_rendered": noise, "noise_expected": None if noise is None else float(np.sqrt(noise ** 2 + 1 / 12)),
             "noise_measured": [float(min(noises)), float(max(noises))]}
 
@@ -153,7 +160,11 @@ def markdown(res: dict) -> str:
             expected = "" if t["noise_expected"] is None else \
                 f", {t['noise_expected']:.3f} expected ({t['noise_rendered']} rendered, with 8-bit quantisation)"
             lines += ["Against the lab renderer's truth (`lab.json`):", "", motion,
-                      f"* hot pixels: {t['hot_found']} of {t['hot_injected']} found, {t['hot_false']} false",
+                      f"* hot pixels: {t['hot_found']} of {t['hot_injected']} found, {t['hot_false']} flagged hot "
+                      "that were not injected hot" + ("" if "defects_found" not in t else
+                                                      f"; all defects (hot, dead, stuck): {t['defects_found']} of "
+                                                      f"{t['defects_injected']} flagged (hot, dead or stuck), "
+                                                      f"{t['defects_false']} false"),
                       f"* sensor noise: {t['noise_measured'][0]:.3f}-{t['noise_measured'][1]:.3f} grey levels "
                       f"measured{expected}",
                       f"* rendered with: {json.dumps(t['params'])}", ""]

@@ -40,13 +40,15 @@ def _stack(frames) -> np.ndarray:
 
 
 def _without_flicker(a: np.ndarray) -> np.ndarray:
-    """Each frame of ``a`` with its least-squares gain and offset against the mean frame removed."""
+    """Each frame of ``a`` with its least-squares gain and offset against the mean frame
+    removed, row by row (flicker, and the banding of a rolling shutter under mains light)."""
     m = a.mean(axis=0)
-    mc = m - m.mean()
+    mc = m - m.mean(axis=1, keepdims=True)
+    mm = np.maximum((mc * mc).sum(axis=1, keepdims=True), 1e-30)
     out = np.empty_like(a)
-    for k in range(len(a)):
-        ak = a[k] - a[k].mean()
-        g = float((ak * mc).sum() / max(float((mc * mc).sum()), 1e-30))
+    for k in range(len(a)):  # a few frames: each step is whole-image numpy
+        ak = a[k] - a[k].mean(axis=1, keepdims=True)
+        g = (ak * mc).sum(axis=1, keepdims=True) / mm
         out[k] = ak - g * mc + mc  # the frame on the mean frame's scale
     return out
 
@@ -55,10 +57,11 @@ def sensor_noise(frames, *, full_scale: float | None = None) -> float:
     """Sensor noise (grey levels) from frames of a static scene: the temporal standard
     deviation per pixel, its variance averaged over the pixels.
 
-    Each frame's gain and offset against the frames' mean are removed first (lamp flicker
-    is not sensor noise), and
-    pixels clipped at 0 or ``full_scale`` in any frame are left out (their spread is not
-    the sensor's).
+    Each frame's gain and offset against the frames' mean are removed first, row by row
+    (lamp flicker and its row banding are not sensor noise; the two parameters a row's
+    fit takes from its ``w`` pixels remove ``2 / w`` of the variance, which is put back),
+    and pixels clipped at 0 or ``full_scale`` in any frame are left out (their spread is
+    not the sensor's).
 
     Parameters
     ----------
@@ -70,7 +73,7 @@ def sensor_noise(frames, *, full_scale: float | None = None) -> float:
     raw = np.asarray(frames)[:, ::2, ::2]  # every 4th pixel: plenty for one number, 4x faster
     a = _stack(raw)
     a = _without_flicker(a)
-    var = a.var(axis=0, ddof=1)
+    var = a.var(axis=0, ddof=1) / (1.0 - 2.0 / max(a.shape[2], 3))
     ok = (raw > 0).all(axis=0)
     if full_scale is not None:
         ok &= (raw < full_scale).all(axis=0)
