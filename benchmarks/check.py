@@ -139,6 +139,7 @@ def markdown(res: dict) -> str:
              "the wall time mostly measures the other sessions' load, so each session also gives the "
              "wall time 2 idle cores would take (its serial part, then the cameras' CPU seconds in 2 "
              "threads).", ""]
+    lines += [res["notes"], ""] if res.get("notes") else []
     for r in res["sessions"]:
         when = (f"commit {r['commit']}, {r['measured']}" if "commit" in r else
                 "earlier code: the check's own shift and hot-pixel kernels")
@@ -146,7 +147,8 @@ def markdown(res: dict) -> str:
             f" On 2 idle cores: about {quiet_estimate(r['cpu_seconds'], r['serial_cpu_seconds']):.1f} s "
             f"(the serial part, {r['serial_cpu_seconds']:.1f} CPU s of Python's start, imports, session and "
             "numba's first use, then the cameras' CPU seconds shared by 2 threads).")
-        lines += [f"## {r['session']} ({when})", "",
+        about = [r["about"], ""] if r.get("about") else []
+        lines += [f"## {r['session']} ({when})", "", *about,
                   f"Wall time {r['wall_seconds']:.1f} s ({r['cpu_seconds']:.1f} CPU seconds), load "
                   f"{r['load_before'][0]:.1f} -> {r['load_after'][0]:.1f} (exit {r['exit']}).{quiet}", "", "```",
                   r["output"].rstrip(), "```", ""]
@@ -184,6 +186,8 @@ def main(argv=None) -> int:
     ap.add_argument("sessions", nargs="*")
     ap.add_argument("--results", default=str(RESULTS))
     ap.add_argument("--markdown-only", action="store_true", help="rewrite check.md from check.json")
+    ap.add_argument("--about", action="append", default=[], metavar="SESSION=TEXT",
+                    help="how a session was made (shown under its heading; e.g. its `schlieren synth` command)")
     args = ap.parse_args(argv)
     if args.markdown_only:
         res = json.loads((Path(args.results) / "check.json").read_text())
@@ -191,13 +195,15 @@ def main(argv=None) -> int:
         return 0
     out = Path(args.results)
     old = json.loads((out / "check.json").read_text()) if (out / "check.json").is_file() else {"sessions": []}
-    res = {"machine": f"{platform.node()}, {os.cpu_count()} cores", "sessions": old["sessions"]}
+    res = {"machine": f"{platform.node()}, {os.cpu_count()} cores", "notes": old.get("notes", ""),
+           "sessions": old["sessions"]}
     commit = _commit()
+    abouts = dict(a.split("=", 1) for a in args.about)
     for s in args.sessions:
         r = run_check(s)
         r["serial_cpu_seconds"] = serial_cpu(s)
         r["truth"] = against_truth(s)
-        r.update(commit=commit, measured=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()))
+        r.update(about=abouts.get(s, ""), commit=commit, measured=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()))
         res["sessions"] = [x for x in res["sessions"] if (x["session"], x.get("commit")) != (s, commit)] + [r]
         print(f"{s}: {r['wall_seconds']:.1f} s", flush=True)
     out.mkdir(parents=True, exist_ok=True)
