@@ -5,10 +5,11 @@
 
 ``fit`` reads the tune cases' kept stores (``WORK/<case>/store-LABEL.zarr`` of
 ``schlieren bench realistic --out WORK --label LABEL --keep-stores``; any run of the
-default reconstruction), recomputes every frame's three terms unscaled through the
+default reconstruction), recomputes every frame's terms unscaled through the
 pipeline's kernel (:func:`schlieren.workers.bench.coverage.decompose`: the noise ensemble,
-the boundary sensitivity, the curvature) and fits ``uncertainty.boundary_scale`` and
-``structure_scale`` (:func:`~schlieren.workers.bench.coverage.fit_scales`); it also reports
+the boundary sensitivity, the curvature, the regularisation's bias) and fits
+``uncertainty.boundary_scale``, ``structure_scale`` and ``bias_scale``
+(:func:`~schlieren.workers.bench.coverage.fit_scales`); it also reports
 how much of the in-plume error the noise alone covers. Writes
 ``benchmarks/results/uncertainty_fit.json`` / ``.md``. The report cases are never read.
 
@@ -16,7 +17,8 @@ how much of the in-plume error the noise alone covers. Writes
 its stored ``refractivity_sigma`` against the truth: the fraction of voxels whose error is
 within one and two sigma, in the plume and outside, per case (tune and report separate),
 with the noise term's share (the stored sigma minus the recomputed boundary and structure
-terms) and the cost per frame (the store's ``stage_times``). Writes
+terms) and the cost per frame (the store's ``stage_times``; with ``--from-terms`` the bias
+term's own seconds). Writes
 ``benchmarks/results/uncertainty_coverage.json`` / ``.md``.
 """
 
@@ -90,7 +92,7 @@ def _decomposition(err, z, reg, t_on) -> dict:
 
     c = cov.coverage(err, z["noise"], m)
     return {"error_rms": rms(err), "noise_rms": rms(z["noise"]), "boundary_rms": rms(z["boundary"]),
-            "structure_rms": rms(z["structure"]), "noise_within_1": c["within_1"], "noise_within_2": c["within_2"],
+            "structure_rms": rms(z["structure"]), "bias_rms": rms(z["bias"]) if "bias" in z else float("nan"), "noise_within_1": c["within_1"], "noise_within_2": c["within_2"],
             "plume_outside_hull": float(np.mean(~m[reg["plume"]])) if reg["plume"].any() else float("nan")}
 
 
@@ -131,9 +133,10 @@ def _terms_coverage(args, case, store, truth) -> dict:
 
     ctx = tasks.context(str(store))
     params = dataclasses.replace(unc.UncertaintyParams(), samples=args.samples)
-    if args.scales:  # other boundary / structure scales than the defaults'
-        b, s = (float(v) for v in args.scales.split(","))
-        params = dataclasses.replace(params, boundary_scale=b, structure_scale=s)
+    if args.scales:  # other boundary / structure (/ bias) scales than the defaults'
+        v = [float(x) for x in args.scales.split(",")]
+        params = dataclasses.replace(params, boundary_scale=v[0], structure_scale=v[1],
+                                     **({"bias_scale": v[2]} if len(v) > 2 else {}))
     st = ResultStore.open(store, mode="r")
     terms = {}
 
@@ -147,14 +150,16 @@ def _terms_coverage(args, case, store, truth) -> dict:
     noise = cov.store_coverage(store, truth, sigma=lambda k: np.where(st.read("hull", (k,)), term(k)["noise"], 0.0))
     res["noise_only"] = noise["pooled"]["plume"]
     secs = [float(z["seconds"]) for z in terms.values() if "seconds" in z]
+    bias_secs = [float(z["bias_seconds"]) for z in terms.values() if "bias_seconds" in z]
     times = cov.stage_seconds(store)
-    res["seconds_per_frame"] = {**times, **({"uncertainty": float(np.mean(secs))} if secs else {})}
+    res["seconds_per_frame"] = {**times, **({"uncertainty": float(np.mean(secs))} if secs else {}),
+                                **({"bias": float(np.mean(bias_secs))} if bias_secs else {})}
     return res
 
 
 def _noise_only(store, truth) -> dict:
-    """In-plume coverage of the noise term alone: the stored sigma without the boundary and
-    structure terms (recomputed: two Poisson solves per frame, no ensemble)."""
+    """In-plume coverage of the noise term alone: the stored sigma without the bias, boundary and
+    structure terms (recomputed: the bias term's probes and two Poisson solves per frame, no ensemble)."""
     from schlieren.storage.store import ResultStore
     from schlieren.workers import tasks
     from schlieren.workers.bench import coverage as cov
@@ -167,7 +172,8 @@ def _noise_only(store, truth) -> dict:
         z = cov.decompose(ctx, k, dataclasses.replace(p, samples=0))
         s = np.asarray(st.read("refractivity_sigma", (k,)), dtype=np.float64)
         noise = np.sqrt(np.maximum(s * s - (p.boundary_scale * z.boundary_sigma) ** 2
-                                   - (p.structure_scale * z.structure_sigma) ** 2, 0.0))
+                                   - (p.structure_scale * z.structure_sigma) ** 2
+                                   - (p.bias_scale * z.bias_sigma) ** 2, 0.0))
         err = np.asarray(st.read("refractivity", (k,)), dtype=np.float64) - t_on
         c = cov.coverage(err, noise, cov.frame_regions(t_on, r_amb, st.read("hull", (k,)))["plume"])
         hits += [c["within_1"] * c["voxels"], c["within_2"] * c["voxels"], c["voxels"]]
@@ -186,7 +192,7 @@ def main(argv=None) -> int:
                     help="coverage: score a default run's stores, the sigma recomputed from the terms with the "
                          "defaults' scales (no run with uncertainty.enabled needed)")
     ap.add_argument("--scales", default=None,
-                    help="coverage --from-terms: BOUNDARY,STRUCTURE scales instead of the defaults'")
+                    help="coverage --from-terms: BOUNDARY,STRUCTURE[,BIAS] scales instead of the defaults'")
     ap.add_argument("--results", default=str(RESULTS))
     args = ap.parse_args(argv)
     from schlieren.workers.bench import coverage_markdown as md

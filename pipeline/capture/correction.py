@@ -9,9 +9,12 @@ kernel of the ``deflection`` stage with :class:`~.params.CaptureParams`.
    (or, beyond ``warp_above``, runs against the reference resampled at the moved
    positions), gives the defective pixels no weight, and returns the deflection alone;
 4. what motion the flow still shows on the static cells is fitted robustly
-   (:func:`~.motion.fit_flow_motion`) and removed too: where the static region is too
-   small the registration used every pixel, and this fit on the flow's low-deflection
-   cells is what separates the plume from the motion;
+   (:func:`~.motion.fit_flow_motion`) and, whenever a motion was applied, removed too,
+   however small: the registration's error (a thousandth of a pixel) is a bias on every
+   cell, which the masks' potential (:func:`~schlieren.pipeline.masks.flow_potential`)
+   integrates into a ramp across the image; where the static region is too small the
+   registration used every pixel, and this fit on the flow's low-deflection cells is what
+   separates the plume from the motion;
 5. with ``motion_source: camera`` the deflections are moved back onto the reference's
    pixel grid (a camera that turned sees the plume through other pixels: the calibrated
    ray of pixel ``q`` is seen at ``q - motion(q)`` in the frame).
@@ -143,7 +146,7 @@ def corrected_deflection(reference, frame: np.ndarray, flow: FlowParams = FlowPa
         cells = _fit_cells(d, static, flow.factor, fit.fallback)
         extra, _ = fit_flow_motion(d, cells, size, flow.factor, model=capture.motion_model)
         residual = motion_extent(extra, size)
-        if moved and residual > capture.motion_tolerance:
+        if moved:  # a bias left on every cell moves the mask potential's median by a ramp
             d = d - motion_field(extra, size, flow.factor)
             motion = motion + extra
         if moved:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+from scipy import ndimage
 
 from schlieren.pipeline.flow.splines import spline_coefficients, warp_coefficient_rows
 from schlieren.pipeline.geometry import FlowGrid
@@ -86,7 +87,17 @@ def resample_flow(raw: np.ndarray, first_frame: int, target_time: float, *, offs
     if n_clamped:
         log.debug("resample_flow: %d of %d rows clamped to the ends of frames %d..%d",
                   n_clamped, h, first_frame + usable[0], first_frame + usable[-1])
-    return _blend_rows(raw, j0, j1, alpha, params, digests)
+    invalid = ~np.isfinite(raw).all(axis=-1)
+    if not invalid.any():
+        return _blend_rows(raw, j0, j1, alpha, params, digests)
+    # the motion and the spline coefficients spread a NaN over whole rows, columns and
+    # pyramid blocks: blend the fields with their invalid cells at zero deflection, then
+    # invalidate the output cells that read them
+    filled = np.where(invalid[..., None], np.float32(0.0), raw)
+    reach: dict = {}
+    out = _blend_rows(filled, j0, j1, alpha, params, digests, reach=reach)
+    out[_cells_reading_invalid(invalid, j0, j1, alpha, reach)] = np.nan
+    return out
 
 
 def _bracket_rows(phi: np.ndarray, usable: list, *, nearest: bool):
@@ -110,10 +121,12 @@ def _bracket_rows(phi: np.ndarray, usable: list, *, nearest: bool):
 
 
 def _blend_rows(raw: np.ndarray, j0: np.ndarray, j1: np.ndarray, alpha: np.ndarray, params: ResampleParams,
-                digests: list | None) -> np.ndarray:
+                digests: list | None, *, reach: dict | None = None) -> np.ndarray:
     """Each flow-grid row read between its frames ``raw[j0]`` and ``raw[j1]`` at weight
     ``alpha`` (:func:`resample_flow`), one frame pair at a time: warped along the pair's
-    motion (``motion``), blended (``linear``) or copied (``nearest``, ``alpha`` 0)."""
+    motion (``motion``), blended (``linear``) or copied (``nearest``, ``alpha`` 0).
+    ``reach`` (optional) receives per warped pair ``(a, b)`` how far (cells) its rows read
+    from their own cell: the largest warp plus the cubic spline's support."""
     h, w = raw.shape[1:3]
     out = np.empty((h, w, 2), np.float32)
     coef_memo: dict = {}
@@ -144,5 +157,37 @@ def _blend_rows(raw: np.ndarray, j0: np.ndarray, j1: np.ndarray, alpha: np.ndarr
         mr = m[rows]
         wa = _warp_channel_rows(coefs(a), rows, -al * mr)
         wb = _warp_channel_rows(coefs(b), rows, (1 - al) * mr)
+        if reach is not None:
+            reach[(a, b)] = int(np.ceil(float(np.max(np.abs(mr), initial=0.0)))) + 2
         out[rows] = (1 - al) * wa + al * wb
+    return out
+
+
+def _cells_reading_invalid(invalid: np.ndarray, j0: np.ndarray, j1: np.ndarray, alpha: np.ndarray,
+                           reach: dict) -> np.ndarray:
+    """The output cells of :func:`_blend_rows` that read an invalid cell of ``raw[j0]``
+    (weight ``1 - alpha`` > 0) or ``raw[j1]`` (``alpha`` > 0): the invalid cells of the
+    row's frames, grown by the pair's ``reach`` where the row was warped.
+
+    Parameters
+    ----------
+    invalid : ndarray, shape (k, h, w), bool
+    j0, j1, alpha : ndarray, shape (h,)
+    reach : dict
+        ``(a, b) -> cells`` for the warped frame pairs (:func:`_blend_rows`).
+    """
+    out = np.zeros(invalid.shape[1:], bool)
+    for a, b in sorted(set(zip(j0.tolist(), j1.tolist()))):
+        rows = np.flatnonzero((j0 == a) & (j1 == b))
+        al = alpha[rows]
+        bad = np.zeros_like(out)
+        if np.any(al < 1):
+            bad[rows] |= invalid[a][rows]
+        if a != b and np.any(al > 0):
+            bad[rows] |= invalid[b][rows]
+        r = reach.get((a, b), 0)
+        if r:  # a warp reads the pair's fields within r cells (rows of other pairs too)
+            src = invalid[a] | invalid[b]
+            bad[rows] |= ndimage.binary_dilation(src, np.ones((2 * r + 1, 2 * r + 1), bool))[rows]
+        out |= bad
     return out

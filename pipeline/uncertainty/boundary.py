@@ -10,10 +10,9 @@ measurement: integrate ``g`` once more with a *natural* boundary on the hull sur
 connected part's surface layer is ambient) and compare with the pinned integration ``r_D``.
 Their difference ``r_N - r_D`` is harmonic inside the hull (the two solves share the
 interior equations) with the surface values of ``r_N``: how far the data, integrated on
-their own, say the boundary is from ambient, carried into the interior. On the realistic
-family's tune cases its local RMS times about 5 predicts the in-plume error's spread on
-every rig, lossless or H.264, better than any local measure of the estimate
-(``benchmarks/results/uncertainty_coverage.md``).
+their own, say the boundary is from ambient, carried into the interior. Its local RMS, scaled
+(``UncertaintyParams.boundary_scale``, fitted on the realistic family's tune cases with the
+bias term's, ``benchmarks/results/uncertainty_fit.md``), is the boundary term.
 """
 
 from __future__ import annotations

@@ -4,8 +4,8 @@ The smoothness prior, the few views and the integration's discretisation (paper 
 all remove structure at the voxel scale, and a smoothing of width ``s`` voxels changes a
 field by about ``(s^2 / 2) h^2 lap(r)``: the local RMS of the estimate's own ``h^2 lap(r)``
 (refractivity units) marks where that loss is large. Its weight
-(:attr:`~schlieren.pipeline.uncertainty.UncertaintyParams.structure_scale`) was fitted on
-the realistic family's tune cases together with the boundary term's.
+(:attr:`~schlieren.pipeline.uncertainty.UncertaintyParams.structure_scale`) is 0 by default:
+beside the bias term (:mod:`.bias`) it barely changes the fit on the realistic family's tune cases.
 """
 
 from __future__ import annotations

@@ -347,6 +347,21 @@ def test_jobs_the_batch_system_refuses_end_the_submit_with_one_line(slurm, tls_d
     assert "for 20 s (schlieren.stall-timeout)" in line and "invalid partition" in line, line
 
 
+def test_jobs_pending_for_good_end_the_submit_with_one_line(slurm, tls_dir, tiny_session, tmp_path):
+    """A job asking for more cores than any node has is accepted and pends for
+    ``PartitionConfig`` forever: the watch reads squeue's reason and ends the submit."""
+    cfg = _config(tmp_path, tls_dir, wait_timeout=None, **{"stall-timeout": 20})
+    data = yaml.safe_load(cfg.read_text())
+    data["jobqueue"]["slurm"]["cores"] = 64
+    cfg.write_text(yaml.safe_dump(data))
+    run = Submit(tiny_session.session, tmp_path / "held.zarr", cfg, slurm)
+    run.wait(300)
+    line = _one_line_failure(run)
+    print(f"\njobs pending for good: ended at {run.ended:.1f} s: {line}")
+    assert "pending for 20 s (schlieren.stall-timeout)" in line and "PartitionConfig" in line, line
+    assert _jobs(slurm) == [], "closing the cluster cancels its pending job"
+
+
 def test_jobs_that_die_at_once_end_the_submit_with_one_line(slurm, tls_dir, tiny_session, tmp_path):
     cfg = _config(tmp_path, tls_dir, wait_timeout=None)
     data = yaml.safe_load(cfg.read_text())

@@ -23,6 +23,12 @@ def test_terms_sigma_is_the_stages_combination_and_zero_outside_the_hull():
     p = UncertaintyParams(boundary_scale=4.0, structure_scale=0.0)
     s = cov.terms_sigma(terms, p, hull)
     assert np.allclose(s[hull], 5.0) and np.all(s[~hull] == 0)
+    # the bias term in quadrature, with its scale (0 leaves it out)
+    terms["bias"] = np.full(shape, 2.0)
+    s = cov.terms_sigma(terms, UncertaintyParams(boundary_scale=4.0, structure_scale=0.0, bias_scale=6.0), hull)
+    assert np.allclose(s[hull], 13.0) and np.all(s[~hull] == 0)
+    s = cov.terms_sigma(terms, UncertaintyParams(boundary_scale=4.0, structure_scale=0.0, bias_scale=0.0), hull)
+    assert np.allclose(s[hull], 5.0)
 
 
 def test_coverage_page_keeps_tune_and_report_apart_and_says_how_sigma_was_made():

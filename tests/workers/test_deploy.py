@@ -378,10 +378,16 @@ def test_submit_runs_the_session_on_the_cluster_it_creates(tiny_session, tmp_pat
 
 
 def test_batch_job_states_are_read_from_squeue_and_qstat():
-    from schlieren.workers.cluster.jobwatch import is_alive, parse_qstat, parse_squeue, submit_error_line
+    from schlieren.workers.cluster.jobwatch import (NEVER_CLEARS, is_alive, parse_qstat, parse_squeue,
+                                                    parse_squeue_reasons, submit_error_line)
 
     assert parse_squeue("12 RUNNING\n13 PENDING\n14 CANCELLED\n\n") == {"12": "RUNNING", "13": "PENDING",
                                                                        "14": "CANCELLED"}
+    listing = "12 RUNNING None\n13 PENDING PartitionConfig\n14 PENDING ReqNodeNotAvail, UnavailableNodes:vm\n"
+    assert parse_squeue(listing) == {"12": "RUNNING", "13": "PENDING", "14": "PENDING"}
+    assert parse_squeue_reasons(listing) == {"12": "None", "13": "PartitionConfig",
+                                             "14": "ReqNodeNotAvail, UnavailableNodes:vm"}
+    assert "PartitionConfig" in NEVER_CLEARS and "Resources" not in NEVER_CLEARS and "Priority" not in NEVER_CLEARS
     qstat = ("Job id            Name             User              Time Use S Queue\n"
              "----------------  ---------------- ----------------  -------- - -----\n"
              "1234.pbs01        schlieren-worker alice             00:00:03 R workq\n"

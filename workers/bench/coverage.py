@@ -9,8 +9,8 @@ fraction of voxels whose error ``|estimate - truth|`` lies within one and two
 and the rest of the box.
 
 :func:`decompose` recomputes a frame's three terms unscaled (the noise ensemble, the
-boundary sensitivity, the curvature) through the pipeline's own kernel, and
-:func:`fit_scales` chooses the two scales on the tune cases (the report cases are never
+boundary sensitivity, the curvature, the regularisation's bias) through the pipeline's own kernel, and
+:func:`fit_scales` chooses the scales on the tune cases (the report cases are never
 passed to it): the weights whose in-plume coverage of the plume voxels inside the hull
 comes closest to 68 % within one sigma and 95 % within two, case by case.
 """
@@ -18,6 +18,7 @@ comes closest to 68 % within one sigma and 95 % within two, case by case.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from pathlib import Path
 
 import numpy as np
@@ -67,9 +68,10 @@ def frame_regions(truth: np.ndarray, r_amb: float, hull: np.ndarray) -> dict:
             "outside_hull": ~plume & ~hull}
 
 
-def decompose(ctx, k: int, params: unc.UncertaintyParams) -> unc.FrameUncertainty:
-    """Frame ``k``'s terms through the pipeline's kernel, with both scales 1 (the fit's raw fields);
-    ``ctx`` is the store's run context (:func:`schlieren.workers.tasks.context`)."""
+def decompose(ctx, k: int, params: unc.UncertaintyParams, *, only_bias: bool = False) -> unc.FrameUncertainty:
+    """Frame ``k``'s terms through the pipeline's kernel, with every scale 1 (the fit's raw fields);
+    ``ctx`` is the store's run context (:func:`schlieren.workers.tasks.context`). ``only_bias``:
+    the bias term alone."""
     from schlieren.workers.tasks.geometry import cached_geometry, geometry_key
     from schlieren.workers.tasks.tomography import flow_blur, tomo_params
     from schlieren.workers.tasks.uncertainty import noise_window
@@ -77,7 +79,9 @@ def decompose(ctx, k: int, params: unc.UncertaintyParams) -> unc.FrameUncertaint
     C = len(ctx.cameras)
     flows = np.stack(ctx.store.read_many("flow", [(c, k) for c in range(C)]))
     masks = np.stack(ctx.store.read_many("mask", [(c, k) for c in range(C)]))
-    raw = dataclasses.replace(params, boundary_scale=1.0, structure_scale=1.0)
+    raw = dataclasses.replace(params, boundary_scale=1.0, structure_scale=1.0, bias_scale=1.0)
+    if only_bias:
+        raw = dataclasses.replace(raw, samples=0, boundary_scale=0.0, structure_scale=0.0)
     return unc.frame_uncertainty(
         cached_geometry(ctx.store_path, geometry_key(ctx)), flows, ~masks, ctx.store.read("hull", (k,)),
         ctx.store.read("gradient", (k,)), ctx.store.read("refractivity", (k,)), ctx.session.grid,
@@ -86,43 +90,51 @@ def decompose(ctx, k: int, params: unc.UncertaintyParams) -> unc.FrameUncertaint
         **flow_blur(ctx))
 
 
-def combine(noise: np.ndarray, boundary: np.ndarray, structure: np.ndarray, a: float, b: float) -> np.ndarray:
-    """``sqrt(noise^2 + (a boundary)^2 + (b structure)^2)`` (the unscaled terms of :func:`decompose`)."""
-    return np.sqrt(noise * noise + (a * boundary) ** 2 + (b * structure) ** 2)
+def combine(noise: np.ndarray, boundary: np.ndarray, structure: np.ndarray, a: float, b: float,
+            bias: np.ndarray | None = None, c: float = 0.0) -> np.ndarray:
+    """``sqrt(noise^2 + (a boundary)^2 + (b structure)^2 + (c bias)^2)`` (the unscaled terms of
+    :func:`decompose`)."""
+    out = noise * noise + (a * boundary) ** 2 + (b * structure) ** 2
+    if bias is not None and c > 0:
+        out = out + (c * bias) ** 2
+    return np.sqrt(out)
 
 
-def fit_scales(frames: list[dict], *, boundary=np.arange(2.0, 10.01, 0.25),
-               structure=(0.0, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4)) -> dict:
-    """The ``(boundary_scale, structure_scale)`` on the grid whose in-hull plume coverage is
-    closest to :data:`TARGET_1` / :data:`TARGET_2`: the sum over cases of the squared misses
-    of both (each case's frames pooled).
+def fit_scales(frames: list[dict], *, boundary=np.arange(0.0, 6.01, 0.5), structure=(0.0,),
+               bias=tuple(np.round(np.exp(np.linspace(np.log(0.5), np.log(12.0), 25)), 3))) -> dict:
+    """The ``(boundary_scale, structure_scale, bias_scale)`` on the grid whose in-hull plume
+    coverage is closest to :data:`TARGET_1` / :data:`TARGET_2`: the sum over cases of the squared
+    misses of both (each case's frames pooled). Frames without a bias term fit the first two only.
+    The structure term is left out by default: beside the bias term it improves the tune cases'
+    score by under 3 % (``benchmarks/results/uncertainty_coverage.md``), not worth a third scale.
 
     Parameters
     ----------
     frames : list of dict
-        Tune frames only: ``{"case", "error", "noise", "boundary", "structure", "where"}``
-        (``where`` the plume voxels inside the hull).
+        Tune frames only: ``{"case", "error", "noise", "boundary", "structure", "where"}`` and
+        optionally ``"bias"`` (``where`` the plume voxels inside the hull).
 
     Returns
     -------
     dict
-        ``{"boundary_scale", "structure_scale", "score", "cases": {case: [within_1, within_2]}}``.
+        ``{"boundary_scale", "structure_scale", "bias_scale", "score", "cases": {case: [within_1, within_2]}}``.
     """
     cases = sorted({f["case"] for f in frames})
+    with_bias = all("bias" in f for f in frames)
     pick = [(f["case"], np.abs(f["error"][f["where"]]), f["noise"][f["where"]], f["boundary"][f["where"]],
-             f["structure"][f["where"]]) for f in frames]
+             f["structure"][f["where"]], f["bias"][f["where"]] if with_bias else None) for f in frames]
     best = None
-    for a in boundary:
-        for b in structure:
-            per = {}
-            for case in cases:
-                hits = [(np.sum(e <= s), np.sum(e <= 2 * s), len(e))
-                        for c, e, n, bd, st in pick if c == case for s in [combine(n, bd, st, a, b)]]
-                tot = np.sum(hits, axis=0)
-                per[case] = [float(tot[0] / tot[2]), float(tot[1] / tot[2])]
-            score = sum((v[0] - TARGET_1) ** 2 + (v[1] - TARGET_2) ** 2 for v in per.values())
-            if best is None or score < best["score"]:
-                best = {"boundary_scale": float(a), "structure_scale": float(b), "score": float(score), "cases": per}
+    for a, b, c in itertools.product(boundary, structure, bias if with_bias else (0.0,)):
+        per = {}
+        for case in cases:
+            hits = [(np.sum(e <= s), np.sum(e <= 2 * s), len(e))
+                    for cs, e, n, bd, st, bi in pick if cs == case for s in [combine(n, bd, st, a, b, bi, c)]]
+            tot = np.sum(hits, axis=0)
+            per[case] = [float(tot[0] / tot[2]), float(tot[1] / tot[2])]
+        score = sum((v[0] - TARGET_1) ** 2 + (v[1] - TARGET_2) ** 2 for v in per.values())
+        if best is None or score < best["score"]:
+            best = {"boundary_scale": float(a), "structure_scale": float(b), "bias_scale": float(c),
+                    "score": float(score), "cases": per}
     return best
 
 
@@ -157,16 +169,23 @@ def store_coverage(store_path, truth_path, sigma=None) -> dict:
 
 def cached_terms(ctx, k: int, params: unc.UncertaintyParams, cache: Path | None) -> dict:
     """Frame ``k``'s unscaled terms (:func:`decompose`) as ``{"noise", "boundary", "structure",
-    "seconds"}``, read from / written to ``cache`` (an ``.npz`` path) when given."""
+    "bias", "seconds", "bias_seconds"}``, read from / written to ``cache`` (an ``.npz`` path) when
+    given; a cache without the bias term gets it added (one tomography and one Poisson solve)."""
     import time
 
     if cache is not None and Path(cache).exists():
-        z = dict(np.load(cache))
-        return {n: np.asarray(v, dtype=np.float64) for n, v in z.items()}
+        z = {n: np.asarray(v, dtype=np.float64) for n, v in dict(np.load(cache)).items()}
+        if "bias" in z:
+            return z
+        t0 = time.perf_counter()
+        z["bias"] = decompose(ctx, k, params, only_bias=True).bias_sigma
+        z["bias_seconds"] = np.float64(time.perf_counter() - t0)
+        np.savez(cache, **{n: np.asarray(v, dtype=np.float32) for n, v in z.items()})
+        return z
     t0 = time.perf_counter()
     res = decompose(ctx, k, params)
     z = {"noise": res.noise_sigma, "boundary": res.boundary_sigma, "structure": res.structure_sigma,
-         "seconds": np.float64(time.perf_counter() - t0)}
+         "bias": res.bias_sigma, "seconds": np.float64(time.perf_counter() - t0)}
     if cache is not None:
         Path(cache).parent.mkdir(parents=True, exist_ok=True)
         np.savez(cache, **{n: np.asarray(v, dtype=np.float32) for n, v in z.items()})
@@ -175,8 +194,11 @@ def cached_terms(ctx, k: int, params: unc.UncertaintyParams, cache: Path | None)
 
 def terms_sigma(terms: dict, params: unc.UncertaintyParams, hull: np.ndarray) -> np.ndarray:
     """The stage's ``refractivity_sigma`` from the unscaled terms and ``params``' scales (0 outside the hull)."""
-    s = combine(terms["noise"], terms["boundary"], terms["structure"], params.boundary_scale, params.structure_scale)
-    return np.where(np.asarray(hull, dtype=bool), s, 0.0)
+    hull = np.asarray(hull, dtype=bool)
+    bias = terms.get("bias")
+    s = combine(terms["noise"], terms["boundary"], terms["structure"], params.boundary_scale, params.structure_scale,
+                bias, params.bias_scale)
+    return np.where(hull, s, 0.0)
 
 
 def stage_seconds(store_path) -> dict:

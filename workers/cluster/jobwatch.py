@@ -21,7 +21,10 @@ event at all.
 * the run fails with one line (:class:`ClusterStalled`) instead of waiting forever when
   no worker and no job pending or running has been seen for ``stall-timeout`` seconds,
   when :data:`CRASH_LOOP_JOBS` jobs in a row ended before any of their workers joined,
-  or when the workers have been gone for ``wait-timeout`` seconds.
+  when every job has been pending for ``stall-timeout`` seconds for a reason the batch
+  system does not clear by itself (SLURM's ``PartitionConfig``, ``BadConstraints``...: a
+  job asking for more cores, memory or time than the partition has), or when the workers
+  have been gone for ``wait-timeout`` seconds.
 """
 
 from __future__ import annotations
@@ -58,6 +61,13 @@ _ALIVE = {
 }
 _PENDING = {"slurm": frozenset({"PENDING", "CONFIGURING", "REQUEUED", "REQUEUE_FED", "REQUEUE_HOLD"}),
             "pbs": frozenset({"Q", "H", "W", "T"})}
+#: SLURM's reasons for a pending job that no other job's end clears: the job asks for more
+#: than the partition or its account allows (``squeue %r``; ``man squeue``, JOB REASON CODES).
+NEVER_CLEARS = frozenset({
+    "PartitionConfig", "PartitionNodeLimit", "PartitionTimeLimit", "BadConstraints", "InvalidAccount",
+    "InvalidQOS", "QOSMaxCpuPerJobLimit", "QOSMaxNodePerJobLimit", "QOSMaxWallDurationPerJobLimit",
+    "QOSMaxMemoryPerJob", "AssocMaxCpuPerJobLimit", "AssocMaxNodesPerJobLimit",
+    "AssocMaxWallDurationPerJobLimit", "DependencyNeverSatisfied"})
 
 
 class ClusterStalled(RuntimeError):
@@ -82,12 +92,22 @@ class WatchSettings:
 
 
 def parse_squeue(text: str) -> dict[str, str]:
-    """``squeue -h -o "%i %T"`` output as ``{job id: state}``."""
+    """``squeue -h -o "%i %T"`` (or ``"%i %T %r"``) output as ``{job id: state}``."""
     out = {}
     for line in text.splitlines():
         parts = line.split()
         if len(parts) >= 2:
             out[parts[0]] = parts[1].upper()
+    return out
+
+
+def parse_squeue_reasons(text: str) -> dict[str, str]:
+    """``squeue -h -o "%i %T %r"`` output as ``{job id: reason}`` (``None`` for a running job)."""
+    out = {}
+    for line in text.splitlines():
+        parts = line.split(None, 2)
+        if len(parts) == 3:
+            out[parts[0]] = parts[2].strip()
     return out
 
 
@@ -114,8 +134,15 @@ def is_alive(kind: str, state: str | None) -> bool:
 async def batch_states(kind: str, timeout: float = 30.0) -> dict[str, str] | None:
     """``{job id: state}`` of this user's jobs, as the batch system lists them; None when it
     cannot be asked (a command missing or failing: nothing is concluded from that)."""
+    listing = await batch_listing(kind, timeout)
+    return None if listing is None else (parse_squeue if kind == "slurm" else parse_qstat)(listing)
+
+
+async def batch_listing(kind: str, timeout: float = 30.0) -> str | None:
+    """The batch system's job list of this user (``squeue -o "%i %T %r"`` / ``qstat``), or None
+    when it cannot be asked."""
     user = getpass.getuser()
-    cmd = (["squeue", "-h", "-o", "%i %T", "-t", "all", "-u", user] if kind == "slurm" else ["qstat"])
+    cmd = (["squeue", "-h", "-o", "%i %T %r", "-t", "all", "-u", user] if kind == "slurm" else ["qstat"])
     try:
         proc = await asyncio.create_subprocess_exec(*cmd, stdout=asyncio.subprocess.PIPE,
                                                     stderr=asyncio.subprocess.PIPE)
@@ -130,7 +157,7 @@ async def batch_states(kind: str, timeout: float = 30.0) -> dict[str, str] | Non
         return None
     if proc.returncode != 0:
         return None
-    return (parse_squeue if kind == "slurm" else parse_qstat)(out.decode(errors="replace"))
+    return out.decode(errors="replace")
 
 
 def submit_error_line(exc: BaseException) -> str:
@@ -184,6 +211,8 @@ class WatchedJobs:
         self._joined: set[str] = set()  # jobs a worker of which joined the scheduler
         self._silent_ends = 0  # jobs in a row that ended before any worker joined
         self._submit_error: str | None = None
+        self._held_since: float | None = None  # every job pending for a reason that never clears
+        self._held_reason = ""
         self._jobs_closing = False
         self._watch_task: asyncio.Task | None = None
         self._kick: asyncio.Event | None = None
@@ -281,8 +310,12 @@ class WatchedJobs:
         names = self._worker_names()
         self._saw_workers(names)
         present = {self.job_of(n) for n in names}
-        states = await batch_states(kind)
+        listing = await batch_listing(kind)
+        states = None if listing is None else (parse_squeue if kind == "slurm" else parse_qstat)(listing)
+        reasons = parse_squeue_reasons(listing) if listing is not None and kind == "slurm" else {}
         alive = 0
+        held: set[str] = set()  # reasons of the alive jobs that pend for good
+        free = 0  # alive jobs that run, or pend for a reason that clears
         for job, proc in list(self.workers.items()):
             if self.workers.get(job) is not proc:
                 continue
@@ -299,9 +332,20 @@ class WatchedJobs:
             state = states.get(_job_key(kind, proc.job_id))
             if is_alive(kind, state):
                 alive += 1
+                reason = reasons.get(_job_key(kind, proc.job_id), "")
+                if state in _PENDING.get(kind, ()) and reason in NEVER_CLEARS:
+                    held.add(reason)
+                else:
+                    free += 1
             elif job not in present:  # ended; a job whose workers are still listed waits for them
                 self._drop_job(job, proc, f"ended ({state or 'no longer listed by the batch system'})")
         now = time.monotonic()
+        if held and not free:
+            if self._held_since is None:
+                self._held_since = now
+            self._held_reason = ", ".join(sorted(held))
+        else:
+            self._held_since = None
         if alive or not self.worker_spec:  # jobs run or wait, or none is wanted
             self._last_job = now
         if not self.worker_spec:
@@ -316,6 +360,11 @@ class WatchedJobs:
         if self._silent_ends >= CRASH_LOOP_JOBS:
             self._stall(f"{self._silent_ends} worker jobs in a row ended before any of their workers joined "
                         f"the scheduler: {logs}")
+        elif self._held_since is not None and now - self._held_since > w.stall_timeout:
+            self._stall(f"every worker job has been pending for {w.stall_timeout:g} s (schlieren.stall-timeout) "
+                        f"for a reason the batch system does not clear by itself: {self._held_reason} (the job "
+                        f"asks for more cores, memory or time than the partition allows: compare the cluster's "
+                        f"cores, memory and walltime with `scontrol show partition`)")
         elif states is not None and not alive and now - max(self._last_worker, self._last_job) > w.stall_timeout:
             why = (f"the last submission failed: {self._submit_error}" if self._submit_error
                    else f"the worker jobs ended ({logs})")

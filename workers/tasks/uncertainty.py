@@ -5,7 +5,7 @@ Optional (``uncertainty.enabled``). The frame's flows, masks, hull and estimate 
 the ``regularisation`` task chose go to
 :func:`~schlieren.pipeline.uncertainty.frame_uncertainty`: the flows' noise measured
 outside the masks, drawn with the flow window's correlation, through the frame's own
-tomography solve and integration, plus the boundary and structure terms. A stage of its own rather
+tomography solve and integration, plus the bias, boundary and structure terms. A stage of its own rather
 than part of the solve: it costs several solves, and as its own task it runs beside the
 next frames' solves while the per-frame tomography stays as it is.
 """
@@ -67,4 +67,5 @@ def uncertainty_task(ctx: RunContext, k: int) -> dict:
             "noise_rms": float(np.sqrt(np.mean(res.noise_sigma[inside] ** 2))),
             "boundary_rms": float(np.sqrt(np.mean(res.boundary_sigma[inside] ** 2))),
             "structure_rms": float(np.sqrt(np.mean(res.structure_sigma[inside] ** 2))),
+            "bias_rms": float(np.sqrt(np.mean(res.bias_sigma[inside] ** 2))) if res.bias_sigma is not None else 0.0,
             "flow_noise_px": float(np.nanmedian(res.flow_noise)) if np.isfinite(res.flow_noise).any() else None}
