@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from schlieren.pipeline.capture.params import CaptureParams
 from schlieren.pipeline.flow.params import FlowParams
 from schlieren.pipeline.rigcheck import CameraCheck, CheckParams, FamilyCase, check_camera, expected_accuracy
 from schlieren.storage.errors import SchlierenInputError
@@ -49,34 +50,42 @@ class RigCheck:
         return [c for c in self.cameras if isinstance(c, CameraCheck)]
 
 
-def _one_camera(session, c: int, flow: FlowParams, params: CheckParams):
+def _one_camera(session, c: int, flow: FlowParams, capture: CaptureParams, params: CheckParams):
     from schlieren.storage.rigcheck import camera_inputs
 
     cam = session.cameras[c]
     try:
         inp = camera_inputs(session, c, motion_frames=params.motion_frames)
         first = session.strobe_search[0] if session.strobe_search else 0
-        return check_camera(cam, session.grid, inp.reference_frames, inp.frames, strobe_rows=inp.strobe_rows,
-                            strobe_first=first, frame_rate=session.frame_rate, full_scale=inp.full_scale,
-                            flow=flow, params=params)
+        return check_camera(cam, session.grid, inp.reference_frames, inp.frames, frame_indices=inp.frame_indices,
+                            n_reference=inp.n_reference, strobe_rows=inp.strobe_rows, strobe_first=first,
+                            frame_rate=session.frame_rate, full_scale=inp.full_scale, flow=flow, capture=capture,
+                            params=params)
     except Exception as exc:  # a file still being written, a decoder's error: this camera's row says it
         return cam.name, str(exc).splitlines()[0] if str(exc) else type(exc).__name__
 
 
 def check_session(path, *, results: str | os.PathLike | None = None, params: CheckParams = CheckParams(),
-                  flow: FlowParams = FlowParams(), threads: int | None = None) -> RigCheck:
+                  flow: FlowParams = FlowParams(), capture: CaptureParams = CaptureParams(),
+                  threads: int | None = None) -> RigCheck:
     """Check the session at ``path`` (:class:`RigCheck`); the manifest's problems raise
-    :class:`~schlieren.storage.errors.SessionError` as ``schlieren run`` would."""
+    :class:`~schlieren.storage.errors.SessionError` as ``schlieren run`` would.
+
+    The cameras are checked in ``threads`` threads (default: one per core, at most 8):
+    decoding, OpenCV, numpy and numba release the GIL, and each kernel runs
+    single-threaded (:func:`~schlieren.workers.kernel_threads.single_threaded_kernels`) so the
+    threads do not oversubscribe the cores."""
     from schlieren.storage.readers.kinds import is_video
     from schlieren.storage.rigcheck import family_cases
     from schlieren.storage.session import load_session
+    from schlieren.workers.kernel_threads import single_threaded_kernels
 
     t0 = time.perf_counter()
     session = load_session(path, check_files=False)
     n = len(session.cameras)
-    workers = threads or min(n, os.cpu_count() or 1, 4)
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        cams = list(pool.map(lambda c: _one_camera(session, c, flow, params), range(n)))
+    workers = threads or min(n, os.cpu_count() or 1, 8)
+    with single_threaded_kernels(), ThreadPoolExecutor(max_workers=workers) as pool:
+        cams = list(pool.map(lambda c: _one_camera(session, c, flow, capture, params), range(n)))
     cases, files = family_cases(results if results is not None else DEFAULT_RESULTS)
     video = any(is_video(s.frames) for s in session.sources)
     fam = expected_accuracy(cases, cameras=n, size=tuple(session.cameras[0].image_size), video=video)

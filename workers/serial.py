@@ -7,11 +7,11 @@ skipped; independent work goes on, so nothing that can be computed is lost.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 from typing import Callable
 
 from schlieren.workers import interrupts
+from schlieren.workers.kernel_threads import single_threaded_kernels
 from schlieren.workers.plan import Plan
 from schlieren.workers.tasks import TaskFailed, flush_writes, run_tasks
 
@@ -36,25 +36,6 @@ def run_serial(store_path: str, plan: Plan, *, on_receipt: Callable[[dict], None
     with single_threaded_kernels():
         _loop(store_path, plan, receipts, failures, on_receipt, on_failure)
     return receipts, failures
-
-
-@contextlib.contextmanager
-def single_threaded_kernels():
-    """Run OpenCV, numba and BLAS single-threaded, as in the Dask workers, so both executors agree
-    bit for bit (threaded BLAS reductions round differently)."""
-    import cv2
-    import numba
-    from threadpoolctl import threadpool_limits
-
-    before = cv2.getNumThreads(), numba.get_num_threads()
-    cv2.setNumThreads(1)
-    numba.set_num_threads(1)
-    try:
-        with threadpool_limits(limits=1):
-            yield
-    finally:
-        cv2.setNumThreads(before[0])
-        numba.set_num_threads(before[1])
 
 
 def _loop(store_path, plan, receipts, failures, on_receipt, on_failure) -> None:

@@ -9,10 +9,9 @@ block-structured Jacobian; :func:`_bundle_adjust` runs the solver.
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.sparse import coo_matrix
-from scipy.spatial.transform import Rotation
 
+# scipy.optimize, .sparse and .spatial are imported where used: every command that loads a
+# session imports this module (the calibration checks), and they take 0.6 s to load
 from schlieren.pipeline.calibration.projection import _distort_pixels, _pose_matrix
 
 
@@ -38,6 +37,7 @@ class _BundleProblem:
         self.n_params = self.o_view + 6 * len(self.views)
 
     def pack(self, K, dist, T_cam_ref, T_ref_board) -> np.ndarray:
+        from scipy.spatial.transform import Rotation
         x = np.zeros(self.n_params)
         for i, n in enumerate(self.names):
             o = i * self.n_intr
@@ -56,6 +56,7 @@ class _BundleProblem:
         return x
 
     def unpack(self, x):
+        from scipy.spatial.transform import Rotation
         K, dist, T_cam_ref, T_ref_board = {}, {}, {}, {}
         for i, n in enumerate(self.names):
             o = i * self.n_intr
@@ -73,6 +74,7 @@ class _BundleProblem:
         return K, dist, T_cam_ref, T_ref_board
 
     def residuals(self, x) -> np.ndarray:
+        from scipy.spatial.transform import Rotation
         intr = x[: self.o_ext].reshape(self.n_cam, self.n_intr)
         ext = np.zeros((self.n_cam, 6))
         if self.free:
@@ -97,6 +99,7 @@ class _BundleProblem:
         pose) touches disjoint residual rows, so one pair of evaluations per parameter
         *kind* gives all of their columns: ``2 * (n_intr + 6 + 6)`` evaluations in all.
         """
+        from scipy.sparse import coo_matrix
         m = len(self.obs_cam)
         obs = np.arange(m)
         free = np.array([self.ext_index.get(int(ci), -1) for ci in self.obs_cam], dtype=np.int64)
@@ -167,6 +170,7 @@ def _bundle_adjust(prob: _BundleProblem, x0, *, robust_scale: float, max_iter: i
     info : dict
         ``iterations`` (Jacobian evaluations), ``status`` (scipy's message), ``cost``.
     """
+    from scipy.optimize import least_squares
     res = least_squares(prob.residuals, np.asarray(x0, dtype=np.float64), jac=prob.jacobian, method="trf",
                         loss=_huber, f_scale=float(robust_scale), x_scale="jac", max_nfev=int(max_iter),
                         tr_solver="lsmr", tr_options={"atol": 1e-12, "btol": 1e-12,

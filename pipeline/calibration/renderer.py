@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-from scipy.interpolate import RectBivariateSpline
 
 from schlieren.pipeline.calibration.board import BoardSpec
 from schlieren.pipeline.calibration.projection import _distort_pixels, project_points
@@ -62,6 +61,8 @@ class BoardRenderer:
             coarse = self._undistort(np.stack([ug.ravel(), vg.ravel()], axis=1))
             coarse = coarse.reshape(len(vc), len(uc), 2).astype(np.float64)
             # (cv2.remap would quantise the positions to 1/32 cell: not accurate enough.)
+            from scipy.interpolate import RectBivariateSpline  # here: loading the package costs every command 0.7 s
+
             xy = np.empty((len(v), len(u), 2), dtype=np.float32)
             for k in range(2):
                 spline = RectBivariateSpline(vc, uc, coarse[..., k], kx=3, ky=3)

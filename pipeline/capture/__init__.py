@@ -19,19 +19,20 @@ every deflection by as much. Modules:
 * :mod:`.params`: :class:`CaptureParams`.
 """
 
-from .correction import (CAPTURE_STATS, FALLBACK, MOTION_APPLIED, NOT_CONVERGED, PHOTOMETRIC_APPLIED, CaptureCorrection,
-                         corrected_deflection, to_reference_grid)
-from .defects import DEAD, DEFECT_NAMES, HOT, STUCK, defect_counts, find_defective_pixels
+from .correction import (CAPTURE_STATS, FALLBACK, GAIN_UNKNOWN, MOTION_APPLIED, NOT_CONVERGED, PHOTOMETRIC_APPLIED,
+                         CaptureCorrection, corrected_deflection, to_reference_grid)
+from .defects import DEAD, DEFECT_NAMES, HOT, STUCK, defect_counts, find_defective_pixels, valid_pixels
 from .motion import (MOTION_PARAMS, fit_flow_motion, motion_displacement, motion_extent, motion_field,
                      motion_size, motion_summary, no_motion)
 from .params import MOTION_MODELS, CaptureParams
-from .photometric import Photometric, identity_photometric, normalise_frame, row_knots, row_profile
+from .photometric import MIN_GAIN, Photometric, identity_photometric, normalise_frame, row_knots, row_profile
 from .registration import BackgroundFit, register_background
 from .static_region import box_footprint, static_cells, static_region
 
 __all__ = ["CaptureParams", "MOTION_MODELS", "MOTION_PARAMS", "BackgroundFit", "CaptureCorrection", "Photometric",
            "register_background", "corrected_deflection", "to_reference_grid", "find_defective_pixels",
-           "defect_counts", "static_region", "static_cells", "box_footprint", "motion_displacement",
+           "defect_counts", "valid_pixels", "static_region", "static_cells", "box_footprint", "motion_displacement",
            "motion_field", "motion_extent", "motion_summary", "motion_size", "no_motion", "fit_flow_motion",
            "normalise_frame", "identity_photometric", "row_knots", "row_profile", "HOT", "DEAD", "STUCK",
-           "DEFECT_NAMES", "CAPTURE_STATS", "MOTION_APPLIED", "PHOTOMETRIC_APPLIED", "FALLBACK", "NOT_CONVERGED"]
+           "DEFECT_NAMES", "CAPTURE_STATS", "MOTION_APPLIED", "PHOTOMETRIC_APPLIED", "FALLBACK", "NOT_CONVERGED",
+           "GAIN_UNKNOWN", "MIN_GAIN"]

@@ -31,6 +31,7 @@ import numpy as np
 from schlieren.pipeline.flow import FlowParams, deflection_stage, prepare_reference
 from schlieren.pipeline.flow.splines import warp_image
 
+from .defects import valid_pixels
 from .motion import fit_flow_motion, motion_displacement, motion_extent, motion_field
 from .params import CaptureParams
 from .photometric import normalise_frame
@@ -38,10 +39,12 @@ from .registration import BackgroundFit, register_background
 from .static_region import static_cells
 
 __all__ = ["CaptureCorrection", "corrected_deflection", "to_reference_grid", "MOTION_APPLIED",
-           "PHOTOMETRIC_APPLIED", "FALLBACK", "NOT_CONVERGED", "CAPTURE_STATS"]
+           "PHOTOMETRIC_APPLIED", "FALLBACK", "NOT_CONVERGED", "GAIN_UNKNOWN", "CAPTURE_STATS"]
 
-#: Bits of :attr:`CaptureCorrection.flags`.
-MOTION_APPLIED, PHOTOMETRIC_APPLIED, FALLBACK, NOT_CONVERGED = 1, 2, 4, 8
+#: Bits of :attr:`CaptureCorrection.flags`. ``GAIN_UNKNOWN``: the frame's gain could not be
+#: estimated (:meth:`~.photometric.Photometric.estimable`: a dark or clipped frame), so it
+#: was not normalised.
+MOTION_APPLIED, PHOTOMETRIC_APPLIED, FALLBACK, NOT_CONVERGED, GAIN_UNKNOWN = 1, 2, 4, 8, 16
 #: Entries of :meth:`CaptureCorrection.stats` (the store's ``capture_fit``).
 CAPTURE_STATS = ("static_fraction", "noise", "samples", "residual_motion", "flags")
 
@@ -61,8 +64,8 @@ class CaptureCorrection:
         Largest displacement (pixels) of the motion the flow still showed on the static
         cells after the registration's was removed (before that, too, was removed).
     flags : int
-        Bit sum of :data:`MOTION_APPLIED`, :data:`PHOTOMETRIC_APPLIED`, :data:`FALLBACK`
-        and :data:`NOT_CONVERGED`.
+        Bit sum of :data:`MOTION_APPLIED`, :data:`PHOTOMETRIC_APPLIED`, :data:`FALLBACK`,
+        :data:`NOT_CONVERGED` and :data:`GAIN_UNKNOWN`.
     """
 
     motion: np.ndarray
@@ -111,17 +114,19 @@ def corrected_deflection(reference, frame: np.ndarray, flow: FlowParams = FlowPa
     H, W = prep.shape
     size = (W, H)
     bad = None if defects is None or not np.any(defects) else np.asarray(defects) != 0
-    valid = None if bad is None else ~cv2.dilate(bad.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    valid = valid_pixels(defects)
     fit = register_background(prep, frame, static=static, valid=valid, model=capture.motion_model,
                               photometric=capture.photometric, banding_rows=capture.banding_rows,
                               min_static_fraction=capture.min_static_fraction)
     flags = (FALLBACK if fit.fallback else 0) | (0 if fit.converged else NOT_CONVERGED)
     img = frame
     ph = fit.photometric
-    if capture.photometric and ph.departs(gain_tolerance=capture.gain_tolerance,
-                                          offset_tolerance=capture.offset_tolerance / prep.scale, mean=prep.mean,
-                                          gain_sigma=fit.gain_sigma, level_sigma=fit.level_sigma,
-                                          significance=capture.significance):
+    if capture.photometric and not ph.estimable():
+        flags |= GAIN_UNKNOWN
+    elif capture.photometric and ph.departs(gain_tolerance=capture.gain_tolerance,
+                                            offset_tolerance=capture.offset_tolerance / prep.scale, mean=prep.mean,
+                                            gain_sigma=fit.gain_sigma, level_sigma=fit.level_sigma,
+                                            significance=capture.significance):
         img = normalise_frame(frame, ph)
         flags |= PHOTOMETRIC_APPLIED
     warp_above, source = capture.warp_above, capture.motion_source

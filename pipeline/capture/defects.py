@@ -34,7 +34,8 @@ import numpy as np
 
 from .params import CaptureParams
 
-__all__ = ["HOT", "DEAD", "STUCK", "DEFECT_NAMES", "find_defective_pixels", "defect_counts", "MIN_STUCK_FRAMES"]
+__all__ = ["HOT", "DEAD", "STUCK", "DEFECT_NAMES", "find_defective_pixels", "defect_counts", "valid_pixels",
+           "MIN_STUCK_FRAMES"]
 
 HOT, DEAD, STUCK = 1, 2, 4
 #: Names of the codes (bits) of :func:`find_defective_pixels`'s map.
@@ -121,3 +122,13 @@ def defect_counts(defects: np.ndarray) -> dict[str, int]:
     """Pixels of each kind in a map of :func:`find_defective_pixels` (a pixel may count twice)."""
     d = np.asarray(defects)
     return {name: int(np.count_nonzero(d & bit)) for bit, name in DEFECT_NAMES.items()}
+
+
+def valid_pixels(defects: np.ndarray | None) -> np.ndarray | None:
+    """The pixels a registration may use: none within 2 pixels of a defective one (the
+    pre-smoothing and the gradient spread a defect over its neighbours); None when
+    ``defects`` (a map of :func:`find_defective_pixels`, or None) holds none."""
+    if defects is None or not np.any(defects):
+        return None
+    bad = np.asarray(defects) != 0
+    return ~cv2.dilate(bad.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)

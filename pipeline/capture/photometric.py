@@ -16,7 +16,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["row_knots", "row_basis", "row_profile", "Photometric", "normalise_frame", "identity_photometric"]
+__all__ = ["row_knots", "row_basis", "row_profile", "Photometric", "normalise_frame", "identity_photometric",
+           "MIN_GAIN"]
+
+#: The smallest gain a frame can be normalised by: below it the frame keeps less than a
+#: tenth of the reference's contrast (a lens cap, a lamp off, a frame clipped black or
+#: white, where the fitted gain is 0), and dividing by it would amplify the frame's noise
+#: tenfold or more.
+MIN_GAIN = 0.1
 
 
 def row_knots(height: int, banding_rows: int) -> np.ndarray:
@@ -76,6 +83,12 @@ class Photometric:
         rows = np.arange(int(height), dtype=np.float64)
         return row_profile(self.gain, self.knots, rows), row_profile(self.offset, self.knots, rows)
 
+    def estimable(self) -> bool:
+        """Whether the frame can be normalised: every knot's gain and offset finite, every
+        gain at least :data:`MIN_GAIN`."""
+        return bool(np.all(np.isfinite(self.gain)) and np.all(np.isfinite(self.offset))
+                    and np.all(self.gain >= MIN_GAIN))
+
     def departs(self, *, gain_tolerance: float, offset_tolerance: float, mean: float = 0.0,
                 gain_sigma=0.0, level_sigma=0.0, significance: float) -> bool:
         """Whether, at some knot, the gain departs from 1 by more than ``gain_tolerance``,
@@ -109,7 +122,15 @@ def normalise_frame(frame: np.ndarray, photometric: Photometric) -> np.ndarray:
     Returns
     -------
     ndarray, shape (H, W), float32
+
+    Raises
+    ------
+    ValueError
+        The profiles cannot normalise a frame (:meth:`Photometric.estimable` is false).
     """
+    if not photometric.estimable():
+        raise ValueError(f"a frame with gain {np.min(photometric.gain):.3g} at some row cannot be normalised "
+                         f"(the gain must be finite and at least {MIN_GAIN})")
     img = np.asarray(frame, np.float32)
     gain, offset = photometric.profiles(img.shape[0])
     inv = (1.0 / gain).astype(np.float32)[:, None]

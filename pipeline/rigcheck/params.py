@@ -13,8 +13,8 @@ class CheckParams:
 
     motion_frames: int = param(
         3, unit="1", ge=1, le=100,
-        help="Frames of the capture (spread over the frames to process) whose global shift against the"
-             " reference is measured.")
+        help="Frames of the capture (spread over the frames to process) whose motion against the reference is "
+             "measured (with the run's `capture` parameters); they also join the defective-pixel test.")
     max_shift: float = param(
         0.02, unit="px", ge=0, le=100,
         help="A camera whose frames moved more than this against the reference is flagged.")
@@ -30,11 +30,3 @@ class CheckParams:
         0.01, unit="1", ge=0, le=1,
         help="A camera with more than this fraction of its reference's pixels clipped black or white "
              "is flagged.")
-    hot_sigmas: float = param(
-        8.0, unit="1", gt=0, le=1e3,
-        help="A pixel differing from its 3 x 3 median by more than this many robust standard "
-             "deviations of that difference (and `hot_min_step`) is hot (dead).")
-    hot_min_step: float = param(
-        20.0, unit="grey levels", ge=0, le=255,
-        help="The smallest such difference, in grey levels of 8-bit images (scaled to the frames' full"
-             " scale).")

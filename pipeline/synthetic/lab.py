@@ -37,50 +37,15 @@ import numpy as np
 from scipy import ndimage
 
 from schlieren.pipeline.geometry import Camera, rodrigues
-from schlieren.pipeline.params import param
+from schlieren.pipeline.params import param, parameters
 
 __all__ = ["LabParams", "LAB_PRESETS", "CameraLab", "draw_camera", "motion_rotation", "motion_homography",
            "moved_camera", "row_gain", "vignette", "defocus", "photometry", "apply_defects"]
 
 
-@dataclass(frozen=True)
+@parameters
 class LabParams:
-    """What a lab's capture carries beyond the ideal one; every effect is off by default.
-
-    Attributes
-    ----------
-    motion_offset : float
-        Constant displacement of the image against the reference, at the principal point,
-        in a random direction per camera: where the tripod settled after the reference.
-    motion_walk : float
-        Random walk of the image per raw frame: each frame after the first adds a Gaussian
-        step of this standard deviation along each image axis.
-    roll : float
-        Constant rotation of the camera about its optical axis against the reference,
-        random sign per camera (positive turns the image content from +u towards +v).
-    roll_walk : float
-        Random walk of that rotation: Gaussian steps of this standard deviation per raw frame.
-    flicker_gain : float
-        Lamp brightness per frame (reference frames included): the image times
-        ``1 + N(0, flicker_gain)``, drawn independently for each frame and camera.
-    flicker_offset : float
-        Grey levels (8-bit scale) ``N(0, flicker_offset)`` added per frame (stray light, black level).
-    banding : float
-        Relative amplitude of the row banding of a rolling shutter under mains-powered
-        light: rows times ``1 + banding sin(2 pi f t_row + phase)``; 0 = none.
-    banding_frequency : float
-        The light's flicker frequency ``f``: twice the mains frequency (100 Hz at 50 Hz mains, 120 at 60).
-    defocus : float
-        Sigma of the Gaussian blur of the background image: the camera is focused on the volume.
-    vignetting : float
-        Relative brightness lost at the image corners (radial gain ``1 - v (r / r_corner)^2``).
-    hot_pixels : int
-        Pixels per camera stuck at full scale, at the same places in the reference and every frame.
-    dead_pixels : int
-        Pixels per camera stuck at 0.
-    stuck_pixels : int
-        Pixels per camera stuck at one random grey level each.
-    """
+    """What a lab's capture carries beyond the ideal one; every effect is off by default."""
 
     motion_offset: float = param(
         0.0, unit="px", ge=0.0, le=50.0,

@@ -4,7 +4,9 @@ them all, and a flagged frame at the end of a range makes its outer neighbour ne
 
 from __future__ import annotations
 
+import logging
 import shutil
+import warnings
 
 import cv2
 import numpy as np
@@ -58,7 +60,7 @@ def test_unused_margin_frames_are_skipped_without_changing_the_result(tiny_sessi
         np.testing.assert_array_equal(_read(a, name), _read(b, name), err_msg=name)
 
 
-def test_a_dark_frame_at_a_ranges_end_makes_the_margin_frame_needed(tiny_session, tmp_path):
+def test_a_dark_frame_at_a_ranges_end_makes_the_margin_frame_needed(tiny_session, tmp_path, caplog):
     sess = tmp_path / "session"
     shutil.copytree(tiny_session.session.parent, sess)
     clean = run_session(sess, tmp_path / "clean.zarr", serial=True)
@@ -71,8 +73,11 @@ def test_a_dark_frame_at_a_ranges_end_makes_the_margin_frame_needed(tiny_session
     assert end == below + 1
     name = yaml.safe_load((sess / "session.yaml").read_text())["cameras"][c]["name"]
     cv2.imwrite(str(sess / name / "frames" / f"{end:05d}.png"), np.zeros((144, 192), np.uint8))  # lens cap
-    dark = run_session(sess, tmp_path / "dark.zarr", serial=True)
+    with warnings.catch_warnings(), caplog.at_level(logging.WARNING):
+        warnings.simplefilter("error", RuntimeWarning)  # its zero gain is not divided by
+        dark = run_session(sess, tmp_path / "dark.zarr", serial=True)
     assert dark.ok
+    assert f"camera {name}, frame {end}: its gain against the reference cannot be estimated" in caplog.text
     assert (store.attrs["session"]["cameras"][c]["name"], end, ["dark"]) in dark.bad_frames
     assert below not in _unused(ResultStore.open(tmp_path / "dark.zarr"))[c]
     assert below in _used(dark)[c]  # the resampling reached past the dark frame to it

@@ -4,12 +4,15 @@ the flow it gave before."""
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 from flow_helpers import NoiseBackground, pixel_truth, plume_deflection, render
 
-from schlieren.pipeline.capture import (FALLBACK, MOTION_APPLIED, PHOTOMETRIC_APPLIED, CaptureParams,
-                                        corrected_deflection, motion_displacement, motion_field, to_reference_grid)
+from schlieren.pipeline.capture import (FALLBACK, GAIN_UNKNOWN, MOTION_APPLIED, PHOTOMETRIC_APPLIED, CaptureParams,
+                                        corrected_deflection, motion_displacement, motion_field, normalise_frame,
+                                        to_reference_grid)
 from schlieren.pipeline.flow import FlowParams, deflection_stage, prepare_reference
 
 SHAPE = (192, 256)
@@ -163,3 +166,26 @@ def test_flow_moved_back_onto_the_reference_grid():
     back = to_reference_grid(seen, m, SIZE, f)
     np.testing.assert_allclose(back[3:-3, 3:-3], field(y, x)[3:-3, 3:-3], atol=2e-3)
     assert motion_field(m, SIZE, f)[0, 0, 0] == pytest.approx(0.6)
+
+
+@pytest.mark.parametrize("level", [0.0, 255.0])
+def test_a_frame_without_a_gain_is_flagged_not_normalised(prep, level):
+    """A frame whose gain cannot be estimated (all dark: a lens cap; all clipped white)
+    is flagged GAIN_UNKNOWN and left as it is: no division by its zero gain."""
+    frame = np.full(SHAPE, level, np.float32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no RuntimeWarning from a division by zero
+        d, corr = corrected_deflection(prep, frame, FLOW, static=_static())
+    assert corr.flags & GAIN_UNKNOWN and not corr.flags & PHOTOMETRIC_APPLIED
+    assert not corr.fit.photometric.estimable()
+    assert d.shape == (SHAPE[0] // 2, SHAPE[1] // 2, 2)
+    with pytest.raises(ValueError, match="cannot be normalised"):
+        normalise_frame(frame, corr.fit.photometric)
+
+
+def test_a_flickering_frame_keeps_its_gain_estimable(background, prep):
+    rng = np.random.default_rng(8)
+    frame = (0.97 * render(background, SHAPE, noise=1.5, rng=rng) + 2.0).astype(np.float32)
+    _, corr = corrected_deflection(prep, frame, FLOW, static=_static())
+    assert corr.fit.photometric.estimable() and not corr.flags & GAIN_UNKNOWN
+    assert corr.flags & PHOTOMETRIC_APPLIED

@@ -107,6 +107,28 @@ def test_check_command_prints_the_table_and_writes_the_page(session, tmp_path, c
     assert (tmp_path / "out" / "index.html").is_file() and "page:" in out
 
 
+def test_a_single_reference_image_is_read_and_the_noise_comes_from_the_frames(session, tmp_path):
+    """A session whose reference is one image file (what ``schlieren synth`` writes): the
+    noise is measured on the checked frames where the rays miss the volume."""
+    root = tmp_path / "single"
+    shutil.copytree(session, root)
+    m = yaml.safe_load((root / "session.yaml").read_text())
+    for c in m["cameras"]:
+        img = cv2.imread(str(root / c["name"] / "reference" / "000.png"), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(root / c["name"] / "reference.png"), img)
+        shutil.rmtree(root / c["name"] / "reference")
+        c["reference"] = f"{c['name']}/reference.png"
+    (root / "session.yaml").write_text(yaml.safe_dump(m, sort_keys=False))
+    rig = check_session(root, results=tmp_path)
+    assert len(rig.checked) == 2
+    for c in rig.checked:
+        assert c.noise_source.startswith("3 frames")
+        assert c.noise == pytest.approx(np.sqrt(1.5 ** 2 + 1 / 12), rel=0.05)
+    b = rig.checked[1]
+    assert abs(b.shift.du - SHIFT[0]) < 0.01 and abs(b.shift.dv - SHIFT[1]) < 0.01
+    assert sorted(map(tuple, b.hot.tolist())) == sorted(HOT)
+
+
 def test_a_millimetre_manifest_is_refused_before_reading(session, tmp_path):
     root = tmp_path / "mm"
     shutil.copytree(session, root)

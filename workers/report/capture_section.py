@@ -16,7 +16,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
-from schlieren.pipeline.capture import (DEFECT_NAMES, FALLBACK, MOTION_APPLIED, PHOTOMETRIC_APPLIED,
+from schlieren.pipeline.capture import (DEFECT_NAMES, FALLBACK, GAIN_UNKNOWN, MOTION_APPLIED, PHOTOMETRIC_APPLIED,
                                         motion_displacement)
 from schlieren.storage.report import ReportPage, ReportReader, ReportWriter, fmt_number, html_img, html_table
 from schlieren.workers.report._common import _figure
@@ -142,7 +142,8 @@ def _camera_table(rd: ReportReader, motion: np.ndarray, names: list[str], size) 
                      f"{int(np.count_nonzero(fl & MOTION_APPLIED))} / {fl.size}",
                      f"{int(np.count_nonzero(fl & PHOTOMETRIC_APPLIED))} / {fl.size}",
                      f"{int(np.count_nonzero(fl & FALLBACK))}",
+                     f"{int(np.count_nonzero(fl & GAIN_UNKNOWN))}",
                      fmt_number(float(np.nanmean(fit[c, :, 0]))) if fit is not None and ok.any() else "-", *counts])
     header = ["camera", "largest motion (px)", "motion removed (frames)", "gain/offset removed (frames)",
-              "measured on every pixel (frames)", "static fraction"] + [f"{n} pixels" for n in DEFECT_NAMES.values()]
+              "measured on every pixel (frames)", "gain unknown, not normalised (frames)", "static fraction"] + [f"{n} pixels" for n in DEFECT_NAMES.values()]
     return html_table(header, rows)

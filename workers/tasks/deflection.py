@@ -57,6 +57,9 @@ def deflection_task(ctx: RunContext, c: int, j: int) -> dict:
     out = {"max_px": float(np.nanmax(np.abs(d))) if np.isfinite(d).any() else 0.0, "window": params.window,
            "motion_px": capture.motion_extent(corr.motion, ctx.cameras[c].image_size),
            "capture_flags": int(corr.flags)}
+    if corr.flags & capture.GAIN_UNKNOWN:
+        log.warning("camera %s, frame %d: its gain against the reference cannot be estimated (a dark or clipped "
+                    "frame?): not normalised", ctx.cameras[c].name, f)
     bad = fq.flag_names(q[3])
     if bad:
         out["excluded"] = bad
