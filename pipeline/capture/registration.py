@@ -180,14 +180,11 @@ def _samples(region: np.ndarray, lev: int, shape: tuple[int, int]) -> tuple[np.n
     er[-b:] = 0
     er[:, :b] = 0
     er[:, -b:] = 0
-    ys, xs = np.nonzero(er)
-    n = len(xs)
+    n = int(np.count_nonzero(er))
     most = MAX_SAMPLES // 4 ** lev  # coarse levels only start the finer ones
-    if n > most:
-        stride = int(np.ceil(np.sqrt(n / most)))
-        keep = (ys % stride == 0) & (xs % stride == 0)
-        xs, ys = xs[keep], ys[keep]
-    return xs.astype(np.int64), ys.astype(np.int64)
+    stride = int(np.ceil(np.sqrt(n / most))) if n > most else 1
+    ys, xs = np.nonzero(er[::stride, ::stride])  # the pixels on the stride's grid, in row-major order
+    return xs.astype(np.int64) * stride, ys.astype(np.int64) * stride
 
 
 @dataclass
