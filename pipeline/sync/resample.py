@@ -113,7 +113,21 @@ def _blend_rows(raw: np.ndarray, j0: np.ndarray, j1: np.ndarray, alpha: np.ndarr
                 digests: list | None) -> np.ndarray:
     """Each flow-grid row read between its frames ``raw[j0]`` and ``raw[j1]`` at weight
     ``alpha`` (:func:`resample_flow`), one frame pair at a time: warped along the pair's
-    motion (``motion``), blended (``linear``) or copied (``nearest``, ``alpha`` 0)."""
+    motion (``motion``), blended (``linear``) or copied (``nearest``, ``alpha`` 0).
+
+    Cells the flow stage left invalid (NaN: a window without texture) are read as zero
+    deflection for the pair's motion and the spline warps, which would otherwise spread them
+    over the whole field, and stay NaN in the result where either frame of the pair has them."""
+    invalid = ~np.isfinite(raw).all(axis=-1)          # (k, h, w)
+    if invalid.any():
+        if digests is not None:  # the motion cache's keys stay those of the fields as given
+            digests = [d if d is not None else _digest(raw[j]) for j, d in enumerate(digests)]
+        out = _blend_rows(np.where(invalid[..., None], np.float32(0), raw), j0, j1, alpha, params, digests)
+        for a, b in set(zip(j0.tolist(), j1.tolist())):
+            rows = np.flatnonzero((j0 == a) & (j1 == b))
+            bad = invalid[a, rows] | (invalid[b, rows] if a != b else False)
+            out[rows] = np.where(bad[..., None], np.float32(np.nan), out[rows])
+        return out
     h, w = raw.shape[1:3]
     out = np.empty((h, w, 2), np.float32)
     coef_memo: dict = {}

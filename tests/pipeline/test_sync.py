@@ -339,3 +339,26 @@ def test_motion_cache_keeps_the_eight_most_recently_used_pairs():
     assert keys[1] not in motion._MOTION_CACHE
     assert all(k in motion._MOTION_CACHE for i, k in enumerate(keys) if i != 1)
     motion._MOTION_CACHE.clear()
+
+
+def test_invalid_flow_cells_stay_local(moving_case):
+    """A few cells the flow left NaN (a textureless window at the image's edge) stay NaN
+    where they are; the rest of the field is resampled as if they held zero deflection,
+    instead of the pair's motion and spline warps turning the whole field NaN."""
+    offset, f0, raw = moving_case
+    T = 0.1
+    kw = dict(offset=offset, frame_rate=FR, line_time=LT_SMALL, flow_grid=GRID)
+    holed = raw.copy()
+    holed[:, 0:2, 20:25] = np.nan          # the same cells in every frame, on the top edge
+    filled = np.where(np.isfinite(holed), holed, 0.0)
+    out = S.resample_flow(holed, f0, T, **kw)
+    ref = S.resample_flow(filled, f0, T, **kw)
+    bad = ~np.isfinite(out).all(axis=-1)
+    assert bad[0:2, 20:25].all()
+    assert bad.sum() == 10
+    np.testing.assert_array_equal(out[~bad], ref[~bad])
+    truth = blob_field(T)
+    far = np.ones(bad.shape, bool)
+    far[:8] = False                         # away from the holes, the resampling is as good as without them
+    clean = S.resample_flow(raw, f0, T, **kw)
+    assert np.sqrt(np.mean((out[far] - truth[far]) ** 2)) < 1.05 * np.sqrt(np.mean((clean[far] - truth[far]) ** 2)) + 1e-4
