@@ -21,7 +21,8 @@ from pathlib import Path
 from schlieren.workers.bench.realistic_report import _capture, _f, _pct, lab_markdown
 
 RESULTS = Path(__file__).resolve().parent / "results"
-DEFAULT_LABELS = ("i33v_p2", "i33v_dots", "i33v_dots_fix", "i33v_turb", "i33v_longro", "i33v_laball", "i33v_tex", "i33v_candle")
+DEFAULT_LABELS = ("i33v_p2", "i33v_dots", "i33v_dots_fix", "i33v_turb", "i33v_longro", "i33v_laball", "i33v_tex",
+                  "i33v_candle")
 
 
 def merge(labels) -> dict:
