@@ -34,14 +34,20 @@ def check() -> None:
 
 
 class _SyncCancelAfterCtrlC(logging.Filter):
-    """distributed's ``sync`` schedules a ``cancel`` callback when a Ctrl-C interrupts its
-    wait; if the interrupt lands before the future it cancels exists, that callback raises
-    NameError and tornado logs the traceback (a race in distributed: it failed one CI run of
-    the Ctrl-C test, tests/workers/test_diagnostics.py). After a watched Ctrl-C that record is
-    noise: the caller prints its one line and every completed chunk is kept."""
+    """Closing noise after a watched Ctrl-C, in this process: distributed's ``sync``
+    schedules a ``cancel`` callback when a Ctrl-C interrupts its wait; if the interrupt lands
+    before the future it cancels exists, that callback raises NameError and tornado logs the
+    traceback; and the in-process scheduler's batched stream to a worker the Ctrl-C is closing
+    logs "Batched Comm Closed" with its CommClosedError traceback (races in distributed: each
+    failed one CI run of the Ctrl-C test, tests/workers/test_diagnostics.py). After a watched
+    Ctrl-C these records are noise: the caller prints its one line and every completed chunk
+    is kept."""
+
+    MESSAGES = ("sync.<locals>.cancel", "Batched Comm Closed")
+    LOGGERS = ("tornado.application", "distributed.batched")
 
     def filter(self, record: logging.LogRecord) -> bool:
-        return not (_EVER.is_set() and "sync.<locals>.cancel" in record.getMessage())
+        return not (_EVER.is_set() and any(m in record.getMessage() for m in self.MESSAGES))
 
 
 _SYNC_CANCEL_FILTER = _SyncCancelAfterCtrlC()
@@ -62,7 +68,8 @@ class watch:
 
     def __enter__(self) -> "watch":
         _SEEN.clear()
-        logging.getLogger("tornado.application").addFilter(_SYNC_CANCEL_FILTER)  # once: a set
+        for name in _SyncCancelAfterCtrlC.LOGGERS:
+            logging.getLogger(name).addFilter(_SYNC_CANCEL_FILTER)  # once: a set
         if threading.current_thread() is threading.main_thread() and \
                 signal.getsignal(signal.SIGINT) is signal.default_int_handler:
             self._previous = signal.signal(signal.SIGINT, _handler)

@@ -262,6 +262,45 @@ def test_distributeds_failed_cancel_after_a_ctrl_c_is_not_printed(monkeypatch):
     assert len(got) == 2 and "sync.<locals>.cancel" in got[0] and "something else" in got[1], got
 
 
+def test_batched_comm_closed_after_ctrl_c_is_not_printed():
+    """The scheduler's (client process) and a worker's batched stream to a peer the Ctrl-C
+    closes log "Batched Comm Closed" with a CommClosedError traceback at INFO (it failed one
+    CI run of the Ctrl-C test above): dropped after the Ctrl-C, kept before it; other
+    records of the logger kept."""
+    import logging
+    import signal
+
+    from schlieren.workers import interrupts
+    from schlieren.workers.cluster.interrupts import _AfterCtrlC
+
+    def record(msg):
+        return logging.LogRecord("distributed.batched", logging.INFO, __file__, 1, msg, (), None)
+
+    closed = "Batched Comm Closed <TCP (closed)  local=tcp://127.0.0.1:1 remote=tcp://127.0.0.1:2>"
+    worker_filter = _AfterCtrlC()
+    before = _AfterCtrlC.interrupted
+    try:
+        _AfterCtrlC.interrupted = False
+        assert worker_filter.filter(record(closed))
+        _AfterCtrlC.interrupted = True
+        assert not worker_filter.filter(record(closed)) and worker_filter.filter(record("something else"))
+    finally:
+        _AfterCtrlC.interrupted = before
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with interrupts.watch():
+            try:
+                interrupts._handler(signal.SIGINT, None)  # what the watched Ctrl-C runs
+            except KeyboardInterrupt:
+                pass
+            flt = [f for f in logging.getLogger("distributed.batched").filters
+                   if isinstance(f, interrupts._SyncCancelAfterCtrlC)]
+            assert flt and not flt[0].filter(record(closed)) and flt[0].filter(record("something else"))
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def test_flash_lit_frames_get_no_deflection_warning():
     """The strobe flash lights frames the sync already excludes: their large deflections
     are the flash, not a bumped camera."""

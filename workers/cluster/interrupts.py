@@ -29,16 +29,21 @@ class _AfterCtrlC(logging.Filter):
     """After a Ctrl-C reached this worker: drops the errors of the cluster closing under it,
     a peer gone mid-transfer, from either end: the sender's "failed during get data" and the
     receiver's "Worker stream died during communication" (with its traceback; seen once in
-    a fresh-clone CI run). Before it nothing is dropped."""
+    a fresh-clone CI run), and a batched stream's "Batched Comm Closed" (INFO, with a
+    traceback). Before it nothing is dropped."""
 
     interrupted = False
     MESSAGES = ("failed during get data", "Worker stream died during communication")
+    #: logged at INFO with the CommClosedError traceback by a batched stream the closing cut
+    CLOSED = "Batched Comm Closed"
 
     def filter(self, record: logging.LogRecord) -> bool:
-        if not (_AfterCtrlC.interrupted and record.levelno >= logging.WARNING):
+        if not _AfterCtrlC.interrupted:
             return True
         msg = record.getMessage()
-        return not any(m in msg for m in self.MESSAGES)
+        if self.CLOSED in msg:
+            return False
+        return not (record.levelno >= logging.WARNING and any(m in msg for m in self.MESSAGES))
 
 
 def _note_ctrl_c(signum, frame) -> None:  # a worker's SIGINT: the client stops the run
@@ -69,7 +74,9 @@ class LocalInterrupts(WorkerPlugin):
         if threading.current_thread() is threading.main_thread():
             signal.signal(signal.SIGINT, _note_ctrl_c)  # ignored, but remembered for _AfterCtrlC
         logging.getLogger("distributed.worker.state_machine").addFilter(_CancelledOnClose())
-        logging.getLogger("distributed.worker").addFilter(_AfterCtrlC())
+        after = _AfterCtrlC()
+        for name in ("distributed.worker", "distributed.batched"):  # the batched stream's "Batched Comm Closed"
+            logging.getLogger(name).addFilter(after)
 
     def teardown(self, worker: Any) -> None:
         if _AfterCtrlC.interrupted and getattr(worker, "nanny", None) and multiprocessing.parent_process():
