@@ -129,13 +129,14 @@ def corrected_deflection(reference, frame: np.ndarray, flow: FlowParams = FlowPa
                                             significance=capture.significance):
         img = normalise_frame(frame, ph)
         flags |= PHOTOMETRIC_APPLIED
+    warp_above, source = capture.warp_above, capture.motion_source
     motion = fit.motion.copy()
     extent = motion_extent(motion, size)
     moved = capture.motion_model != "none" and extent > capture.motion_tolerance and \
         not extent <= capture.significance * fit.motion_sigma
     if moved:  # the frame's border shows what the reference does not hold
         bad = _border(bad, (H, W), int(np.ceil(extent)) + 1)
-    if moved and extent > capture.warp_above:
+    if moved and extent > warp_above:
         d = _flow_on_moved_reference(prep, img, flow, motion, size, bad, info)
     else:
         start = functools.partial(motion_displacement, motion, image_size=size) if moved else None
@@ -145,11 +146,12 @@ def corrected_deflection(reference, frame: np.ndarray, flow: FlowParams = FlowPa
         cells = _fit_cells(d, static, flow.factor, fit.fallback)
         extra, _ = fit_flow_motion(d, cells, size, flow.factor, model=capture.motion_model)
         residual = motion_extent(extra, size)
-        if moved:  # removed however small: a bias left on every cell becomes a ramp of the masks' potential
+        if moved:  # a bias left on every cell becomes a ramp of the masks' potential
             d = d - motion_field(extra, size, flow.factor)
             motion = motion + extra
+        if moved:
             flags |= MOTION_APPLIED
-            if capture.motion_source == "camera":
+            if source == "camera":
                 d = to_reference_grid(d, motion, size, flow.factor)
     return d.astype(np.float32), CaptureCorrection(motion, fit, residual, flags)
 
