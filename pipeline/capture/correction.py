@@ -129,7 +129,7 @@ def corrected_deflection(reference, frame: np.ndarray, flow: FlowParams = FlowPa
                                             significance=capture.significance):
         img = normalise_frame(frame, ph)
         flags |= PHOTOMETRIC_APPLIED
-    warp_above, source = capture.warp_above, capture.motion_source
+    warp_above, source = capture.warp_above, capture.motion_source  # read on every frame (test_params_wiring)
     motion = fit.motion.copy()
     extent = motion_extent(motion, size)
     moved = capture.motion_model != "none" and extent > capture.motion_tolerance and \
