@@ -245,69 +245,36 @@ def solve(ctx, geom, flows_out: dict, *, window_model: bool = True) -> dict:
 
 # --------------------------------------------------------------------------------------- refinement
 
-def ray_jacobian(ctx, geom) -> np.ndarray:
-    """Per ray, the 3 x 2 derivative of the right-hand side ``n (d_out - d_in)`` by the pixel
-    deflection (finite differences of :func:`rhs_from_flows`, which is nearly linear at BOS
-    deflections), shape (n_rays, 3, 2)."""
-    from schlieren.pipeline import tomography
-
-    n = ctx.session.medium.n_ambient
-    shape = tuple(geom.flow_shape) + (2,)
-    eps = 0.05
-    b0 = tomography.rhs_from_flows(geom, np.zeros(shape), n_ambient=n).reshape(-1, 3)
-    J = np.empty((b0.shape[0], 3, 2))
-    for i in range(2):
-        f = np.zeros(shape)
-        f[..., i] = eps
-        J[:, :, i] = (tomography.rhs_from_flows(geom, f, n_ambient=n).reshape(-1, 3) - b0) / eps
-    return J
-
-
-def predict_pixels(ctx, geom, J, grad: np.ndarray) -> np.ndarray:
+def predict_pixels(ctx, geom, grad: np.ndarray) -> np.ndarray:
     """Each camera's deflection (pixels, (C, H, W, 2)) that the gradient ``grad`` (nz, ny, nx, 3)
-    predicts: the tomography's rays ``S x`` on the ray grid, through the rays' linearised model
-    (least squares per ray), cubic-interpolated from the ray centres to every pixel."""
-    xf = np.asarray(grad, np.float64).reshape(-1, 3)
-    b = np.stack([geom.S @ xf[:, i] for i in range(3)], axis=-1)                  # n_rays, 3
-    JtJ = np.einsum("rki,rkj->rij", J, J)
-    Jtb = np.einsum("rki,rk->ri", J, b)
-    d = np.linalg.solve(JtJ + 1e-30 * np.eye(2), Jtb[..., None])[..., 0]
-    C, h, w = geom.flow_shape
-    d = d.reshape(C, h, w, 2).astype(np.float32)
-    W, H = ctx.cameras[0].image_size
-    rf = ctx.ray_grid.factor
-    ys = ((np.arange(H) - (rf - 1) / 2.0) / rf).astype(np.float32)
-    xs = ((np.arange(W) - (rf - 1) / 2.0) / rf).astype(np.float32)
-    mx, my = np.meshgrid(xs, ys)
-    out = np.empty((C, H, W, 2), np.float32)
-    for c in range(C):
-        for i in range(2):
-            out[c, ..., i] = cv2.remap(d[c, ..., i], mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
-    return out
+    predicts (:func:`~schlieren.pipeline.residuals.predict_flows` on the ray grid), cubic from
+    the rays' cells to every pixel (:func:`~schlieren.pipeline.flow.cells_to_pixels`)."""
+    from schlieren.pipeline.flow import cells_to_pixels
+    from schlieren.pipeline.residuals import predict_flows
+
+    d = predict_flows(geom, ctx.cameras, np.asarray(grad, np.float64), n_ambient=ctx.session.medium.n_ambient)
+    return np.stack([cells_to_pixels(d[c], ctx.ray_grid.factor, ctx.cameras[0].image_size) for c in range(len(d))])
 
 
 def refined_raw_flow(ctx, c: int, f: int, pred: np.ndarray | None, **override) -> np.ndarray:
-    """Camera ``c``'s flow at raw frame ``f`` as the deflection task computes it, against the
-    reference warped by ``pred`` (pixels, (H, W, 2)), plus the prediction's cell means."""
+    """Camera ``c``'s flow at raw frame ``f`` as the deflection task computes it (its capture
+    correction), plain or around the prediction ``pred`` (pixels, (H, W, 2);
+    :func:`~schlieren.pipeline.flow.refined_deflection`)."""
     from schlieren.pipeline import capture
-    from schlieren.pipeline.flow import prepare_reference
-    from schlieren.pipeline.flow.post import _block_mean
-    from schlieren.pipeline.flow.splines import warp_image
+    from schlieren.pipeline.flow import refined_deflection
     from schlieren.workers.tasks.capture import defective_pixels, static_region
     from schlieren.workers.tasks.deflection import flow_params
 
     params = dataclasses.replace(flow_params(ctx, c), **override)
+
+    def flow(prep, img, p):
+        return capture.corrected_deflection(prep, img, p, ctx.config.capture, static=static_region(ctx, c),
+                                            defects=defective_pixels(ctx, c))[0]
+
     prep = ctx.prepared_reference(c, None)
-    if pred is not None:
-        ref = np.where(np.isfinite(prep.image), prep.image, np.float32(prep.mean)).astype(np.float32)
-        prep = prepare_reference(warp_image(ref, pred), presmooth=params.presmooth, levels=params.levels)
-    d, _ = capture.corrected_deflection(prep, ctx.frame(c, f), params, ctx.config.capture,
-                                        static=static_region(ctx, c), defects=defective_pixels(ctx, c))
-    if pred is not None:
-        rows, cols = d.shape[:2]
-        d = d + np.stack([_block_mean(np.ascontiguousarray(pred[..., i]), ctx.flow_grid.factor, (rows, cols))
-                          for i in range(2)], axis=-1)
-    return d
+    if pred is None:
+        return flow(prep, ctx.frame(c, f), params)
+    return refined_deflection(prep, ctx.frame(c, f), pred, params, deflection=flow)
 
 
 def resampled(ctx, c: int, k: int, raw_of) -> np.ndarray:
@@ -358,10 +325,9 @@ def refine(case: str, label: str, work: Path = WORK, passes: int = 1) -> dict:
     rows["run flows, solved here"] = {**score(ctx, solve(ctx, geom, run_flows), t_on, r_amb),
                                       "flow": flow_errors(ctx, truth, run_flows)}
     print(rows, flush=True)
-    J = ray_jacobian(ctx, geom)
     grads = run_grads
     for p in range(1, passes + 1):
-        preds = {k: predict_pixels(ctx, geom, J, grads[k]) for k in range(K)}
+        preds = {k: predict_pixels(ctx, geom, grads[k]) for k in range(K)}
         pc = {k: np.stack([_blocks(preds[k][c][None], ctx.flow_grid.factor, tuple(ctx.flow_grid.shape))[0]
                            for c in range(C)]) for k in range(K)}
         rows[f"prediction pass {p} (no flow)"] = {"flow": flow_errors(ctx, truth, pc)}
@@ -384,7 +350,7 @@ def refine(case: str, label: str, work: Path = WORK, passes: int = 1) -> dict:
             name = f"refined pass {p}" + ("" if wm else ", no window model")
             rows[name] = {**score(ctx, g, t_on, r_amb), "flow": fe, "flows": len(cache),
                           "flow_cpu_s_per_raw_flow": round(cpu / max(len(cache), 1), 3)}
-            if wm:
+            if not wm:  # the next pass predicts from the solve without the window model (the better one)
                 grads_next = g
             print(name, rows[name], flush=True)
         grads = grads_next
@@ -392,17 +358,6 @@ def refine(case: str, label: str, work: Path = WORK, passes: int = 1) -> dict:
 
 
 # --------------------------------------------------------------------------------------- synthetic frames
-
-def cells_to_pixels(d: np.ndarray, factor: int, size: tuple[int, int]) -> np.ndarray:
-    """A field of ``factor``-pixel cell values (rows, cols, 2) cubic-interpolated from the
-    cells' centres to every pixel of an image of ``size`` (W, H): (H, W, 2) float32."""
-    W, H = size
-    ys = ((np.arange(H) - (factor - 1) / 2.0) / factor).astype(np.float32)
-    xs = ((np.arange(W) - (factor - 1) / 2.0) / factor).astype(np.float32)
-    mx, my = np.meshgrid(xs, ys)
-    return np.stack([cv2.remap(np.ascontiguousarray(d[..., i], dtype=np.float32), mx, my, cv2.INTER_CUBIC,
-                               borderMode=cv2.BORDER_REPLICATE) for i in range(2)], axis=-1)
-
 
 def synthetic(case: str, label: str, work: Path = WORK, frame: int = 1, noise: float = 1.5, seed: int = 0,
               cameras: int = 16) -> dict:
@@ -412,6 +367,7 @@ def synthetic(case: str, label: str, work: Path = WORK, frame: int = 1, noise: f
     flow's own bias (noise-free) and noise, in plume and where nothing flows; and the
     refined flow (reference warped by a prediction, residual flow, prediction added back)
     with the exact field and with the field blurred (a reconstruction's resolution)."""
+    from schlieren.pipeline.flow import cells_to_pixels
     from schlieren.pipeline.flow.post import _block_mean
     from schlieren.pipeline.flow.splines import warp_image
 
