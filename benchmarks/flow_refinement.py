@@ -314,7 +314,7 @@ def flow_errors(ctx, truth, flows_out: dict) -> dict:
             "quiet_rms": float(np.sqrt(np.mean(e[quiet & ok] ** 2)))}
 
 
-def refine(case: str, label: str, work: Path = WORK, passes: int = 1) -> dict:
+def refine(case: str, label: str, work: Path = WORK, passes: int = 1, window_model: bool = True) -> dict:
     ctx, geom, truth, t_on, r_amb = load(case, label, work)
     C, K = len(ctx.cameras), len(ctx.times())
     run_flows = {k: np.stack([np.asarray(ctx.store.read("flow", (c, k)), np.float64) for c in range(C)])
@@ -324,6 +324,8 @@ def refine(case: str, label: str, work: Path = WORK, passes: int = 1) -> dict:
     rows["run (stored solve)"] = score(ctx, run_grads, t_on, r_amb)
     rows["run flows, solved here"] = {**score(ctx, solve(ctx, geom, run_flows), t_on, r_amb),
                                       "flow": flow_errors(ctx, truth, run_flows)}
+    rows["run flows, solved here, no window model"] = score(ctx, solve(ctx, geom, run_flows, window_model=False),
+                                                            t_on, r_amb)
     print(rows, flush=True)
     grads = run_grads
     for p in range(1, passes + 1):
@@ -334,18 +336,17 @@ def refine(case: str, label: str, work: Path = WORK, passes: int = 1) -> dict:
         print(rows[f"prediction pass {p} (no flow)"], flush=True)
         cache: dict = {}
 
-        def raw_of(c, f):
-            if (c, f) not in cache:
-                k = int(np.clip(f - ctx.first_frame, 0, K - 1))
-                cache[(c, f)] = refined_raw_flow(ctx, c, f, preds[k][c])
-            return cache[(c, f)]
+        def raw_of(c, f, k):  # as one frame's task computes them: every raw frame from frame k's prediction
+            if (c, f, k) not in cache:
+                cache[(c, f, k)] = refined_raw_flow(ctx, c, f, preds[k][c])
+            return cache[(c, f, k)]
 
         t0 = time.process_time()
-        flows = {k: np.stack([resampled(ctx, c, k, lambda f, c=c: raw_of(c, f)) for c in range(C)])
+        flows = {k: np.stack([resampled(ctx, c, k, lambda f, c=c, k=k: raw_of(c, f, k)) for c in range(C)])
                  for k in range(K)}
         cpu = time.process_time() - t0
         fe = flow_errors(ctx, truth, flows)
-        for wm in (True, False):
+        for wm in ((True, False) if window_model else (False,)):
             g = solve(ctx, geom, flows, window_model=wm)
             name = f"refined pass {p}" + ("" if wm else ", no window model")
             rows[name] = {**score(ctx, g, t_on, r_amb), "flow": fe, "flows": len(cache),
@@ -461,6 +462,8 @@ def main(argv=None) -> int:
     ap.add_argument("--label", default="i35f_base")
     ap.add_argument("--work", default=str(WORK))
     ap.add_argument("--passes", type=int, default=1)
+    ap.add_argument("--no-window-model", action="store_true",
+                    help="refine: solve the refined flows without the flow-window model only")
     ap.add_argument("--name", default="flow_refinement")
     ap.add_argument("--results", default=str(RESULTS))
     args = ap.parse_args(argv)
@@ -471,7 +474,7 @@ def main(argv=None) -> int:
     if args.what == "decompose":
         out = decompose(args.case, args.label, Path(args.work))
     elif args.what == "refine":
-        out = refine(args.case, args.label, Path(args.work), args.passes)
+        out = refine(args.case, args.label, Path(args.work), args.passes, window_model=not args.no_window_model)
     elif args.what == "synthetic":
         out = synthetic(args.case, args.label, Path(args.work), cameras=args.cameras)
     else:

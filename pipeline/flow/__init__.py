@@ -33,7 +33,7 @@ from .params import (CELL_SOLVE_MIN_CELLS, METHODS, FlowParams, camera_window, p
                      window_for_voxel)
 from .post import downsample_flow, remove_outliers, smooth_flow
 from .reference import PreparedReference, invalid_pixels, prepare_reference
-from .refine import cells_to_pixels, refined_deflection
+from .refine import RefineParams, cells_to_pixels, refined_deflection
 from .splines import prolong_flow, spline_coefficients, warp_coefficient_rows, warp_coefficients, warp_image
 from .stage import deflection_field, deflection_stage
 from .windows import measurement_sigma
@@ -64,4 +64,5 @@ __all__ = [
     "prolong_flow",
     "cells_to_pixels",
     "refined_deflection",
+    "RefineParams",
 ]

@@ -14,7 +14,9 @@ deflection's variation inside the window, the smaller the bias; the flow's noise
 of the plain flow.
 
 The kernels: :func:`cells_to_pixels` (a flow-grid field to every image pixel) and
-:func:`refined_deflection` (one camera-frame's refined flow). Measurements:
+:func:`refined_deflection` (one camera-frame's refined flow); :class:`RefineParams` says how
+many times a run's tomography task re-measures its frame's flows around its own solution
+and solves again (beyond the paper; off by default). Measurements:
 benchmarks/results/flow_refinement.md.
 """
 
@@ -26,6 +28,7 @@ import numpy as np
 from scipy import ndimage
 
 from schlieren.pipeline.geometry import FlowGrid
+from schlieren.pipeline.params import param, parameters
 
 from .params import FlowParams
 from .post import _block_mean
@@ -33,9 +36,23 @@ from .reference import PreparedReference, prepare_reference
 from .splines import warp_image
 from .stage import deflection_stage
 
-__all__ = ["cells_to_pixels", "refined_deflection"]
+__all__ = ["RefineParams", "cells_to_pixels", "refined_deflection"]
 
 _PAD = 8  # cells added beyond each edge: the B-spline prefilter's edge error decays as 0.27 per cell
+
+
+@parameters
+class RefineParams:
+    """Re-projection refinement of the flows (beyond the paper): the flow re-measured around
+    the tomography's own prediction."""
+
+    passes: int = param(
+        0, unit="1", ge=0, le=4,
+        help="Times each frame's flows are measured again around the deflections its solution predicts "
+             "(reference warped by the prediction, flow of the residual, prediction added back) and the "
+             "tomography solved again from them, without the flow-window model; each pass costs about one "
+             "deflection stage and one solve per frame. 0: the paper's single flow.",
+        see="benchmarks/results/flow_refinement.md")
 
 
 def cells_to_pixels(cells: np.ndarray, factor: int, size: tuple[int, int]) -> np.ndarray:
