@@ -32,7 +32,7 @@ from schlieren.pipeline.params import param, parameters
 
 from .params import FlowParams
 from .post import _block_mean
-from .reference import PreparedReference, prepare_reference
+from .reference import PreparedReference
 from .splines import warp_image
 from .stage import deflection_stage
 
@@ -49,9 +49,8 @@ class RefineParams:
     passes: int = param(
         0, unit="1", ge=0, le=4,
         help="Times each frame's flows are measured again around the deflections its solution predicts "
-             "(reference warped by the prediction, flow of the residual, prediction added back) and the "
-             "tomography solved again from them, without the flow-window model; each pass costs about one "
-             "deflection stage and one solve per frame. 0: the paper's single flow.",
+             "(flow of the residual, prediction added back) and solved again without the flow-window model; "
+             "each pass costs about one deflection stage and one solve per frame. 0: the paper's single flow.",
         see="benchmarks/results/flow_refinement.md")
 
 
@@ -106,9 +105,9 @@ def refined_deflection(reference, frame: np.ndarray, prediction: np.ndarray, par
         :func:`cells_to_pixels` of the tomography's predicted flows.
     params : FlowParams
     deflection : callable, optional
-        ``deflection(prepared_reference, frame, params, **kwargs) -> (H // f, W // f, 2)``,
-        the flow of the residual; default :func:`~.stage.deflection_stage` (a run passes
-        its capture-corrected flow).
+        ``deflection(reference, frame, params, **kwargs) -> (H // f, W // f, 2)``, the flow
+        of the residual against the warped reference (an ndarray, prepared by the callable);
+        default :func:`~.stage.deflection_stage` (a run passes its capture-corrected flow).
 
     Returns
     -------
@@ -122,9 +121,8 @@ def refined_deflection(reference, frame: np.ndarray, prediction: np.ndarray, par
         raise ValueError(f"prediction shape {pred.shape} does not match the image ({H}, {W})")
     fill = float(np.nanmean(img))
     moved = warp_image(np.where(np.isfinite(img), img, np.float32(fill)).astype(np.float32), pred)
-    prep = prepare_reference(moved, presmooth=params.presmooth, levels=params.levels)
     run = deflection if deflection is not None else deflection_stage
-    residual = np.asarray(run(prep, frame, params, **kwargs), np.float32)
+    residual = np.asarray(run(moved, frame, params, **kwargs), np.float32)
     rows, cols = FlowGrid((W, H), params.factor).shape
     back = np.stack([_block_mean(np.ascontiguousarray(pred[..., i]), params.factor, (rows, cols))
                      for i in range(2)], axis=-1)
