@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import dataclasses
-import shutil
 
 import numpy as np
 import pytest
+from store_compare import copy_store
 
 from schlieren.pipeline.flow import RefineParams
 from schlieren.pipeline.params import ParamsError
@@ -15,12 +15,7 @@ from schlieren.pipeline.stages import RunConfig, check_config
 
 @pytest.fixture
 def store_copy(serial_store, tmp_path):
-    out = tmp_path / serial_store.name
-    shutil.copytree(serial_store, out)
-    cache = serial_store.parent / (serial_store.name + ".cache")
-    if cache.exists():
-        shutil.copytree(cache, tmp_path / cache.name)
-    return out
+    return copy_store(serial_store, tmp_path)
 
 
 def _context(store, passes: int):
