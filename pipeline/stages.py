@@ -68,6 +68,7 @@ class RunConfig:
     spacetime: _spacetime.SpaceTimeParams = field(default_factory=_spacetime.SpaceTimeParams)
     uncertainty: _unc.UncertaintyParams = field(default_factory=_unc.UncertaintyParams)
     capture: _capture.CaptureParams = field(default_factory=_capture.CaptureParams)
+    refine: _flow.RefineParams = field(default_factory=_flow.RefineParams)
 
     @property
     def flow_factor(self) -> int:
@@ -278,13 +279,16 @@ def config_from_dict(d: dict | None) -> RunConfig:
     ------
     schlieren.pipeline.params.ParamsError
         A ``ValueError`` naming the parameter (``tomography.max_iter``) and its valid values;
-        also ``spacetime.window > 0`` with the ``direct`` reconstruction (it has no
-        per-frame gradient stage to average).
+        also ``spacetime.window > 0`` or ``refine.passes > 0`` with the ``direct``
+        reconstruction (it has no per-frame gradient stage to average or predict from).
     """
     cfg = _validate(RunConfig, d)
     if cfg.reconstruction == "direct" and cfg.spacetime.window > 0:
         raise ParamsError("> 0 needs reconstruction 'two-step' (the direct solve has no per-frame gradient stage "
                           "to average)", "spacetime.window")
+    if cfg.reconstruction == "direct" and cfg.refine.passes > 0:
+        raise ParamsError("> 0 needs reconstruction 'two-step' (the refinement predicts from the gradient "
+                          "solve)", "refine.passes")
     return cfg
 
 

@@ -1,9 +1,22 @@
-"""Store comparison helpers for the end-to-end tests."""
+"""Store comparison helpers for the end-to-end tests, and a store copy with its geometry cache."""
 
 from __future__ import annotations
 
+import shutil
+from pathlib import Path
+
 import numpy as np
 import zarr
+
+
+def copy_store(store: Path, dest: Path) -> Path:
+    """A copy of ``store`` in folder ``dest`` with its geometry cache (``<store>.cache``)."""
+    out = dest / store.name
+    shutil.copytree(store, out)
+    cache = store.parent / (store.name + ".cache")
+    if cache.exists():
+        shutil.copytree(cache, dest / cache.name)
+    return out
 
 
 def read_all(store_path) -> dict[str, np.ndarray]:

@@ -20,7 +20,8 @@ Modules: :mod:`.params` (:class:`FlowParams` and the rules read off it), :mod:`.
 invalid pixels), :mod:`.images` (normalisation, pre-smoothing, pyramid, gradients),
 :mod:`.splines` (exact cubic B-spline warps, prolongation), :mod:`.windows` (the LK window
 and :func:`measurement_sigma`), the methods :mod:`.lk`, :mod:`.hs`, :mod:`.dis` and
-:mod:`.correlation`, :mod:`.post` (outliers, smoothing, downsampling), and the numba
+:mod:`.correlation`, :mod:`.post` (outliers, smoothing, downsampling), :mod:`.refine` (the
+flow measured around a predicted deflection: re-projection refinement), and the numba
 kernels in :mod:`._kernels`. :func:`endpoint_error` lives in
 :mod:`schlieren.pipeline.metrics`.
 """
@@ -32,6 +33,7 @@ from .params import (CELL_SOLVE_MIN_CELLS, METHODS, FlowParams, camera_window, p
                      window_for_voxel)
 from .post import downsample_flow, remove_outliers, smooth_flow
 from .reference import PreparedReference, invalid_pixels, prepare_reference
+from .refine import RefineParams, cells_to_pixels, refined_deflection
 from .splines import prolong_flow, spline_coefficients, warp_coefficient_rows, warp_coefficients, warp_image
 from .stage import deflection_field, deflection_stage
 from .windows import measurement_sigma
@@ -60,4 +62,7 @@ __all__ = [
     "CELL_SOLVE_MIN_CELLS",
     "ici_windows",
     "prolong_flow",
+    "cells_to_pixels",
+    "refined_deflection",
+    "RefineParams",
 ]

@@ -6,12 +6,12 @@ from __future__ import annotations
 import dataclasses
 import json
 import re
-import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 from params_reads import params_classes, recording_reads
+from store_compare import copy_store
 
 from schlieren.pipeline.params import class_schema
 from schlieren.storage.store import ResultStore
@@ -19,22 +19,12 @@ from schlieren.storage.store import ResultStore
 REPO = Path(__file__).resolve().parents[2]
 
 
-def _copy_store(store: Path, dest: Path) -> Path:
-    """A copy of ``store`` with its geometry cache (``<store>.cache``)."""
-    out = dest / store.name
-    shutil.copytree(store, out)
-    cache = store.parent / (store.name + ".cache")
-    if cache.exists():
-        shutil.copytree(cache, dest / cache.name)
-    return out
-
-
 def _direct_reads(store: Path, tmp_path: Path) -> set:
     """The fields read by one frame's tomography task with ``reconstruction: direct`` (on a copy)."""
     from schlieren.workers.tasks import context
     from schlieren.workers.tasks.tomography import tomography_task
 
-    copy = _copy_store(store, tmp_path)
+    copy = copy_store(store, tmp_path)
     ctx = context(str(copy), "direct-reads")
     ctx = dataclasses.replace(ctx, config=dataclasses.replace(ctx.config, reconstruction="direct"))
     with recording_reads() as reads:
@@ -145,7 +135,7 @@ def test_a_resumed_run_keeps_or_reads_back_the_chosen_values(serial_run, tmp_pat
 
     from schlieren.workers.run import run_session
 
-    copy = _copy_store(serial_run.store, tmp_path)
+    copy = copy_store(serial_run.store, tmp_path)
     before = ResultStore.open(copy, mode="r").attrs["derived"]
     g = zarr.open_group(str(copy), mode="r+")
     g.attrs["derived"] = "{}"  # a store written before the attribute existed

@@ -16,7 +16,7 @@ from schlieren.pipeline import sync
 from schlieren.pipeline.stages import stage
 from schlieren.workers.tasks.run_context import RunContext
 
-__all__ = ["resample_task", "bad_frames", "resample_window", "raw_range"]
+__all__ = ["resample_task", "bad_frames", "resample_window", "raw_range", "frames_read"]
 
 
 def bad_frames(ctx: RunContext, c: int, lo: int, hi: int) -> tuple[int, ...]:
@@ -50,16 +50,23 @@ def raw_range(ctx: RunContext, c: int, k: int, window: tuple[int, int], excluded
     return lo, max(lo, min(f1 - 1, last))
 
 
+def frames_read(ctx: RunContext, c: int, k: int) -> tuple[int, int, tuple[int, ...], tuple[int, ...]]:
+    """``(lo, hi, excluded, bad)``: the inclusive range of camera ``c``'s raw frames that output
+    frame ``k``'s resampling reads, the frames it skips (flash and flagged) and the flagged ones."""
+    window = resample_window(ctx, k)
+    bad = bad_frames(ctx, c, window[0], window[1] - 1)
+    excluded = tuple(sorted(set(ctx.flash_frames(c)) | set(bad)))
+    lo, hi = raw_range(ctx, c, k, window, excluded)
+    return lo, hi, excluded, bad
+
+
 def resample_task(ctx: RunContext, c: int, k: int) -> dict:
     """Camera ``c``'s flow at output instant ``k`` (stored ``flow``) from the raw flows around it."""
     s = ctx.session
     cam = ctx.cameras[c]
     off = ctx.time_offset(c)
     t = float(ctx.times()[k])
-    window = resample_window(ctx, k)
-    bad = bad_frames(ctx, c, window[0], window[1] - 1)
-    excluded = tuple(sorted(set(ctx.flash_frames(c)) | set(bad)))
-    lo, hi = raw_range(ctx, c, k, window, excluded)
+    lo, hi, excluded, bad = frames_read(ctx, c, k)
     # the raw flows are final once their deflection tasks (this task's dependencies) are
     # done: neighbouring instants of a batched task share them, read and keyed once
     fields = [ctx.read_upstream("flow_raw", (c, f - ctx.raw_first)) for f in range(lo, hi + 1)]

@@ -4,7 +4,9 @@ The frame's flows of every camera on the ray grid, its visual hull and the run's
 geometry go to :func:`~schlieren.pipeline.tomography.solve_gradient` (or, beyond the
 paper, :func:`~schlieren.pipeline.tomography.solve_refractivity` for ``reconstruction:
 direct``), warm-started from the previous frame within a warm-start block and with the
-weight and flow averaging the ``regularisation`` task chose.
+weight and flow averaging the ``regularisation`` task chose. With ``refine.passes`` > 0 the
+frame's flows are then measured again around the solution's prediction and solved again
+(:mod:`.refine`).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import numpy as np
 from schlieren.pipeline import tomography
 from schlieren.pipeline.tomography.restriction import SHARED_RESTRICTIONS
 from schlieren.workers.tasks.geometry import cached_geometry, geometry_key
+from schlieren.workers.tasks.refine import refined_flows
 from schlieren.workers.tasks.regularisation import window_model
 from schlieren.workers.tasks.run_context import RunContext, solver_receipt
 from schlieren.workers.tasks.spacetime import per_frame_array
@@ -58,8 +61,14 @@ def tomography_task(ctx: RunContext, k: int) -> dict:
         ctx.store.write("gradient", (k,), np.stack([gx, gy, gz], axis=-1).astype(np.float32))
         return solver_receipt(info)
     params = tomo_params(ctx)
-    grad, info = tomography.solve_gradient(geom, flows, hull, params=params, x0=x0,
-                                           support=_block_support(ctx, k, params.hull_dilation), **flow_blur(ctx))
+    support = _block_support(ctx, k, params.hull_dilation)
+    grad, info = tomography.solve_gradient(geom, flows, hull, params=params, x0=x0, support=support,
+                                           **flow_blur(ctx))
+    for _ in range(ctx.config.refine.passes):
+        # beyond the paper: the flows re-measured around this solution's prediction carry the
+        # window's bias of the residual only, so they are solved without the flow-window model
+        refined = tomography.bin_cells(refined_flows(ctx, k, geom, grad), ctx.ray_binning)
+        grad, info = tomography.solve_gradient(geom, refined, hull, params=params, support=support)
     ctx.store.write(per_frame_array(ctx), (k,), np.asarray(grad, dtype=np.float32))
     return solver_receipt(info)
 

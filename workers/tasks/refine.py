@@ -1,0 +1,58 @@
+"""One frame's flows measured again around its tomographic solution (``refine.passes`` > 0).
+
+Beyond the paper: the tomography task of frame ``k`` predicts every camera's deflection from
+its solution (:func:`~schlieren.pipeline.residuals.predict_flows` on the ray grid,
+:func:`~schlieren.pipeline.flow.cells_to_pixels` to the pixels), re-measures the flow of each
+raw frame that frame ``k``'s resampling reads around that prediction
+(:func:`~schlieren.pipeline.flow.refined_deflection` with the deflection task's capture
+correction), and resamples them to the output instant as the ``resample`` task does. The
+raw frames' deflection tasks are done by then (the tomography waits for its resampling),
+and nothing is stored but the solve the task writes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from schlieren.pipeline import capture, sync
+from schlieren.pipeline import flow as flowmod
+from schlieren.pipeline.residuals import predict_flows
+from schlieren.workers.tasks.capture import defective_pixels, static_region
+from schlieren.workers.tasks.deflection import flow_params
+from schlieren.workers.tasks.resample import frames_read
+from schlieren.workers.tasks.run_context import RunContext
+
+__all__ = ["refined_flows"]
+
+
+def refined_flows(ctx: RunContext, k: int, geom, gradient: np.ndarray) -> np.ndarray:
+    """Frame ``k``'s flows of every camera (C, h, w, 2) on the flow grid, each raw frame's
+    measured around the deflections ``gradient`` (nz, ny, nx, 3) predicts."""
+    predicted = predict_flows(geom, ctx.cameras, np.asarray(gradient, np.float64),
+                              n_ambient=ctx.session.medium.n_ambient)
+    return np.stack([_camera_flow(ctx, c, k, predicted[c]) for c in range(len(ctx.cameras))])
+
+
+def _camera_flow(ctx: RunContext, c: int, k: int, predicted: np.ndarray) -> np.ndarray:
+    """Camera ``c``'s refined flow at output instant ``k`` from its prediction on the ray grid."""
+    cam = ctx.cameras[c]
+    pixels = flowmod.cells_to_pixels(predicted, ctx.ray_grid.factor, cam.image_size)
+    params = flow_params(ctx, c)
+    src = ctx.frames(c)
+    lo, hi, excluded, _ = frames_read(ctx, c, k)
+
+    def corrected(prep, img, p):
+        return capture.corrected_deflection(prep, img, p, ctx.config.capture, static=static_region(ctx, c),
+                                            defects=defective_pixels(ctx, c))[0]
+
+    raw = []
+    for f in range(lo, hi + 1):
+        if f in excluded or f in src.dropped:  # skipped by the resampling: its stored (NaN or flagged) flow
+            raw.append(ctx.read_upstream("flow_raw", (c, f - ctx.raw_first)))
+            continue
+        parity = src.parity(f) if hasattr(src, "parity") else None
+        raw.append(flowmod.refined_deflection(ctx.prepared_reference(c, parity), ctx.frame(c, f), pixels, params,
+                                              deflection=corrected))
+    return sync.resample_flow(np.stack(raw), lo, float(ctx.times()[k]), offset=ctx.time_offset(c),
+                              frame_rate=ctx.session.frame_rate, line_time=cam.line_time, flow_grid=ctx.flow_grid,
+                              excluded_frames=excluded, params=ctx.config.resample)
