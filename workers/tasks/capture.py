@@ -6,9 +6,9 @@ processed range; the map is stored (``defective_pixels``) for the camera's defle
 tasks, which give those pixels no weight. With ``flow.presmooth: auto`` the camera's
 pre-smoothing is chosen from its reference's sharpness
 (:func:`~schlieren.pipeline.flow.auto_presmooth`, the sensor noise measured on the
-reference frames; Lucas-Kanade only) and stored (``presmooth``) for its flows. The camera's static region
-(the pixels whose rays miss the volume) needs only the calibration: each process computes
-it once (:func:`static_region`).
+reference frames; Lucas-Kanade only) and stored (``presmooth``) for its flows. The
+camera's static region (the pixels whose rays miss the volume) needs only the calibration:
+each process computes it once (:func:`static_region`).
 """
 
 from __future__ import annotations
