@@ -100,7 +100,8 @@ def flow_error(case_dir: Path, cameras=(0, 5, 11), frame: int = 1) -> list[dict]
         sig = fm.measurement_sigma(p)
         gauss = blocks(np.stack([cv2.GaussianBlur(full[..., i], (0, 0), sig) for i in (0, 1)], -1))
         # the texture-weighted window average of plain LK
-        sm = cv2.GaussianBlur(ref, (0, 0), p.presmooth) if p.presmooth > 0 else ref
+        presmooth = fm.resolve_presmooth(p.presmooth, ref)  # the flow's own width ("auto": from the reference)
+        sm = cv2.GaussianBlur(ref, (0, 0), presmooth) if presmooth > 0 else ref
         gx = cv2.Scharr(sm, cv2.CV_32F, 1, 0) / 32.0
         gy = cv2.Scharr(sm, cv2.CV_32F, 0, 1) / 32.0
         taps = _window_taps(int(p.window), p.window_type).astype(np.float32)

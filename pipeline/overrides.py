@@ -4,6 +4,8 @@ A run replaces some parameters by values derived from the session: the medium's
 refractive index (``tomography.n_ambient``, ``direct.n_ambient``), the flow grid's factor
 (``flow.factor`` with ``flow.auto_factor``), each camera's LK window (``flow.window`` with
 ``flow.window_per_voxel``) and the tomography's ray binning (``tomography.ray_binning`` 0);
+the capture stage chooses each camera's pre-smoothing (``flow.presmooth: auto``) from its
+reference;
 a manifest without ``volume.voxel_size`` leaves the voxel to the cameras. The
 regularisation stage chooses two more from the data on the middle frame: the weight
 (``tomography.reg_weight`` with ``reg_choice: discrepancy``) and the widths of the
@@ -24,11 +26,13 @@ from typing import Any
 import numpy as np
 
 from schlieren.pipeline.flow import camera_window, px_per_voxel
+from schlieren.pipeline.flow.focus import AUTO
 from schlieren.pipeline.geometry import FlowGrid, auto_voxel_size
 from schlieren.pipeline.stages import RunConfig, bind_flow_factor, bind_medium
 from schlieren.pipeline.tomography.binning import cells_per_voxel, ray_binning
 
-__all__ = ["Override", "bind_run", "session_overrides", "regularisation_overrides", "records"]
+__all__ = ["Override", "bind_run", "session_overrides", "regularisation_overrides", "presmooth_override",
+           "records"]
 
 
 @dataclass(frozen=True)
@@ -151,6 +155,15 @@ def regularisation_overrides(config: RunConfig, reg_weight: float, flow_window, 
                             "flow cells", f"each camera's flow averaging (measurement_sigma of its flow.window) x "
                                           f"flow_window_scale {t.flow_window_scale:g}"))
     return out
+
+
+def presmooth_override(config: RunConfig, presmooth) -> list[Override]:
+    """The cameras' pre-smoothing the capture stage chose (stored ``presmooth``, camera
+    order) as an override of ``config`` with ``flow.presmooth: auto``."""
+    if config.flow.presmooth != AUTO:
+        return []
+    return [Override("flow.presmooth", AUTO, [float(v) for v in np.asarray(presmooth)], "px",
+                     "the sharpness of each camera's reference (pipeline/flow/focus.py)")]
 
 
 def records(overrides) -> dict:

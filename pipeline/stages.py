@@ -175,9 +175,10 @@ STAGES: tuple[Stage, ...] = (
           after=(("sync", "all"),), cost=0.001),
     # a raw frame of the rolling-shutter margins is processed only if an output instant
     # needs it, which the clock decides (docs/tuning.md, "Frame quality")
-    # defective pixels from the reference frames and a sample of the capture frames (issue 33)
-    Stage("capture", _capture.find_defective_pixels, "capture", ("images",), ("defective_pixels",), ("camera",),
-          cost=0.05),
+    # defective pixels from the reference frames and a sample of the capture frames (issue 33),
+    # and the flow's pre-smoothing from the reference's sharpness (pipeline/flow/focus.py)
+    Stage("capture", _capture.find_defective_pixels, "capture", ("images",), ("defective_pixels", "presmooth"),
+          ("camera",), cost=0.05),
     # the flow of each raw frame with the camera's motion, the lighting's change and the
     # defective pixels removed (pipeline/capture/correction.py; params "flow" and "capture")
     Stage("deflection", _capture.corrected_deflection, "flow", ("images", "defective_pixels"),

@@ -293,6 +293,10 @@ def _capture_arrays(C: int, R: int, image_shape: tuple[int, int], row_knots) -> 
         ArraySpec("defective_pixels", ("camera", "row", "column"), (C, H, W), (1, H, W), "uint8", 0,
                   {"long_name": "defective sensor pixels (1 hot, 2 dead, 4 stuck; bit sum), excluded from the flow",
                    "units": "1", "stage": "capture", **cam}),
+        ArraySpec("presmooth", ("camera",), (C,), (1,), "float64", np.nan,
+                  {"long_name": "Gaussian pre-smoothing of the camera's images before the flow (flow.presmooth; "
+                                "with auto, chosen from the reference's sharpness)",
+                   "units": "pixel", "stage": "capture"}),
         _f32("background_motion", ("camera", "raw_frame", "motion"), (C, R, len(MOTION_PARAMS)),
              (1, 1, len(MOTION_PARAMS)),
              {"long_name": "motion of the background against the reference (u, v: pixels at the image centre; "

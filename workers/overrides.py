@@ -3,7 +3,8 @@
 The values known before the run (:func:`schlieren.pipeline.overrides.bind_run`,
 :func:`~schlieren.pipeline.overrides.session_overrides`) are logged when the run starts;
 those the regularisation stage chooses are logged when its receipt reaches the lead
-process (serial loop or Dask alike). At the end every override goes into the store's root
+process (serial loop or Dask alike), the cameras' pre-smoothing when every camera's
+capture receipt has. At the end every override goes into the store's root
 attribute ``derived`` (``{parameter: {requested, effective, unit, from}}``, docs/store.md);
 a resumed run whose regularisation task had already run reads the chosen values back
 from the stored arrays if the attribute lacks them.
@@ -15,7 +16,7 @@ import logging
 
 import numpy as np
 
-from schlieren.pipeline.overrides import Override, records, regularisation_overrides
+from schlieren.pipeline.overrides import Override, presmooth_override, records, regularisation_overrides
 from schlieren.pipeline.stages import RunConfig, middle_frame
 
 __all__ = ["RunOverrides", "DERIVED_ATTR"]
@@ -31,18 +32,29 @@ class RunOverrides:
     (a receipt callback) those the regularisation stage chooses, :meth:`attrs` gives the
     store attribute."""
 
-    def __init__(self, cfg: RunConfig, overrides: list[Override], n_frames: int):
+    def __init__(self, cfg: RunConfig, overrides: list[Override], n_frames: int, n_cameras: int = 0):
         self.cfg = cfg
         self.overrides = list(overrides)
         self.n_frames = int(n_frames)
+        self.n_cameras = int(n_cameras)
         self.chosen: list[Override] = []
+        self.presmooth: dict[int, float] = {}  # camera -> the capture stage's choice
+        self.smoothing: list[Override] = []
 
     def start(self) -> None:
         for o in self.overrides:
             log.info("%s", o.line())
 
     def receipt(self, r: dict) -> None:
-        """Log the regularisation stage's choices when its (not skipped) receipt arrives."""
+        """Log the regularisation stage's choices when its (not skipped) receipt arrives, and
+        the cameras' pre-smoothing once every camera's capture receipt has."""
+        if r.get("stage") == "capture" and "presmooth" in r and not r.get("skipped"):
+            self.presmooth[int(r["index"][0])] = float(r["presmooth"])
+            if len(self.presmooth) == self.n_cameras:
+                self.smoothing = presmooth_override(self.cfg, [self.presmooth[c] for c in range(self.n_cameras)])
+                for o in self.smoothing:
+                    log.info("%s", o.line())
+            return
         if r.get("stage") != "regularisation" or r.get("skipped") or "reg_weight" not in r:
             return
         self.chosen = regularisation_overrides(self.cfg, r["reg_weight"], r.get("flow_window") or [],
@@ -60,7 +72,21 @@ class RunOverrides:
         out.update(records(self.overrides))
         chosen = self.chosen or self._stored_choice(store, out)
         out.update(records(chosen))
+        out.update(records(self.smoothing or self._stored_presmooth(store, out)))
         return out
+
+    def _stored_presmooth(self, store, known: dict) -> list[Override]:
+        """The cameras' pre-smoothing read back from ``presmooth`` when the attribute lacks it
+        and every camera's capture task has completed (a resumed run)."""
+        if "flow.presmooth" in known or not self.n_cameras or \
+                not all(store.is_done("capture", (c,)) for c in range(self.n_cameras)):
+            return []
+        try:
+            values = np.asarray(store.read("presmooth", ()), dtype=np.float64)
+        except Exception:  # noqa: BLE001 - a damaged chunk: its readers report it; the attribute waits
+            log.debug("derived: the stored pre-smoothing is unreadable", exc_info=True)
+            return []
+        return presmooth_override(self.cfg, values)
 
     def _stored_choice(self, store, known: dict) -> list[Override]:
         """The regularisation stage's choice read back from ``reg_weight`` / ``flow_window`` when

@@ -341,7 +341,7 @@ def run_session(session_path: str | Path, out_path: str | Path, *, client=None,
     cfg, derived = bind_run(config, session.cameras, session.grid, session.medium.n_ambient)
     given = (session.manifest.get("volume") or {}).get("voxel_size") is not None
     derived = session_overrides(session.cameras, session.grid, voxel_size_given=given) + derived
-    overrides = RunOverrides(cfg, derived, session.frames[1] - session.frames[0])
+    overrides = RunOverrides(cfg, derived, session.frames[1] - session.frames[0], len(session.cameras))
     overrides.start()
     # memory and disk, with the measured model, before anything is written
     preflight(session, cfg, run_layout(session, cfg)[0], out_path,

@@ -168,7 +168,8 @@ def _flow_on_moved_reference(prep, frame, flow: FlowParams, motion, size, bad, i
     if bad is not None:
         r = int(np.ceil(motion_extent(motion, size))) + 2
         bad = cv2.dilate(bad.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8)).astype(bool)
-    return deflection_stage(prepare_reference(moved, presmooth=flow.presmooth, levels=flow.levels), frame, flow, info=info, invalid=bad)
+    return deflection_stage(prepare_reference(moved, presmooth=prep.presmooth, levels=flow.levels), frame, flow,
+                            info=info, invalid=bad)
 
 
 def _border(bad: np.ndarray | None, shape: tuple[int, int], width: int) -> np.ndarray:

@@ -18,7 +18,8 @@ kernel: flow + outlier removal + smoothing + area downsampling to the
 Modules: :mod:`.params` (:class:`FlowParams` and the rules read off it), :mod:`.stage`
 (the two entry points and the pyramid driver), :mod:`.reference` (the prepared reference,
 invalid pixels), :mod:`.images` (normalisation, pre-smoothing, pyramid, gradients),
-:mod:`.splines` (exact cubic B-spline warps, prolongation), :mod:`.windows` (the LK window
+:mod:`.splines` (exact cubic B-spline warps, prolongation), :mod:`.focus` (the
+pre-smoothing a reference's sharpness asks for), :mod:`.windows` (the LK window
 and :func:`measurement_sigma`), the methods :mod:`.lk`, :mod:`.hs`, :mod:`.dis` and
 :mod:`.correlation`, :mod:`.post` (outliers, smoothing, downsampling), :mod:`.refine` (the
 flow measured around a predicted deflection: re-projection refinement), and the numba
@@ -28,6 +29,7 @@ kernels in :mod:`._kernels`. :func:`endpoint_error` lives in
 
 from schlieren.pipeline.metrics import endpoint_error
 
+from .focus import auto_presmooth, reference_blur, resolve_presmooth
 from .lk import ici_windows
 from .params import (CELL_SOLVE_MIN_CELLS, METHODS, FlowParams, camera_window, px_per_voxel, uses_cell_solve,
                      window_for_voxel)
@@ -58,6 +60,9 @@ __all__ = [
     "camera_window",
     "px_per_voxel",
     "measurement_sigma",
+    "auto_presmooth",
+    "reference_blur",
+    "resolve_presmooth",
     "uses_cell_solve",
     "CELL_SOLVE_MIN_CELLS",
     "ici_windows",

@@ -50,9 +50,13 @@ class FlowParams:
         help="Warping iterations on the full-resolution level (LK and HS): the costliest, and after a "
              "converged coarser level one reaches the accuracy of several.",
         tuned=True)
-    presmooth: float = param(
-        0.6, unit="px", ge=0, le=20,
-        help="Gaussian sigma applied to both images before the flow, against sensor noise; 0 disables.")
+    presmooth: float | str = param(
+        "auto", unit="px", ge=0, le=20, choices=("auto",),
+        help="Gaussian sigma applied to both images before the flow, against sensor noise and the texture's "
+             "finest band; 0 disables.",
+        derived="with `auto`, per camera from the sharpness of its reference (pipeline/flow/focus.py): the "
+                "in-focus width on an in-focus background, less on a blurred one.",
+        see="benchmarks/results/realistic_focus.md")
     regularisation: float = param(
         1e-3, unit="1", ge=0, le=1e3,
         help="LK Tikhonov weight, relative to half the mean trace of the structure tensor: pulls the flow of "

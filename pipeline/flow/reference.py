@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from .focus import resolve_presmooth
 from .images import _as_image, _fill_nonfinite, _normalisation, _pyramid, _standardise
 from .params import FlowParams
 from .splines import _spline_coefficients
@@ -31,7 +32,7 @@ class PreparedReference:
     image: np.ndarray            # original reference, float32 (H, W)
     mean: float
     scale: float
-    presmooth: float
+    presmooth: float             # pixels (``"auto"`` resolved)
     levels: int
     pyramid: tuple               # standardised, pre-smoothed images per level (fine first)
     coefficients: tuple          # padded B-spline coefficients per level
@@ -49,7 +50,7 @@ class PreparedReference:
         return self._invalid[key]
 
 
-def prepare_reference(reference: np.ndarray, *, presmooth: float = FlowParams.presmooth,
+def prepare_reference(reference: np.ndarray, *, presmooth: float | str = FlowParams.presmooth,
                       levels: int = FlowParams.levels) -> PreparedReference:
     """Pre-process a reference background for :func:`deflection_field`.
 
@@ -57,12 +58,14 @@ def prepare_reference(reference: np.ndarray, *, presmooth: float = FlowParams.pr
     ----------
     reference : ndarray, shape (H, W)
         Background without flow, grey levels.
-    presmooth : float
-        Gaussian sigma (pixels) applied before the flow (must match the flow parameters).
+    presmooth : float or {"auto"}
+        Gaussian sigma (pixels) applied before the flow (must match the flow parameters);
+        ``"auto"``: chosen from the reference's sharpness (:func:`~.focus.auto_presmooth`).
     levels : int
         Pyramid levels (must match the flow parameters).
     """
     img = _as_image(reference, "reference")
+    presmooth = resolve_presmooth(presmooth, img)
     mean, scale = _normalisation(img)
     pyr = _pyramid(_standardise(_fill_nonfinite(img, mean), mean, scale, presmooth), levels)
     coef = tuple(_spline_coefficients(p) for p in pyr)

@@ -15,6 +15,7 @@ from schlieren.pipeline.geometry import FlowGrid
 
 from .correlation import _correlation_flow
 from .dis import _dis_flow
+from .focus import AUTO, AUTO_METHODS, PRESMOOTH_IN_FOCUS
 from .hs import _hs_level
 from .images import _as_image, _fill_nonfinite, _normalisation, _pyramid, _standardise
 from .lk import _lk_level, _texture_bias, _upsample_cells, ici_windows
@@ -79,7 +80,7 @@ def deflection_field(
     levels: int = FlowParams.levels,
     iterations: int = FlowParams.iterations,
     fine_iterations: int = FlowParams.fine_iterations,
-    presmooth: float = FlowParams.presmooth,
+    presmooth: float | str = FlowParams.presmooth,
     regularisation: float = FlowParams.regularisation,
     gradient: str = FlowParams.gradient,
     alpha: float = FlowParams.alpha,
@@ -135,12 +136,13 @@ def _flow_components(reference, frame, *, method, window, window_type, levels, i
     frm = _as_image(frame, "frame")
     if isinstance(reference, PreparedReference):
         prep = reference
-        if method in ("lk", "hs") and (prep.presmooth != presmooth or prep.levels != levels):
+        if method in ("lk", "hs") and ((presmooth != AUTO and prep.presmooth != presmooth) or prep.levels != levels):
             raise ValueError("PreparedReference was built with presmooth="
                              f"{prep.presmooth}, levels={prep.levels}; the flow asks for "
                              f"presmooth={presmooth}, levels={levels}")
     elif method in ("lk", "hs"):
-        prep = prepare_reference(reference, presmooth=presmooth, levels=levels)
+        prep = prepare_reference(reference, presmooth=PRESMOOTH_IN_FOCUS if presmooth == AUTO and
+                                 method not in AUTO_METHODS else presmooth, levels=levels)
     else:
         img = _as_image(reference, "reference")
         mean, scale = _normalisation(img)
@@ -149,7 +151,7 @@ def _flow_components(reference, frame, *, method, window, window_type, levels, i
         raise ValueError(f"reference {prep.shape} and frame {frm.shape} differ in shape")
     frm = _fill_nonfinite(frm, prep.mean)
     if method in ("lk", "hs"):
-        fpyr = _pyramid(_standardise(frm, prep.mean, prep.scale, presmooth), len(prep.pyramid))
+        fpyr = _pyramid(_standardise(frm, prep.mean, prep.scale, prep.presmooth), len(prep.pyramid))
         weights = None if valid is None or valid.all() else _weight_pyramid(valid, len(prep.pyramid))
         if method == "lk":
             ici = None

@@ -9,12 +9,14 @@ run's parameters, so the check reports what the run will find and remove."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from schlieren.pipeline import capture as cap
 from schlieren.pipeline.capture import CaptureParams
+from schlieren.pipeline.flow.focus import AUTO, resolve_presmooth
 from schlieren.pipeline.flow.params import FlowParams, window_for_voxel
 from schlieren.pipeline.flow.reference import prepare_reference
 from schlieren.pipeline.geometry import AUTO_PX_PER_VOXEL, Camera, Grid, pixel_footprint
@@ -314,6 +316,9 @@ def check_camera(cam: Camera, grid: Grid, reference_frames: np.ndarray, frames: 
     reference = refs.mean(axis=0)
     static = cap.static_region(cam, grid.vmin, grid.vmax, margin=capture.static_margin)
     noise, source = _noise(refs, frames, full_scale, static)
+    if flow.presmooth == AUTO:  # the run's choice for this camera (pipeline/flow/focus.py)
+        flow = dataclasses.replace(flow, presmooth=resolve_presmooth(
+            AUTO, reference, method=flow.method, noise=noise if np.isfinite(noise) else 0.0, n_frames=len(refs)))
     fp = footprint(cam, grid)
     window = window_for_voxel(fp.px_per_voxel, flow.window_per_voxel) if flow.window_per_voxel > 0 else flow.window
     n_ref = len(refs) if n_reference is None else max(int(n_reference), 1)

@@ -29,10 +29,10 @@ EXPECTED_ARRAYS = ("time", "flow", "mask", "potential", "hull", "gradient", "ref
                    "temperature")
 VOLUME_ARRAYS = ("hull", "gradient", "refractivity", "density", "temperature")
 #: Arrays read when present and never listed as missing: the optional stages' (``uncertainty``),
-#: and those stores of older versions lack (the capture corrections of issue 33, the raw frames'
-#: coordinate).
+#: and those stores of older versions lack (the capture corrections of issue 33 and the flow's
+#: per-camera pre-smoothing, the raw frames' coordinate).
 OPTIONAL_ARRAYS = ("refractivity_sigma", "density_sigma", "temperature_sigma", "background_motion",
-                   "photometric", "capture_fit", "defective_pixels", "row_knot", "raw_frame")
+                   "photometric", "capture_fit", "defective_pixels", "presmooth", "row_knot", "raw_frame")
 
 
 # ---------------------------------------------------------------------------------------

@@ -187,8 +187,8 @@ def test_docstrings_are_generated_from_the_declarations():
 
 def test_derived_parameters_say_so_and_from_what():
     derived = {r.path for r in schema(RunConfig) if r.spec.derived}
-    assert derived == {"flow.window", "flow.factor", "tomography.ray_binning", "tomography.reg_weight",
-                       "tomography.n_ambient", "direct.n_ambient"}
+    assert derived == {"flow.window", "flow.factor", "flow.presmooth", "tomography.ray_binning",
+                       "tomography.reg_weight", "tomography.n_ambient", "direct.n_ambient"}
     text, md = params_yaml(RunConfig), params_markdown(RunConfig)
     assert text.count("Derived by the run:") == len(derived)
     assert "*Derived by the run*: with `window_per_voxel` > 0" in md

@@ -55,3 +55,38 @@ def test_a_camera_moved_against_its_reference_is_measured_and_corrected(tiny_ses
     f1, f0 = np.asarray(st.array("flow")[1]), np.asarray(base.array("flow")[1])
     inner = (slice(None), slice(3, -3), slice(3, -3))
     assert np.sqrt(np.nanmean((f1 - f0)[inner] ** 2)) < 0.05  # against 1 px uncorrected
+
+
+def test_the_pre_smoothing_is_chosen_per_camera_stored_logged_and_reported(tiny_session, serial_store, tmp_path):
+    """flow.presmooth: auto. The tiny session's backgrounds are in focus: every camera keeps
+    the in-focus width (the run is the one with the fixed width). cam01's reference and frames
+    blurred by a 1.5 px Gaussian (a background out of focus): cam01 alone gets less."""
+    from scipy import ndimage
+
+    from schlieren.pipeline.flow.focus import PRESMOOTH_IN_FOCUS
+    from schlieren.storage.report import ReportReader
+    from schlieren.workers.report.capture_section import _camera_table
+    from schlieren.workers.run import run_session
+
+    base = ResultStore.open(serial_store, mode="r")
+    p = np.asarray(base.array("presmooth")[:])
+    assert p.shape == (base.array("camera").shape[0],) and np.all(p == PRESMOOTH_IN_FOCUS)
+    assert base.attrs["derived"]["flow.presmooth"]["requested"] == "auto"
+    assert base.attrs["derived"]["flow.presmooth"]["effective"] == p.tolist()
+
+    sess = tmp_path / "session"
+    shutil.copytree(tiny_session.session.parent, sess, ignore=shutil.ignore_patterns("truth.zarr"))
+    for f in [sess / "cam01" / "reference.png", *sorted((sess / "cam01" / "frames").glob("*.png"))]:
+        img = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+        blurred = ndimage.gaussian_filter(img.astype(np.float64), 1.5, mode="nearest")
+        cv2.imwrite(str(f), np.clip(np.round(blurred), 0, np.iinfo(img.dtype).max).astype(img.dtype))
+    out = tmp_path / "out.zarr"
+    assert run_session(sess, out, serial=True).ok
+    st = ResultStore.open(out, mode="r")
+    q = np.asarray(st.array("presmooth")[:])
+    assert q[1] < 0.5 * PRESMOOTH_IN_FOCUS
+    assert np.all(np.delete(q, 1) == PRESMOOTH_IN_FOCUS)
+    assert st.attrs["derived"]["flow.presmooth"]["effective"] == q.tolist()
+    rd = ReportReader(out)
+    table = _camera_table(rd, rd.whole("background_motion"), rd.camera_names(len(q)), (192, 144))
+    assert "flow pre-smoothing (px)" in table and "0.6" in table

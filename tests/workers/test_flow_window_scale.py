@@ -13,8 +13,11 @@ from schlieren.workers import tasks
 
 
 def _ctx(config: RunConfig, cameras: int = 3, factor: int = 2):
+    # what flow_params reads of a RunContext: the per-camera pre-smoothing (the capture
+    # stage's choice) and the per-process cache
     return SimpleNamespace(config=config, cameras=[object()] * cameras,
-                           flow_grid=SimpleNamespace(factor=factor))
+                           flow_grid=SimpleNamespace(factor=factor), presmooth=lambda c: 0.6,
+                           once=lambda key, make: make())
 
 
 @pytest.mark.parametrize("scale", [1.0, 0.5, 1.4])

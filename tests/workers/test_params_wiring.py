@@ -78,6 +78,7 @@ def test_a_field_no_code_reads_fails_the_check(serial_run, field):
 
 OVERRIDE_LINES = {
     "flow.window": r"flow\.window 17 -> (\d+) px from window_per_voxel 3\.8 x [\d.]+ px per voxel",
+    "flow.presmooth": r"flow\.presmooth auto -> ([\d.]+) px from the sharpness of each camera's reference",
     "flow.factor": r"flow\.factor 3 -> (\d) px per flow cell from auto_factor \([\d.]+ flow cells per voxel edge; "
                    r"3 would leave [\d.]+\)",
     "tomography.ray_binning": r"tomography\.ray_binning 0 -> (\d+) flow cells from [\d.]+ flow cells per voxel edge",

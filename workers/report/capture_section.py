@@ -1,7 +1,8 @@
 """The report's capture section (issue 33): each camera's motion against its reference
-over the frames, the frames' gain and offset, and the defective pixels.
+over the frames, the frames' gain and offset, the defective pixels and the flow's
+pre-smoothing chosen from the reference's sharpness.
 
-Reads ``background_motion``, ``photometric``, ``capture_fit`` and ``defective_pixels``
+Reads ``background_motion``, ``photometric``, ``capture_fit``, ``defective_pixels`` and ``presmooth``
 (:mod:`schlieren.pipeline.capture`) through the
 :class:`~schlieren.storage.report.ReportReader`; a store without them (an older run) says
 so on the page.
@@ -126,9 +127,11 @@ def _image_size(rd: ReportReader) -> tuple[int, int]:
 
 
 def _camera_table(rd: ReportReader, motion: np.ndarray, names: list[str], size) -> str:
-    """Per camera: the largest motion, the frames corrected, and the defective pixels."""
+    """Per camera: the largest motion, the frames corrected, the defective pixels and the
+    flow's pre-smoothing."""
     fit = rd.whole("capture_fit")
     defects = rd.whole("defective_pixels")
+    smooth = rd.whole("presmooth")
     ext = _corner_extent(motion, size)
     rows = []
     for c, name in enumerate(names):
@@ -143,7 +146,9 @@ def _camera_table(rd: ReportReader, motion: np.ndarray, names: list[str], size) 
                      f"{int(np.count_nonzero(fl & PHOTOMETRIC_APPLIED))} / {fl.size}",
                      f"{int(np.count_nonzero(fl & FALLBACK))}",
                      f"{int(np.count_nonzero(fl & GAIN_UNKNOWN))}",
-                     fmt_number(float(np.nanmean(fit[c, :, 0]))) if fit is not None and ok.any() else "-", *counts])
+                     fmt_number(float(np.nanmean(fit[c, :, 0]))) if fit is not None and ok.any() else "-", *counts,
+                     fmt_number(float(smooth[c])) if smooth is not None and np.isfinite(smooth[c]) else "-"])
     header = ["camera", "largest motion (px)", "motion removed (frames)", "gain/offset removed (frames)",
-              "measured on every pixel (frames)", "gain unknown, not normalised (frames)", "static fraction"] + [f"{n} pixels" for n in DEFECT_NAMES.values()]
+              "measured on every pixel (frames)", "gain unknown, not normalised (frames)", "static fraction"] + \
+        [f"{n} pixels" for n in DEFECT_NAMES.values()] + ["flow pre-smoothing (px)"]
     return html_table(header, rows)

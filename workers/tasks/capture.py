@@ -1,18 +1,25 @@
-"""The ``capture`` task: one camera's defective pixels (issue 33), before its flows.
+"""The ``capture`` task: one camera's defective pixels and flow pre-smoothing, before its flows.
 
 :func:`~schlieren.pipeline.capture.find_defective_pixels` reads each reference frame (not
 their mean: a pixel must stand out in every one) and a few capture frames spread over the
 processed range; the map is stored (``defective_pixels``) for the camera's deflection
-tasks, which give those pixels no weight. The camera's static region (the pixels whose
-rays miss the volume) needs only the calibration: each process computes it once
-(:func:`static_region`).
+tasks, which give those pixels no weight. With ``flow.presmooth: auto`` the camera's
+pre-smoothing is chosen from its reference's sharpness
+(:func:`~schlieren.pipeline.flow.auto_presmooth`, the sensor noise measured on the
+reference frames; Lucas-Kanade only) and stored (``presmooth``) for its flows. The
+camera's static region (the pixels whose rays miss the volume) needs only the calibration:
+each process computes it once (:func:`static_region`).
 """
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 
 from schlieren.pipeline import capture
+from schlieren.pipeline.flow.focus import AUTO, resolve_presmooth
+from schlieren.pipeline.rigcheck import sensor_noise
 from schlieren.storage.errors import SessionError
 from schlieren.storage.frames import open_frames
 from schlieren.workers.tasks.run_context import RunContext
@@ -21,22 +28,47 @@ __all__ = ["capture_task", "static_region", "defective_pixels"]
 
 
 def capture_task(ctx: RunContext, c: int) -> dict:
-    """Camera ``c``'s defective pixels (stored ``defective_pixels``) and their counts."""
+    """Camera ``c``'s defective pixels (stored ``defective_pixels``) and their counts, and its
+    flow pre-smoothing (stored ``presmooth``, in the receipt)."""
     params = ctx.config.capture
     cam = ctx.cameras[c]
-    if not params.defective_pixels:
-        ctx.store.write("defective_pixels", (c,), np.zeros((1, cam.height, cam.width), np.uint8))
-        return {}
-    d = capture.find_defective_pixels(_frames(ctx, c), threshold=params.defect_threshold,
-                                      stuck_ratio=params.stuck_ratio)
+    auto = ctx.config.flow.presmooth == AUTO
+    kept: list[np.ndarray] = []  # the reference frames at every other row and column: the sensor noise
+    out: dict = {}
+    if params.defective_pixels:
+        refs = (_keep(img, kept) if auto else img for img in _reference_frames(ctx, c))
+        d = capture.find_defective_pixels(itertools.chain(refs, _capture_frames(ctx, c)),
+                                          threshold=params.defect_threshold, stuck_ratio=params.stuck_ratio)
+        out = capture.defect_counts(d)
+    else:
+        d = np.zeros((cam.height, cam.width), np.uint8)
+        if auto:
+            kept = [np.asarray(img)[::2, ::2] for img in _reference_frames(ctx, c)]
     ctx.store.write("defective_pixels", (c,), d[None])
-    return capture.defect_counts(d)
+    p = _presmooth(ctx, c, kept) if auto else float(ctx.config.flow.presmooth)
+    ctx.store.write("presmooth", (c,), np.array([p], np.float64))
+    out["presmooth"] = p
+    return out
 
 
-def _frames(ctx: RunContext, c: int):
+def _keep(img: np.ndarray, kept: list) -> np.ndarray:
+    kept.append(np.asarray(img)[::2, ::2])
+    return img
+
+
+def _presmooth(ctx: RunContext, c: int, kept: list) -> float:
+    """:func:`~schlieren.pipeline.flow.auto_presmooth` of camera ``c``'s reference, its
+    sensor noise from the reference frames ``kept`` (none removed with fewer than two)."""
+    dtype = ctx.frames(c).raw_dtype
+    full = float(np.iinfo(dtype).max) if np.issubdtype(dtype, np.integer) else None
+    noise = sensor_noise(kept, full_scale=full) if len(kept) >= 2 else 0.0
+    return resolve_presmooth(AUTO, ctx.reference(c), method=ctx.config.flow.method,
+                             noise=noise if np.isfinite(noise) else 0.0, n_frames=max(len(kept), 1))
+
+
+def _reference_frames(ctx: RunContext, c: int):
     """Camera ``c``'s reference frames (one by one; none for interlaced cameras, whose
-    fields are compared with per-field references) and ``defect_frames`` capture frames
-    evenly spread over the processed range (dropped or unreadable ones skipped)."""
+    fields are compared with per-field references)."""
     s = ctx.session.sources[c]
     if not getattr(s, "interlaced", None):
         try:
@@ -45,6 +77,11 @@ def _frames(ctx: RunContext, c: int):
                 yield ref.read(i)
         except SessionError:  # one reference image (not a sequence): the mean below stands for it
             yield ctx.reference(c)
+
+
+def _capture_frames(ctx: RunContext, c: int):
+    """``defect_frames`` capture frames of camera ``c`` evenly spread over the processed range
+    (dropped or unreadable ones skipped)."""
     n = ctx.config.capture.defect_frames
     src = ctx.frames(c)
     frames = np.unique(np.linspace(ctx.first_frame, ctx.first_frame + ctx.n_frames - 1, max(n, 0)).round()

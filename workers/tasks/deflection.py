@@ -152,10 +152,16 @@ def quality_vector(ctx: RunContext, c: int, f: int, img: np.ndarray) -> np.ndarr
 
 
 def flow_params(ctx: RunContext, c: int):
-    """Camera ``c``'s flow parameters: the LK window from the voxel footprint (``window_per_voxel``,
-    :func:`~schlieren.pipeline.flow.camera_window`; the run logs and stores it)."""
+    """Camera ``c``'s flow parameters: its pre-smoothing (:meth:`RunContext.presmooth`; with
+    ``auto``, the capture stage's choice) and the LK window from the voxel footprint
+    (``window_per_voxel``, :func:`~schlieren.pipeline.flow.camera_window`; the run logs and
+    stores it)."""
     params = ctx.config.flow
-    if params.window_per_voxel <= 0:
-        return params
-    return ctx.once(("flow_params", c), lambda: dataclasses.replace(params, window=flowmod.camera_window(
-        ctx.cameras[c], ctx.session.grid, window=params.window, window_per_voxel=params.window_per_voxel)))
+
+    def make():
+        p = dataclasses.replace(params, presmooth=ctx.presmooth(c))
+        if params.window_per_voxel <= 0:
+            return p
+        return dataclasses.replace(p, window=flowmod.camera_window(
+            ctx.cameras[c], ctx.session.grid, window=params.window, window_per_voxel=params.window_per_voxel))
+    return ctx.once(("flow_params", c), make)

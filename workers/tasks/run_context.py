@@ -20,6 +20,7 @@ import numpy as np
 
 from schlieren.pipeline import flow as flowmod
 from schlieren.pipeline import tomography
+from schlieren.pipeline.flow.focus import AUTO
 from schlieren.pipeline.geometry import Camera, FlowGrid
 from schlieren.pipeline.stages import RunConfig, config_from_dict
 from schlieren.storage.frames import open_frames, read_reference
@@ -133,13 +134,20 @@ class RunContext:
         s = self.session.sources[c]
         return self.once(("reference", c, parity), lambda: read_reference(s, camera_name=s.name, parity=parity))
 
+    def presmooth(self, c: int) -> float:
+        """Camera ``c``'s flow pre-smoothing (pixels): ``flow.presmooth``, or with ``auto`` the
+        capture stage's choice from the camera's reference (stored ``presmooth``)."""
+        p = self.config.flow.presmooth
+        if p != AUTO:
+            return float(p)
+        return self.once(("presmooth", c), lambda: float(self.store.read("presmooth", (c,))))
+
     def prepared_reference(self, c: int, parity: int | None = None):
         """The reference's pyramid and spline coefficients, prepared once per camera (and field
         parity) per process."""
-        params = self.config.flow
         return self.once(("prepared_reference", c, parity),
-                          lambda: flowmod.prepare_reference(self.reference(c, parity), presmooth=params.presmooth,
-                                                            levels=params.levels))
+                          lambda: flowmod.prepare_reference(self.reference(c, parity), presmooth=self.presmooth(c),
+                                                            levels=self.config.flow.levels))
 
     def time_offset(self, c: int) -> float:
         return self.once(("time_offset", c), lambda: float(self.store.read("time_offset", (c,))))
