@@ -17,12 +17,13 @@ kernel: flow + outlier removal + smoothing + area downsampling to the
 
 Modules: :mod:`.params` (:class:`FlowParams` and the rules read off it), :mod:`.stage`
 (the two entry points and the pyramid driver), :mod:`.reference` (the prepared reference,
-invalid pixels), :mod:`.images` (normalisation, pre-smoothing, pyramid, gradients),
-:mod:`.splines` (exact cubic B-spline warps, prolongation), :mod:`.windows` (the LK window
-and :func:`measurement_sigma`), the methods :mod:`.lk`, :mod:`.hs`, :mod:`.dis` and
-:mod:`.correlation`, :mod:`.post` (outliers, smoothing, downsampling), and the numba
-kernels in :mod:`._kernels`. :func:`endpoint_error` lives in
-:mod:`schlieren.pipeline.metrics`.
+invalid pixels, the frame's pyramid), :mod:`.invalid` (the cells invalid pixels leave
+without support; a camera's defective pixels prepared once), :mod:`.images`
+(normalisation, pre-smoothing, pyramid, gradients), :mod:`.splines` (exact cubic B-spline
+warps, prolongation), :mod:`.windows` (the LK window and :func:`measurement_sigma`), the
+methods :mod:`.lk`, :mod:`.hs`, :mod:`.dis` and :mod:`.correlation`, :mod:`.post`
+(outliers, smoothing, downsampling), and the numba kernels in :mod:`._kernels`.
+:func:`endpoint_error` lives in :mod:`schlieren.pipeline.metrics`.
 """
 
 from schlieren.pipeline.metrics import endpoint_error
@@ -30,8 +31,9 @@ from schlieren.pipeline.metrics import endpoint_error
 from .lk import ici_windows
 from .params import (CELL_SOLVE_MIN_CELLS, METHODS, FlowParams, camera_window, px_per_voxel, uses_cell_solve,
                      window_for_voxel)
+from .invalid import InvalidPixels, prepare_invalid
 from .post import downsample_flow, remove_outliers, smooth_flow
-from .reference import PreparedReference, invalid_pixels, prepare_reference
+from .reference import PreparedReference, frame_pyramid, invalid_pixels, prepare_reference
 from .splines import prolong_flow, spline_coefficients, warp_coefficient_rows, warp_coefficients, warp_image
 from .stage import deflection_field, deflection_stage
 from .windows import measurement_sigma
@@ -41,6 +43,9 @@ __all__ = [
     "METHODS",
     "PreparedReference",
     "prepare_reference",
+    "frame_pyramid",
+    "InvalidPixels",
+    "prepare_invalid",
     "deflection_field",
     "deflection_stage",
     "remove_outliers",

@@ -5,7 +5,8 @@ their mean: a pixel must stand out in every one) and a few capture frames spread
 processed range; the map is stored (``defective_pixels``) for the camera's deflection
 tasks, which give those pixels no weight. The camera's static region (the pixels whose
 rays miss the volume) needs only the calibration: each process computes it once
-(:func:`static_region`).
+(:func:`static_region`), and what the deflection tasks derive from these for every frame
+once per camera too (:func:`camera_capture`).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from schlieren.storage.errors import SessionError
 from schlieren.storage.frames import open_frames
 from schlieren.workers.tasks.run_context import RunContext
 
-__all__ = ["capture_task", "static_region", "defective_pixels"]
+__all__ = ["capture_task", "static_region", "defective_pixels", "camera_capture"]
 
 
 def capture_task(ctx: RunContext, c: int) -> dict:
@@ -72,3 +73,11 @@ def defective_pixels(ctx: RunContext, c: int) -> np.ndarray | None:
         d = np.asarray(ctx.store.read("defective_pixels", (c,)))
         return d if d.any() else None
     return ctx.once(("defective_pixels", c), read)
+
+
+def camera_capture(ctx: RunContext, c: int, parity: int | None, flow) -> capture.CameraCapture:
+    """Camera ``c``'s :func:`~schlieren.pipeline.capture.prepare_capture` for its prepared
+    reference (of field ``parity``) and flow parameters ``flow`` (made once per process)."""
+    return ctx.once(("camera_capture", c, parity), lambda: capture.prepare_capture(
+        ctx.prepared_reference(c, parity), flow, ctx.config.capture, static=static_region(ctx, c),
+        defects=defective_pixels(ctx, c)))
