@@ -49,9 +49,12 @@ __all__ = ["CaptureCorrection", "corrected_deflection", "to_reference_grid", "MO
 #: showed nothing to apply, :data:`SCREEN_MARGIN`).
 MOTION_APPLIED, PHOTOMETRIC_APPLIED, FALLBACK, NOT_CONVERGED, GAIN_UNKNOWN, SCREENED = 1, 2, 4, 8, 16, 32
 #: The registration's screen: when the fit of the coarse pyramid levels shows no motion,
-#: gain or offset beyond this fraction of their tolerances and of ``significance`` (the
-#: coarse fit's standard deviations are about twice the full-resolution fit's), the
-#: full-resolution level is not fitted: its result would not be applied either.
+#: gain or offset beyond this fraction of their tolerances and of ``significance`` times
+#: its own standard deviations, the full-resolution level is not fitted: its result would
+#: not be applied either. The coarse fit's standard deviations are about twice the
+#: full-resolution fit's, so half the significance on them is the full fit's threshold;
+#: half the tolerances leave a margin where the tolerances decide (large images, whose
+#: fits are the most precise).
 SCREEN_MARGIN = 0.5
 #: Entries of :meth:`CaptureCorrection.stats` (the store's ``capture_fit``).
 CAPTURE_STATS = ("static_fraction", "noise", "samples", "residual_motion", "flags")
@@ -129,8 +132,7 @@ def corrected_deflection(reference, frame: np.ndarray, flow: FlowParams = FlowPa
     pyramid = frame_pyramid(prep, frame)  # the registration's and, unless normalised, the flow's
     fit = register_background(prep, frame, model=capture.motion_model, photometric=capture.photometric,
                               banding_rows=capture.banding_rows, region=cam.region, pyramid=pyramid,
-                              stop_early=functools.partial(_nothing_to_apply, capture=capture, prep=prep,
-                                                           margin=SCREEN_MARGIN))
+                              stop_early=functools.partial(_nothing_to_apply, capture=capture, prep=prep))
     flags = (FALLBACK if fit.fallback else 0) | (0 if fit.converged else NOT_CONVERGED) | \
         (SCREENED if fit.level > 0 else 0)
     img = frame
@@ -165,30 +167,35 @@ def corrected_deflection(reference, frame: np.ndarray, flow: FlowParams = FlowPa
     return d.astype(np.float32), CaptureCorrection(motion, fit, residual, flags)
 
 
-def _motion_applies(fit: BackgroundFit, capture: CaptureParams, size, margin: float = 1.0) -> bool:
+def _motion_applies(fit: BackgroundFit, capture: CaptureParams, size, margin: float = 1.0,
+                    significance: float = 1.0) -> bool:
     """Whether the registration's motion moves some pixel by more than ``margin`` times
-    ``motion_tolerance`` and ``margin`` times ``significance`` of its standard deviations."""
+    ``motion_tolerance`` and by more than ``significance`` times ``capture.significance``
+    of its standard deviations."""
     extent = motion_extent(fit.motion, size)
     return capture.motion_model != "none" and extent > margin * capture.motion_tolerance and \
-        not extent <= margin * capture.significance * fit.motion_sigma
+        not extent <= significance * capture.significance * fit.motion_sigma
 
 
-def _photometric_applies(fit: BackgroundFit, capture: CaptureParams, prep, margin: float = 1.0) -> bool:
+def _photometric_applies(fit: BackgroundFit, capture: CaptureParams, prep, margin: float = 1.0,
+                         significance: float = 1.0) -> bool:
     """Whether the registration's gain or offset departs from 1 or 0 by more than
-    ``margin`` times their tolerances and significance (:meth:`~.photometric.Photometric.departs`)."""
+    ``margin`` times their tolerances and ``significance`` times ``capture.significance``
+    of their standard deviations (:meth:`~.photometric.Photometric.departs`)."""
     return capture.photometric and fit.photometric.departs(
         gain_tolerance=margin * capture.gain_tolerance, offset_tolerance=margin * capture.offset_tolerance / prep.scale,
         mean=prep.mean, gain_sigma=fit.gain_sigma, level_sigma=fit.level_sigma,
-        significance=margin * capture.significance)
+        significance=significance * capture.significance)
 
 
-def _nothing_to_apply(fit: BackgroundFit, *, capture: CaptureParams, prep, margin: float) -> bool:
+def _nothing_to_apply(fit: BackgroundFit, *, capture: CaptureParams, prep) -> bool:
     """The screen of the registration's coarse levels (``stop_early`` of
-    :func:`~.registration.register_background`): no motion, gain or offset that ``margin``
-    times the tolerances and significance would apply, and a gain that can be estimated."""
+    :func:`~.registration.register_background`): no motion, gain or offset beyond
+    :data:`SCREEN_MARGIN` of the tolerances and of the significance, and a gain that can be
+    estimated."""
     size = prep.shape[::-1]
-    return not _motion_applies(fit, capture, size, margin) and \
-        not _photometric_applies(fit, capture, prep, margin) and \
+    return not _motion_applies(fit, capture, size, SCREEN_MARGIN, SCREEN_MARGIN) and \
+        not _photometric_applies(fit, capture, prep, SCREEN_MARGIN, SCREEN_MARGIN) and \
         (not capture.photometric or fit.photometric.estimable())
 
 

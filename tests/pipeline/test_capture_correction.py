@@ -93,6 +93,40 @@ def test_clean_capture_keeps_its_flow_bit_for_bit(background, prep):
     np.testing.assert_array_equal(d, deflection_stage(prep, frame, FLOW))
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_small_motion_above_the_tolerance_gets_the_full_registration(background, prep, seed):
+    # 0.012 px at the centre: 2.4 motion_tolerance and several of the coarse levels' standard
+    # deviations, so the screen passes the frame on to the full-resolution fit
+    m = np.array([0.011, -0.005, 0, 0, 0, 0, 0, 0.0])
+    frame = render(background, SHAPE, lambda u, v: motion_displacement(m, u, v, SIZE), noise=1.5,
+                   rng=np.random.default_rng(40 + seed))
+    d, corr = corrected_deflection(prep, frame, FLOW, static=_static())
+    assert corr.flags & MOTION_APPLIED and not corr.flags & SCREENED
+    assert corr.fit.level == 0
+    W, H = SIZE
+    y, x = np.mgrid[0:H:4, 0:W:4]
+    dx, dy = motion_displacement(corr.motion - m, x, y, SIZE)
+    assert np.sqrt(np.mean(dx * dx + dy * dy)) < 0.005  # px RMS over the image
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_small_gain_change_gets_the_full_registration(background, prep, seed):
+    # a 1 % flicker: 5 gain_tolerance, several of the coarse levels' standard deviations
+    frame = 1.01 * render(background, SHAPE, noise=1.5, rng=np.random.default_rng(50 + seed))
+    d, corr = corrected_deflection(prep, frame, FLOW, static=_static())
+    assert corr.flags & PHOTOMETRIC_APPLIED and not corr.flags & SCREENED
+    assert np.abs(corr.fit.photometric.gain - 1.01).max() < 0.003
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_clean_frame_is_screened_out(background, prep, seed):
+    frame = render(background, SHAPE, noise=1.5, rng=np.random.default_rng(60 + seed))
+    d, corr = corrected_deflection(prep, frame, FLOW, static=_static())
+    assert corr.flags == SCREENED and corr.fit.level > 0
+    assert corr.fit.samples < np.count_nonzero(_static())  # only the coarse levels' samples were fitted
+    np.testing.assert_array_equal(d, deflection_stage(prep, frame, FLOW))
+
+
 def test_moved_flickering_capture_gives_the_clean_deflections(background, prep):
     plume = plume_deflection(SHAPE, peak=0.4, width=15.0)
     m = np.array([0.25, 0.15, 0.0, -2e-4, 2e-4, 0.0, 0, 0])
