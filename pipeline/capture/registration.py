@@ -64,7 +64,7 @@ class BackgroundFit:
     noise : float
         Robust standard deviation of the fit's residual, grey levels.
     samples : int
-        Pixels of the finest level the fit used.
+        Samples of the finest level fitted (:attr:`level`).
     static_fraction : float
         Fraction of the image in the static region.
     fallback : bool
