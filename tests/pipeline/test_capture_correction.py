@@ -191,6 +191,26 @@ def test_defective_pixels_get_no_weight_and_no_nan(background):
     assert err < 0.5 * err_blind
 
 
+@pytest.mark.parametrize("invalid_check", [True, False])
+@pytest.mark.parametrize("clipped", [False, True])  # a saturated patch: the frame has invalid pixels of its own
+def test_prepared_invalid_pixels_give_the_same_flow(background, prep, invalid_check, clipped):
+    from schlieren.pipeline.flow import frame_pyramid, prepare_invalid
+
+    frame = render(background, SHAPE, plume_deflection(SHAPE, peak=0.4, width=15.0), noise=1.5,
+                   rng=np.random.default_rng(9))
+    if clipped:
+        frame[60:90, 20:60] = frame.max()
+    bad = np.zeros(SHAPE, bool)
+    bad[[30, 31, 90, 150], [40, 40, 200, 120]] = True
+    bad[100:104, 10:14] = True  # a cluster: empties a cell, filled from its neighbours
+    params = FlowParams(window=9, factor=2, auto_factor=False, invalid_check=invalid_check)
+    expect = deflection_stage(prep, frame, params, invalid=bad)
+    got = deflection_stage(prep, frame, params, invalid=prepare_invalid(prep, bad, params),
+                           pyramid=frame_pyramid(prep, frame))
+    np.testing.assert_array_equal(got, expect)
+    assert prepare_invalid(prep, np.zeros(SHAPE, bool), params) is None
+
+
 def test_flow_moved_back_onto_the_reference_grid():
     f = 2
     m = np.array([0.6, -0.4, 0, 0, 0, 0, 0, 0.0])  # 0.3 x -0.2 flow cells
