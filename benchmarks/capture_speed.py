@@ -198,6 +198,14 @@ def profile(variant: Variant, jobs) -> list:
              "own_ms_per_frame": 1e3 * s[2] / len(jobs), "share": s[2] / total} for (fn, line, name), s in rows]
 
 
+def _relative(path: Path) -> str:
+    """``path`` relative to the repository when inside it."""
+    try:
+        return str(path.resolve().relative_to(ROOT))
+    except ValueError:
+        return str(path)
+
+
 def load_average() -> list:
     try:
         return [round(float(x), 2) for x in os.getloadavg()]
@@ -333,7 +341,7 @@ def main(argv=None):
                                                                               else sys.argv[1:]),
                   "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
                   "load_start": load_start, "load_end": load_average(), "baseline": args.baseline, "head": head,
-                  "dirty": dirty, "session": str(args.session), "cameras": cams, "frames": args.frames,
+                  "dirty": dirty, "session": _relative(args.session), "cameras": cams, "frames": args.frames,
                   "image_size": list(size), "window": setups[cams[0]][0].window,
                   "flow_factor": setups[cams[0]][0].factor, "repeats": args.repeats,
                   "base_ms": base.ms(), "new_ms": new.ms(), "decode_ms": 1e3 * float(np.mean(decode)),

@@ -167,25 +167,23 @@ def corrected_deflection(reference, frame: np.ndarray, flow: FlowParams = FlowPa
     return d.astype(np.float32), CaptureCorrection(motion, fit, residual, flags)
 
 
-def _motion_applies(fit: BackgroundFit, capture: CaptureParams, size, margin: float = 1.0,
-                    significance: float = 1.0) -> bool:
+def _motion_applies(fit: BackgroundFit, capture: CaptureParams, size, margin: float = 1.0) -> bool:
     """Whether the registration's motion moves some pixel by more than ``margin`` times
-    ``motion_tolerance`` and by more than ``significance`` times ``capture.significance``
-    of its standard deviations."""
+    ``motion_tolerance`` and by more than ``margin`` times ``significance`` of its standard
+    deviations."""
     extent = motion_extent(fit.motion, size)
     return capture.motion_model != "none" and extent > margin * capture.motion_tolerance and \
-        not extent <= significance * capture.significance * fit.motion_sigma
+        not extent <= margin * capture.significance * fit.motion_sigma
 
 
-def _photometric_applies(fit: BackgroundFit, capture: CaptureParams, prep, margin: float = 1.0,
-                         significance: float = 1.0) -> bool:
+def _photometric_applies(fit: BackgroundFit, capture: CaptureParams, prep, margin: float = 1.0) -> bool:
     """Whether the registration's gain or offset departs from 1 or 0 by more than
-    ``margin`` times their tolerances and ``significance`` times ``capture.significance``
-    of their standard deviations (:meth:`~.photometric.Photometric.departs`)."""
+    ``margin`` times their tolerances and by more than ``margin`` times ``significance`` of
+    their standard deviations (:meth:`~.photometric.Photometric.departs`)."""
     return capture.photometric and fit.photometric.departs(
         gain_tolerance=margin * capture.gain_tolerance, offset_tolerance=margin * capture.offset_tolerance / prep.scale,
         mean=prep.mean, gain_sigma=fit.gain_sigma, level_sigma=fit.level_sigma,
-        significance=significance * capture.significance)
+        significance=margin * capture.significance)
 
 
 def _nothing_to_apply(fit: BackgroundFit, *, capture: CaptureParams, prep) -> bool:
@@ -194,8 +192,8 @@ def _nothing_to_apply(fit: BackgroundFit, *, capture: CaptureParams, prep) -> bo
     :data:`SCREEN_MARGIN` of the tolerances and of the significance, and a gain that can be
     estimated."""
     size = prep.shape[::-1]
-    return not _motion_applies(fit, capture, size, SCREEN_MARGIN, SCREEN_MARGIN) and \
-        not _photometric_applies(fit, capture, prep, SCREEN_MARGIN, SCREEN_MARGIN) and \
+    return not _motion_applies(fit, capture, size, SCREEN_MARGIN) and \
+        not _photometric_applies(fit, capture, prep, SCREEN_MARGIN) and \
         (not capture.photometric or fit.photometric.estimable())
 
 
