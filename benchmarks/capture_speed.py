@@ -256,6 +256,51 @@ def write(result: dict, name: str) -> None:
     (RESULTS / f"{name}.md").write_text("\n".join(lines) + "\n")
 
 
+def time_defects(sess, cfg, cams, base: Variant, new: Variant, args):
+    """Each camera's capture-task kernel, base and new alternating; the cameras' inputs of the
+    deflection kernel, the decode's CPU per frame, and whether the maps agree."""
+    setups, decode, identical = {}, [], True
+    for c in cams:
+        fp, ref, static, reader, frames, dec = camera_setup(sess, cfg, c)
+        decode.append(dec)
+        maps = {}
+        if c == cams[0]:  # warm: numba, the allocator
+            for v in (base, new):
+                v.defects(c, frames, cfg.capture)
+                v.cpu["defects"], v.n["defects"] = 0.0, 0
+        for rep in range(args.repeats):
+            for v in ((new, base) if rep % 2 == 0 else (base, new)):
+                maps[v.name] = v.defects(c, frames, cfg.capture)
+        identical &= bool(np.array_equal(maps["base"], maps["new"]))
+        first, last = sess.frames
+        imgs = {f: reader.read(f) for f in list(range(first, last))[:args.frames]}
+        setups[c] = (fp, ref, static, maps["new"], imgs)
+    return setups, decode, identical
+
+
+def time_deflection(cfg, cams, setups, base: Variant, new: Variant, flowmod, repeats: int) -> float:
+    """The deflection kernel of every camera-frame, base and new alternating, and the plain
+    flow in the same loop (its CPU ms per camera-frame is returned)."""
+    for v in (base, new):  # warm: numba, the prepared references; then restart the clocks
+        c = cams[0]
+        fp, ref, static, defects, imgs = setups[c]
+        f = next(iter(imgs))
+        v.deflection(c, f, imgs[f], ref, fp, cfg, static, defects)
+        v.cpu["deflection"], v.n["deflection"] = 0.0, 0
+    plain, k = 0.0, 0
+    for rep in range(repeats):
+        for c in cams:
+            fp, ref, static, defects, imgs = setups[c]
+            for f, img in imgs.items():
+                for v in ((new, base) if rep % 2 == 0 else (base, new)):
+                    v.deflection(c, f, img, ref, fp, cfg, static, defects)
+                c0 = time.process_time()  # the flow alone, without the corrections
+                flowmod.deflection_stage(new.prep[c], img, fp)
+                plain += time.process_time() - c0
+                k += 1
+    return 1e3 * plain / k
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--session", type=Path, default=DEFAULT_SESSION)
@@ -289,41 +334,8 @@ def main(argv=None):
         base = Variant("base", mods["base_capture"], mods["base_flow"])
         new = Variant("new", capture, flowmod)
         load_start = load_average()
-        setups, decode, identical = {}, [], True
-        for c in cams:
-            fp, ref, static, reader, frames, dec = camera_setup(sess, cfg, c)
-            decode.append(dec)
-            maps = {}
-            if c == cams[0]:  # warm: numba, the allocator
-                for v in (base, new):
-                    v.defects(c, frames, cfg.capture)
-                    v.cpu["defects"], v.n["defects"] = 0.0, 0
-            for rep in range(args.repeats):
-                for v in ((new, base) if rep % 2 == 0 else (base, new)):
-                    maps[v.name] = v.defects(c, frames, cfg.capture)
-            identical &= bool(np.array_equal(maps["base"], maps["new"]))
-            first, last = sess.frames
-            fs = list(range(first, last))[:args.frames]
-            imgs = {f: reader.read(f) for f in fs}
-            setups[c] = (fp, ref, static, maps["new"], imgs)
-        for v in (base, new):  # warm: numba, the prepared references; then restart the clocks
-            c = cams[0]
-            fp, ref, static, defects, imgs = setups[c]
-            f = next(iter(imgs))
-            v.deflection(c, f, imgs[f], ref, fp, cfg, static, defects)
-            v.cpu["deflection"], v.n["deflection"] = 0.0, 0
-        plain, k = 0.0, 0
-        for rep in range(args.repeats):
-            for c in cams:
-                fp, ref, static, defects, imgs = setups[c]
-                for f, img in imgs.items():
-                    for v in ((new, base) if rep % 2 == 0 else (base, new)):
-                        v.deflection(c, f, img, ref, fp, cfg, static, defects)
-                    c0 = time.process_time()  # the flow alone, without the corrections
-                    flowmod.deflection_stage(new.prep[c], img, fp)
-                    plain += time.process_time() - c0
-                    k += 1
-        plain = 1e3 * plain / k
+        setups, decode, identical = time_defects(sess, cfg, cams, base, new, args)
+        plain = time_deflection(cfg, cams, setups, base, new, flowmod, args.repeats)
         prof = None
         if args.profile:
             c = cams[0]
