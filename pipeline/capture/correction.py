@@ -2,7 +2,9 @@
 kernel of the ``deflection`` stage with :class:`~.params.CaptureParams`.
 
 1. :func:`~.registration.register_background` measures the background's motion and the
-   frame's gain and offset profiles on the pixels whose rays miss the volume;
+   frame's gain and offset profiles on the pixels whose rays miss the volume (on the
+   coarse pyramid levels alone when their fit shows nothing that would be applied:
+   :data:`SCREEN_MARGIN`), on the frame's pyramid that the flow then uses too;
 2. the frame's gain and offset are removed (when they depart from 1 and 0 by more than
    their tolerances);
 3. the flow (:func:`~schlieren.pipeline.flow.deflection_stage`) starts from the motion
@@ -28,23 +30,32 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from schlieren.pipeline.flow import FlowParams, deflection_stage, prepare_reference
+from schlieren.pipeline.flow import FlowParams, deflection_stage, frame_pyramid, prepare_reference
 from schlieren.pipeline.flow.splines import warp_image
 
-from .defects import valid_pixels
+from .camera import CameraCapture, prepare_capture
 from .motion import fit_flow_motion, motion_displacement, motion_extent, motion_field
 from .params import CaptureParams
 from .photometric import normalise_frame
 from .registration import BackgroundFit, register_background
-from .static_region import static_cells
 
 __all__ = ["CaptureCorrection", "corrected_deflection", "to_reference_grid", "MOTION_APPLIED",
-           "PHOTOMETRIC_APPLIED", "FALLBACK", "NOT_CONVERGED", "GAIN_UNKNOWN", "CAPTURE_STATS"]
+           "PHOTOMETRIC_APPLIED", "FALLBACK", "NOT_CONVERGED", "GAIN_UNKNOWN", "SCREENED", "CAPTURE_STATS",
+           "SCREEN_MARGIN"]
 
 #: Bits of :attr:`CaptureCorrection.flags`. ``GAIN_UNKNOWN``: the frame's gain could not be
 #: estimated (:meth:`~.photometric.Photometric.estimable`: a dark or clipped frame), so it
-#: was not normalised.
-MOTION_APPLIED, PHOTOMETRIC_APPLIED, FALLBACK, NOT_CONVERGED, GAIN_UNKNOWN = 1, 2, 4, 8, 16
+#: was not normalised. ``SCREENED``: the registration ended on its coarse levels (their fit
+#: showed nothing to apply, :data:`SCREEN_MARGIN`).
+MOTION_APPLIED, PHOTOMETRIC_APPLIED, FALLBACK, NOT_CONVERGED, GAIN_UNKNOWN, SCREENED = 1, 2, 4, 8, 16, 32
+#: The registration's screen: when the fit of the coarse pyramid levels shows no motion,
+#: gain or offset beyond this fraction of their tolerances and of ``significance`` times
+#: its own standard deviations, the full-resolution level is not fitted: its result would
+#: not be applied either. The coarse fit's standard deviations are about twice the
+#: full-resolution fit's, so half the significance on them is the full fit's threshold;
+#: half the tolerances leave a margin where the tolerances decide (large images, whose
+#: fits are the most precise).
+SCREEN_MARGIN = 0.5
 #: Entries of :meth:`CaptureCorrection.stats` (the store's ``capture_fit``).
 CAPTURE_STATS = ("static_fraction", "noise", "samples", "residual_motion", "flags")
 
@@ -82,8 +93,8 @@ class CaptureCorrection:
 
 def corrected_deflection(reference, frame: np.ndarray, flow: FlowParams = FlowParams(),
                          capture: CaptureParams = CaptureParams(), *, static: np.ndarray | None = None,
-                         defects: np.ndarray | None = None, info: dict | None = None
-                         ) -> tuple[np.ndarray, CaptureCorrection]:
+                         defects: np.ndarray | None = None, info: dict | None = None,
+                         camera: CameraCapture | None = None) -> tuple[np.ndarray, CaptureCorrection]:
     """The deflection stage of one camera-frame with its motion, lighting and defective
     pixels removed.
 
@@ -101,6 +112,10 @@ def corrected_deflection(reference, frame: np.ndarray, flow: FlowParams = FlowPa
         Defective pixels (non-zero; :func:`~.defects.find_defective_pixels`).
     info : dict, optional
         Passed to :func:`~schlieren.pipeline.flow.deflection_stage`.
+    camera : CameraCapture, optional
+        The camera's :func:`~.camera.prepare_capture` of ``reference``, ``flow``,
+        ``capture``, ``static`` and ``defects`` (saves their preparation on every frame;
+        ``static`` and ``defects`` are then not read).
 
     Returns
     -------
@@ -113,38 +128,34 @@ def corrected_deflection(reference, frame: np.ndarray, flow: FlowParams = FlowPa
         prepare_reference(reference, presmooth=flow.presmooth, levels=flow.levels)
     H, W = prep.shape
     size = (W, H)
-    bad = None if defects is None or not np.any(defects) else np.asarray(defects) != 0
-    valid = valid_pixels(defects)
-    fit = register_background(prep, frame, static=static, valid=valid, model=capture.motion_model,
-                              photometric=capture.photometric, banding_rows=capture.banding_rows,
-                              min_static_fraction=capture.min_static_fraction)
-    flags = (FALLBACK if fit.fallback else 0) | (0 if fit.converged else NOT_CONVERGED)
+    cam = camera if camera is not None else prepare_capture(prep, flow, capture, static=static, defects=defects)
+    pyramid = frame_pyramid(prep, frame)  # the registration's and, unless normalised, the flow's
+    fit = register_background(prep, frame, model=capture.motion_model, photometric=capture.photometric,
+                              banding_rows=capture.banding_rows, region=cam.region, pyramid=pyramid,
+                              stop_early=functools.partial(_nothing_to_apply, capture=capture, prep=prep))
+    flags = (FALLBACK if fit.fallback else 0) | (0 if fit.converged else NOT_CONVERGED) | \
+        (SCREENED if fit.level > 0 else 0)
     img = frame
-    ph = fit.photometric
-    if capture.photometric and not ph.estimable():
+    if capture.photometric and not fit.photometric.estimable():
         flags |= GAIN_UNKNOWN
-    elif capture.photometric and ph.departs(gain_tolerance=capture.gain_tolerance,
-                                            offset_tolerance=capture.offset_tolerance / prep.scale, mean=prep.mean,
-                                            gain_sigma=fit.gain_sigma, level_sigma=fit.level_sigma,
-                                            significance=capture.significance):
-        img = normalise_frame(frame, ph)
+    elif _photometric_applies(fit, capture, prep):
+        img, pyramid = normalise_frame(frame, fit.photometric), None
         flags |= PHOTOMETRIC_APPLIED
     warp_above, source = capture.warp_above, capture.motion_source  # read on every frame (test_params_wiring)
     motion = fit.motion.copy()
     extent = motion_extent(motion, size)
-    moved = capture.motion_model != "none" and extent > capture.motion_tolerance and \
-        not extent <= capture.significance * fit.motion_sigma
+    moved = _motion_applies(fit, capture, size)
+    bad = cam.invalid
     if moved:  # the frame's border shows what the reference does not hold
-        bad = _border(bad, (H, W), int(np.ceil(extent)) + 1)
+        bad = _border(cam.bad, (H, W), int(np.ceil(extent)) + 1)
     if moved and extent > warp_above:
         d = _flow_on_moved_reference(prep, img, flow, motion, size, bad, info)
     else:
         start = functools.partial(motion_displacement, motion, image_size=size) if moved else None
-        d = deflection_stage(prep, img, flow, info=info, motion=start, invalid=bad)
+        d = deflection_stage(prep, img, flow, info=info, motion=start, invalid=bad, pyramid=pyramid)
     residual = float("nan")
     if capture.motion_model != "none":
-        cells = _fit_cells(d, static, flow.factor, fit.fallback)
-        extra, _ = fit_flow_motion(d, cells, size, flow.factor, model=capture.motion_model)
+        extra, _ = fit_flow_motion(d, cam.cells, size, flow.factor, model=capture.motion_model)
         residual = motion_extent(extra, size)
         if moved:  # a bias left on every cell becomes a ramp of the masks' potential
             d = d - motion_field(extra, size, flow.factor)
@@ -154,6 +165,36 @@ def corrected_deflection(reference, frame: np.ndarray, flow: FlowParams = FlowPa
             if source == "camera":
                 d = to_reference_grid(d, motion, size, flow.factor)
     return d.astype(np.float32), CaptureCorrection(motion, fit, residual, flags)
+
+
+def _motion_applies(fit: BackgroundFit, capture: CaptureParams, size, margin: float = 1.0) -> bool:
+    """Whether the registration's motion moves some pixel by more than ``margin`` times
+    ``motion_tolerance`` and by more than ``margin`` times ``significance`` of its standard
+    deviations."""
+    extent = motion_extent(fit.motion, size)
+    return capture.motion_model != "none" and extent > margin * capture.motion_tolerance and \
+        not extent <= margin * capture.significance * fit.motion_sigma
+
+
+def _photometric_applies(fit: BackgroundFit, capture: CaptureParams, prep, margin: float = 1.0) -> bool:
+    """Whether the registration's gain or offset departs from 1 or 0 by more than
+    ``margin`` times their tolerances and by more than ``margin`` times ``significance`` of
+    their standard deviations (:meth:`~.photometric.Photometric.departs`)."""
+    return capture.photometric and fit.photometric.departs(
+        gain_tolerance=margin * capture.gain_tolerance, offset_tolerance=margin * capture.offset_tolerance / prep.scale,
+        mean=prep.mean, gain_sigma=fit.gain_sigma, level_sigma=fit.level_sigma,
+        significance=margin * capture.significance)
+
+
+def _nothing_to_apply(fit: BackgroundFit, *, capture: CaptureParams, prep) -> bool:
+    """The screen of the registration's coarse levels (``stop_early`` of
+    :func:`~.registration.register_background`): no motion, gain or offset beyond
+    :data:`SCREEN_MARGIN` of the tolerances and of the significance, and a gain that can be
+    estimated."""
+    size = prep.shape[::-1]
+    return not _motion_applies(fit, capture, size, SCREEN_MARGIN) and \
+        not _photometric_applies(fit, capture, prep, SCREEN_MARGIN) and \
+        (not capture.photometric or fit.photometric.estimable())
 
 
 def _flow_on_moved_reference(prep, frame, flow: FlowParams, motion, size, bad, info) -> np.ndarray:
@@ -180,17 +221,6 @@ def _border(bad: np.ndarray | None, shape: tuple[int, int], width: int) -> np.nd
     out[:, :width] = True
     out[:, -width:] = True
     return out
-
-
-def _fit_cells(flow: np.ndarray, static: np.ndarray | None, factor: int, fallback: bool) -> np.ndarray:
-    """Flow cells to measure the remaining motion on: the static ones, or every cell when
-    the static region is too small (the fit's weights then drop the plume's), every
-    second one along each axis (their windows overlap anyway)."""
-    h, w = flow.shape[:2]
-    cells = np.ones((h, w), bool) if static is None or fallback else static_cells(static, factor)
-    thin = np.zeros_like(cells)
-    thin[::2, ::2] = True
-    return cells & thin
 
 
 def to_reference_grid(flow: np.ndarray, motion, image_size, factor: int) -> np.ndarray:

@@ -49,9 +49,13 @@ _PREDICT = (np.array([[-1.0, 2.0, -1.0], [2.0, 0.0, 2.0], [-1.0, 2.0, -1.0]]) / 
 def _standard_residual(img: np.ndarray) -> np.ndarray:
     """The residual against the neighbours' quadratic prediction, in robust standard
     deviations (1.4826 x the median absolute residual, every second pixel)."""
-    r = img - cv2.filter2D(img, cv2.CV_32F, _PREDICT, borderType=cv2.BORDER_REPLICATE)
-    scale = 1.4826 * float(np.median(np.abs(r[::2, ::2])))
-    return r / np.float32(scale) if scale > 0 else np.zeros_like(r)
+    r = cv2.filter2D(img, cv2.CV_32F, _PREDICT, borderType=cv2.BORDER_REPLICATE)
+    np.subtract(img, r, out=r)
+    scale = 1.4826 * float(np.median(np.abs(r[::2, ::2]), overwrite_input=True))
+    if scale <= 0:
+        return np.zeros_like(r)
+    np.divide(r, np.float32(scale), out=r)
+    return r
 
 
 def find_defective_pixels(frames: Iterable[np.ndarray], *, threshold: float = 10.0,
@@ -80,30 +84,31 @@ def find_defective_pixels(frames: Iterable[np.ndarray], *, threshold: float = 10
     n = 0
     zmin = zmax = peak = s1 = s2 = clip = None
     box = np.ones((3, 3), np.uint8)
-    for frame in frames:
+    for frame in frames:  # in place where it can be: a frame is 1-2 million pixels
         img = np.ascontiguousarray(frame, dtype=np.float32)
-        img = np.where(np.isfinite(img), img, np.float32(np.nanmedian(img))) if not np.isfinite(img).all() else img
+        if not cv2.checkRange(img)[0]:  # NaN or inf
+            img = np.where(np.isfinite(img), img, np.float32(np.nanmedian(img)))
         z = _standard_residual(img)
         a = np.abs(z)
         is_peak = a >= cv2.dilate(a, box)
-        x = img.astype(np.float64)
         lo, hi = cv2.minMaxLoc(img)[:2]
-        at_clip = ((img <= lo) | (img >= hi)).astype(np.int32)
+        at_clip = cv2.bitwise_or(cv2.compare(img, lo, cv2.CMP_LE), cv2.compare(img, hi, cv2.CMP_GE))  # 0 or 255
         if n == 0:
-            zmin, zmax, peak = z.copy(), z.copy(), is_peak
-            s1, s2, clip = x.copy(), x * x, at_clip
+            zmin, zmax, peak = z.copy(), z, is_peak
+            s1, s2, clip = np.zeros(img.shape), np.zeros(img.shape), np.zeros(img.shape, np.int32)
         else:
             if z.shape != zmin.shape:
                 raise ValueError(f"frame {n} has shape {z.shape}, frame 0 has {zmin.shape}")
             np.minimum(zmin, z, out=zmin)
             np.maximum(zmax, z, out=zmax)
             peak &= is_peak
-            s1 += x
-            s2 += x * x
-            clip += at_clip
+        cv2.accumulate(img, s1)  # float64 sums of the frames and of their squares
+        cv2.accumulateSquare(img, s2)
+        np.add(clip, at_clip, out=clip)
         n += 1
     if n == 0:
         raise ValueError("no frames to find defective pixels in")
+    clip //= 255
     out = np.zeros(zmin.shape, np.uint8)
     out[(zmin > threshold) & peak] |= HOT
     out[(zmax < -threshold) & peak] |= DEAD

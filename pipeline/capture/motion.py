@@ -145,16 +145,21 @@ def fit_flow_motion(flow: np.ndarray, cells: np.ndarray, image_size, factor: int
     """
     n = motion_size(model)
     out = no_motion()
-    centres = FlowGrid(tuple(image_size), int(factor)).pixel_centres()
-    ok = cells & np.isfinite(flow).all(axis=-1)
-    if n == 0 or np.count_nonzero(ok) < 2 * n:
+    rows, cols = np.nonzero(cells)
+    vals = flow[rows, cols]  # (m, 2), the cells' deflections only
+    fin = np.isfinite(vals).all(axis=1)
+    if not fin.all():
+        rows, cols, vals = rows[fin], cols[fin], vals[fin]
+    if n == 0 or len(rows) < 2 * n:
         return out, {"cells": 0, "rms": float("nan")}
     cx, cy = _centre(image_size)
-    qx, qy = centres[ok, 0] - cx, centres[ok, 1] - cy
+    f = int(factor)  # the cells' centres (FlowGrid.pixel_centres)
+    qx = f * cols.astype(np.float64) + (f - 1) / 2.0 - cx
+    qy = f * rows.astype(np.float64) + (f - 1) / 2.0 - cy
     s = max(float(np.max(np.abs(qx))), float(np.max(np.abs(qy))), 1.0)
     jx, jy = _design(qx / s, qy / s, n)
     J = np.concatenate([jx, jy])
-    y = np.concatenate([flow[ok, 0], flow[ok, 1]]).astype(np.float64)
+    y = np.concatenate([vals[:, 0], vals[:, 1]]).astype(np.float64)
     w = np.ones(len(qx))
     theta = np.zeros(n)
     for _ in range(iterations):

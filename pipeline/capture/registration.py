@@ -21,19 +21,19 @@ over 10^5 pixels its noise is a few ten-thousandths of a pixel.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import cv2
 import numpy as np
 
-from schlieren.pipeline.flow.images import _fill_nonfinite, _pyramid, _standardise
-from schlieren.pipeline.flow.reference import PreparedReference, prepare_reference
+from schlieren.pipeline.flow.reference import PreparedReference, frame_pyramid, prepare_reference
 
 from ._kernels import _residuals
 from .motion import _design, motion_extent, motion_size, no_motion
 from .params import CaptureParams
 from .photometric import Photometric, row_knots
 
-__all__ = ["BackgroundFit", "register_background", "HUBER_K"]
+__all__ = ["BackgroundFit", "SampleRegion", "register_background", "sample_region", "HUBER_K"]
 
 #: Huber's constant (robust standard deviations): 95 % efficiency on Gaussian residuals.
 HUBER_K = 1.345
@@ -64,7 +64,7 @@ class BackgroundFit:
     noise : float
         Robust standard deviation of the fit's residual, grey levels.
     samples : int
-        Pixels of the finest level the fit used.
+        Samples of the finest level fitted (:attr:`level`).
     static_fraction : float
         Fraction of the image in the static region.
     fallback : bool
@@ -76,6 +76,9 @@ class BackgroundFit:
     gain_sigma, level_sigma : ndarray, shape (K,)
         Standard deviations of the gain at the knots, and of the change of the reference's
         mean grey level there (grey levels).
+    level : int
+        The finest pyramid level fitted (0 = full resolution; more when ``stop_early`` of
+        :func:`register_background` ended the fit before it).
     """
 
     motion: np.ndarray
@@ -88,13 +91,39 @@ class BackgroundFit:
     motion_sigma: float = float("nan")
     gain_sigma: np.ndarray | None = None
     level_sigma: np.ndarray | None = None
+    level: int = 0
+
+
+@dataclass(frozen=True)
+class SampleRegion:
+    """The pixels a camera's registrations are fitted on, per pyramid level: the same for
+    all its frames (:func:`sample_region`).
+
+    Attributes
+    ----------
+    samples : tuple of (ndarray, ndarray)
+        Per level (fine first), the columns and rows of the level's samples (:func:`_samples`).
+    fraction : float
+        Fraction of the image in the static region.
+    fallback : bool
+        The static region was too small: every valid pixel is used.
+    empty : bool
+        No pixel to fit on.
+    """
+
+    samples: tuple
+    fraction: float
+    fallback: bool
+    empty: bool
 
 
 def register_background(reference, frame: np.ndarray, *, static: np.ndarray | None = None,
                         valid: np.ndarray | None = None, model: str = "affine",
                         photometric: bool = CaptureParams.photometric, banding_rows: int = CaptureParams.banding_rows,
                         min_static_fraction: float = CaptureParams.min_static_fraction, presmooth: float = 0.6,
-                        levels: int = 3, iterations: int = 8) -> BackgroundFit:
+                        levels: int = 3, iterations: int = 8, region: SampleRegion | None = None,
+                        pyramid: list | None = None,
+                        stop_early: Callable[[BackgroundFit], bool] | None = None) -> BackgroundFit:
     """Measure a frame's background motion, gain and offset against the reference.
 
     Parameters
@@ -118,6 +147,15 @@ def register_background(reference, frame: np.ndarray, *, static: np.ndarray | No
         Of the flow (used when ``reference`` is an array).
     iterations : int
         Gauss-Newton steps per pyramid level at most.
+    region : SampleRegion, optional
+        :func:`sample_region` of ``static``, ``valid`` and ``min_static_fraction`` when
+        already made (then those are not read).
+    pyramid : list of ndarray, optional
+        The frame's :func:`~schlieren.pipeline.flow.frame_pyramid` when already made.
+    stop_early : callable, optional
+        Called with the fit of the coarse levels before the finest one is fitted; when it
+        returns True, that fit is returned (``level`` > 0): a screen that spares the finest
+        level's cost on frames where it could not change what is applied.
 
     Returns
     -------
@@ -132,27 +170,47 @@ def register_background(reference, frame: np.ndarray, *, static: np.ndarray | No
     nm = motion_size(model)
     knots = row_knots(H, banding_rows)
     nk = len(knots) if photometric else 0
-    region, fraction, fallback = _region(static, valid, (H, W), min_static_fraction)
-    if nm + nk == 0 or not region.any():
+    if region is None:
+        region = sample_region(prep, static=static, valid=valid, min_static_fraction=min_static_fraction)
+    if nm + nk == 0 or region.empty:
         return BackgroundFit(no_motion(), Photometric(knots, np.ones(len(knots)), np.zeros(len(knots))),
-                             float("nan"), 0, fraction, fallback, nm + nk == 0)
-    fpyr = _pyramid(_standardise(_fill_nonfinite(img, prep.mean), prep.mean, prep.scale, prep.presmooth),
-                    len(prep.pyramid))
+                             float("nan"), 0, region.fraction, region.fallback, nm + nk == 0)
+    fpyr = frame_pyramid(prep, img) if pyramid is None else pyramid
     state = _State(theta=np.zeros(8), gam=np.zeros(len(knots)), bet=np.zeros(len(knots)))
     solver = _Solver(nm, nk, knots, ((W - 1) / 2.0, (H - 1) / 2.0), (W, H))
-    converged, samples, sigma = False, 0, float("nan")
+    converged, samples, sigma, fitted = False, 0, float("nan"), None
     for lev in range(len(prep.pyramid) - 1, -1, -1):
-        xs, ys = _samples(region, lev, fpyr[lev].shape)
+        xs, ys = region.samples[lev]
         if len(xs) < 4 * (nm + 2 * nk):
             continue
+        if lev == 0 and fitted is not None and stop_early is not None:
+            fit = _result(prep, solver, state, knots, sigma, samples, region, converged, fitted)
+            if stop_early(fit):
+                return fit
         converged, sigma = solver.run(prep.coefficients[lev], fpyr[lev], xs, ys, 2.0 ** lev, state,
                                       iterations if lev == 0 else max(2, iterations // 2))
-        samples = len(xs)
+        samples, fitted = len(xs), lev
+    return _result(prep, solver, state, knots, sigma, samples, region, converged, fitted or 0)
+
+
+def _result(prep, solver, state, knots, sigma, samples, region, converged, level) -> BackgroundFit:
+    """The fit so far as a :class:`BackgroundFit` (gain and offset in grey levels)."""
     gain = 1.0 + state.gam
     offset = state.bet / prep.scale - state.gam * prep.mean  # grey levels (see the module docstring)
     msig, gsig, lsig = solver.uncertainty(sigma, prep.scale, len(knots))
     return BackgroundFit(state.theta.copy(), Photometric(knots, gain, offset), sigma / prep.scale, samples,
-                         fraction, fallback, converged, msig, gsig, lsig)
+                         region.fraction, region.fallback, converged, msig, gsig, lsig, level)
+
+
+def sample_region(reference: PreparedReference, *, static: np.ndarray | None = None,
+                  valid: np.ndarray | None = None,
+                  min_static_fraction: float = CaptureParams.min_static_fraction) -> SampleRegion:
+    """The samples of every pyramid level of ``reference`` that a camera's registrations
+    fit on (the arguments as those of :func:`register_background`)."""
+    region, fraction, fallback = _region(static, valid, reference.shape, min_static_fraction)
+    empty = not region.any()
+    samples = tuple(_samples(region, lev, p.shape) for lev, p in enumerate(reference.pyramid))
+    return SampleRegion(samples, fraction, fallback, empty)
 
 
 def _region(static, valid, shape, min_static_fraction) -> tuple[np.ndarray, float, bool]:

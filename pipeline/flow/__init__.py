@@ -17,14 +17,15 @@ kernel: flow + outlier removal + smoothing + area downsampling to the
 
 Modules: :mod:`.params` (:class:`FlowParams` and the rules read off it), :mod:`.stage`
 (the two entry points and the pyramid driver), :mod:`.reference` (the prepared reference,
-invalid pixels), :mod:`.images` (normalisation, pre-smoothing, pyramid, gradients),
-:mod:`.splines` (exact cubic B-spline warps, prolongation), :mod:`.focus` (the
-pre-smoothing a reference's sharpness asks for), :mod:`.windows` (the LK window
-and :func:`measurement_sigma`), the methods :mod:`.lk`, :mod:`.hs`, :mod:`.dis` and
-:mod:`.correlation`, :mod:`.post` (outliers, smoothing, downsampling), :mod:`.refine` (the
-flow measured around a predicted deflection: re-projection refinement), and the numba
-kernels in :mod:`._kernels`. :func:`endpoint_error` lives in
-:mod:`schlieren.pipeline.metrics`.
+invalid pixels, the frame's pyramid), :mod:`.invalid` (the cells invalid pixels leave
+without support; a camera's defective pixels prepared once), :mod:`.images`
+(normalisation, pre-smoothing, pyramid, gradients), :mod:`.splines` (exact cubic B-spline
+warps, prolongation), :mod:`.focus` (the pre-smoothing a reference's sharpness asks for),
+:mod:`.windows` (the LK window and :func:`measurement_sigma`), the methods :mod:`.lk`,
+:mod:`.hs`, :mod:`.dis` and :mod:`.correlation`, :mod:`.post` (outliers, smoothing,
+downsampling), :mod:`.refine` (the flow measured around a predicted deflection:
+re-projection refinement), and the numba kernels in :mod:`._kernels`.
+:func:`endpoint_error` lives in :mod:`schlieren.pipeline.metrics`.
 """
 
 from schlieren.pipeline.metrics import endpoint_error
@@ -33,8 +34,9 @@ from .focus import auto_presmooth, reference_blur, resolve_presmooth
 from .lk import ici_windows
 from .params import (CELL_SOLVE_MIN_CELLS, METHODS, FlowParams, camera_window, px_per_voxel, uses_cell_solve,
                      window_for_voxel)
+from .invalid import InvalidPixels, prepare_invalid
 from .post import downsample_flow, remove_outliers, smooth_flow
-from .reference import PreparedReference, invalid_pixels, prepare_reference
+from .reference import PreparedReference, frame_pyramid, invalid_pixels, prepare_reference
 from .refine import RefineParams, cells_to_pixels, refined_deflection
 from .splines import prolong_flow, spline_coefficients, warp_coefficient_rows, warp_coefficients, warp_image
 from .stage import deflection_field, deflection_stage
@@ -45,6 +47,9 @@ __all__ = [
     "METHODS",
     "PreparedReference",
     "prepare_reference",
+    "frame_pyramid",
+    "InvalidPixels",
+    "prepare_invalid",
     "deflection_field",
     "deflection_stage",
     "remove_outliers",

@@ -148,7 +148,13 @@ def _nearest_fill(a: np.ndarray, bad: np.ndarray) -> np.ndarray:
     """``a`` (h, w, ...) with the ``bad`` cells replaced by their nearest good cell."""
     if not bad.any() or bad.all():
         return a
+    idx = _nearest_index(bad)
+    return a[idx[0], idx[1]]
+
+
+def _nearest_index(bad: np.ndarray) -> np.ndarray:
+    """For each cell, the (row, column) of its nearest cell outside ``bad`` (Euclidean
+    distance transform), shape (2, h, w)."""
     from scipy import ndimage
 
-    idx = ndimage.distance_transform_edt(bad, return_distances=False, return_indices=True)
-    return a[idx[0], idx[1]]
+    return ndimage.distance_transform_edt(bad, return_distances=False, return_indices=True)

@@ -16,7 +16,7 @@ from .images import _as_image, _fill_nonfinite, _normalisation, _pyramid, _stand
 from .params import FlowParams
 from .splines import _spline_coefficients
 
-__all__ = ["PreparedReference", "prepare_reference", "invalid_pixels"]
+__all__ = ["PreparedReference", "prepare_reference", "frame_pyramid", "invalid_pixels"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -70,6 +70,14 @@ def prepare_reference(reference: np.ndarray, *, presmooth: float | str = FlowPar
     pyr = _pyramid(_standardise(_fill_nonfinite(img, mean), mean, scale, presmooth), levels)
     coef = tuple(_spline_coefficients(p) for p in pyr)
     return PreparedReference(img, mean, scale, float(presmooth), int(levels), tuple(pyr), coef)
+
+
+def frame_pyramid(reference: PreparedReference, frame: np.ndarray) -> list[np.ndarray]:
+    """A frame's pyramid as LK and HS compare it with ``reference.pyramid``: non-finite
+    pixels set to the reference's mean, standardised with the reference's normalisation,
+    pre-smoothed like it (one per level, fine first; float32)."""
+    img = _fill_nonfinite(_as_image(frame, "frame"), reference.mean)
+    return _pyramid(_standardise(img, reference.mean, reference.scale, reference.presmooth), len(reference.pyramid))
 
 
 def invalid_pixels(image: np.ndarray, *, texture_threshold: float = FlowParams.texture_threshold, size: int = 7,

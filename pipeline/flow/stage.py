@@ -17,13 +17,13 @@ from .correlation import _correlation_flow
 from .dis import _dis_flow
 from .focus import AUTO, AUTO_METHODS, PRESMOOTH_IN_FOCUS
 from .hs import _hs_level
-from .images import _as_image, _fill_nonfinite, _normalisation, _pyramid, _standardise
+from .images import _as_image, _fill_nonfinite, _normalisation, _standardise
 from .lk import _lk_level, _texture_bias, _upsample_cells, ici_windows
 from .params import METHODS, FlowParams, uses_cell_solve
-from .post import _block_mean, _median_test, _nearest_fill, _smooth_cells
-from .reference import PreparedReference, _weight_pyramid, invalid_pixels, prepare_reference
+from .invalid import InvalidPixels, _fill_bad_cells
+from .post import _block_mean, _median_test, _smooth_cells
+from .reference import PreparedReference, _weight_pyramid, frame_pyramid, invalid_pixels, prepare_reference
 from .splines import prolong_flow
-from .windows import _window_filter, _window_taps
 
 __all__ = ["deflection_field", "deflection_stage"]
 
@@ -122,7 +122,8 @@ def deflection_field(
 def _flow_components(reference, frame, *, method, window, window_type, levels, iterations,
                      fine_iterations, presmooth, regularisation, gradient, alpha,
                      inner_iterations, dis_preset, corr_window, corr_step, corr_taper,
-                     ici_gamma, ici_min_window, keep=None, valid=None, info=None, cells=0, start=None):
+                     ici_gamma, ici_min_window, keep=None, valid=None, info=None, cells=0, start=None,
+                     weights=None, pyramid=None):
     """:func:`deflection_field` as two (H, W) float32 arrays (u, v); for LK, ``keep``
     (a dict) receives the full-resolution frame gradients ``gx``, ``gy``. ``valid``
     (H, W) bool: pixels the flow may use (LK and HS weight the others out; every method
@@ -130,7 +131,9 @@ def _flow_components(reference, frame, *, method, window, window_type, levels, i
     level is solved per f x f cell (:func:`_lk_cells`) and (u, v) are (H // f, W // f);
     ``keep["mom"]`` then holds the block moments. Other methods ignore it. ``start``
     (LK and HS): the displacement field ``start(x, y) -> (dx, dy)`` the pyramid starts from
-    (:func:`_pyramid_flow`); the other methods ignore it."""
+    (:func:`_pyramid_flow`); the other methods ignore it. ``weights`` (LK and HS): the
+    per-level weights of ``valid`` when already made (:func:`_weight_pyramid`); ``pyramid``
+    (LK and HS): the frame's :func:`frame_pyramid` when already made."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     frm = _as_image(frame, "frame")
@@ -149,10 +152,10 @@ def _flow_components(reference, frame, *, method, window, window_type, levels, i
         prep = PreparedReference(_fill_nonfinite(img, mean), mean, scale, 0.0, 1, (), ())
     if prep.shape != frm.shape:
         raise ValueError(f"reference {prep.shape} and frame {frm.shape} differ in shape")
-    frm = _fill_nonfinite(frm, prep.mean)
     if method in ("lk", "hs"):
-        fpyr = _pyramid(_standardise(frm, prep.mean, prep.scale, prep.presmooth), len(prep.pyramid))
-        weights = None if valid is None or valid.all() else _weight_pyramid(valid, len(prep.pyramid))
+        fpyr = frame_pyramid(prep, frm) if pyramid is None else pyramid
+        if weights is None:
+            weights = None if valid is None or valid.all() else _weight_pyramid(valid, len(prep.pyramid))
         if method == "lk":
             ici = None
             if ici_gamma > 0 and gradient == "frame":
@@ -167,6 +170,7 @@ def _flow_components(reference, frame, *, method, window, window_type, levels, i
                                  fine_iterations=fine_iterations, alpha=alpha,
                                  inner_iterations=inner_iterations, weights=weights, start=start)
     else:
+        frm = _fill_nonfinite(frm, prep.mean)
         ref = _standardise(prep.image, prep.mean, prep.scale, 0.0)
         frs = _standardise(frm, prep.mean, prep.scale, 0.0)
         if method == "dis":
@@ -179,7 +183,7 @@ def _flow_components(reference, frame, *, method, window, window_type, levels, i
 
 # over 80 lines only by its numpydoc docstring: the steps are the functions it calls
 def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowParams(), *,
-                     info: dict | None = None, motion=None, invalid: np.ndarray | None = None) -> np.ndarray:
+                     info: dict | None = None, motion=None, invalid=None, pyramid: list | None = None) -> np.ndarray:
     """Per camera-frame deflection stage: flow, area downsampling, outliers, smoothing.
 
     Paper sec. 4: full-resolution optical flow, downsampled to the flow grid
@@ -220,10 +224,14 @@ def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowPara
         :mod:`schlieren.pipeline.capture`). LK and HS start their pyramid from it, so the
         flow only has to find the deflections (a Lucas-Kanade step underestimates large
         displacements); it is subtracted from the result, which is then the deflection alone.
-    invalid : ndarray, shape (H, W), bool, optional
+    invalid : ndarray, shape (H, W), bool, or InvalidPixels, optional
         Pixels known to be unusable (defective sensor pixels, mostly isolated): weighted out
         like those of ``invalid_check`` (whether or not that is on), but the cells they
-        alone empty get their nearest valid cell's deflection rather than NaN.
+        alone empty get their nearest valid cell's deflection rather than NaN. The camera's
+        :func:`~.invalid.prepare_invalid` saves their per-frame preparation.
+    pyramid : list of ndarray, optional
+        The frame's :func:`~.reference.frame_pyramid` when the caller already made it (LK
+        and HS; a :class:`PreparedReference` ``reference``).
 
     Returns
     -------
@@ -234,9 +242,9 @@ def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowPara
     H, W = np.shape(frame)[:2]
     rows, cols = FlowGrid((W, H), f).shape
     checked = _valid_pixels(reference, frame, params.texture_threshold) if params.invalid_check else None
-    valid = checked
-    if invalid is not None and np.any(invalid):
-        valid = ~np.asarray(invalid, bool) if valid is None else valid & ~np.asarray(invalid, bool)
+    prepared = invalid if isinstance(invalid, InvalidPixels) and checked is None else None
+    valid, weights = (prepared.valid, prepared.weights) if prepared is not None else \
+        (_combined_valid(checked, invalid), None)
     on_cells = uses_cell_solve(params)
     ici = params.method == "lk" and params.ici_gamma > 0 and params.gradient == "frame"
     texture = params.method == "lk" and params.texture_correction and not ici
@@ -248,7 +256,8 @@ def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowPara
                             alpha=p.alpha, inner_iterations=p.inner_iterations, dis_preset=p.dis_preset,
                             corr_window=p.corr_window, corr_step=p.corr_step, corr_taper=p.corr_taper,
                             ici_gamma=p.ici_gamma, ici_min_window=p.ici_min_window,
-                            keep=keep, valid=valid, info=info, cells=f if on_cells else 0, start=motion)
+                            keep=keep, valid=valid, info=info, cells=f if on_cells else 0, start=motion,
+                            weights=weights, pyramid=pyramid)
     if u.shape == (rows, cols) and on_cells:
         comps = [u, v]
     else:
@@ -259,7 +268,8 @@ def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowPara
         comps = [comps[0] - np.asarray(mx, np.float32), comps[1] - np.asarray(my, np.float32)]
     bad_cells = None
     if valid is not None:
-        comps, bad_cells = _fill_bad_cells(comps, valid, checked, params)
+        comps, bad_cells = prepared.fill(comps) if prepared is not None else \
+            _fill_bad_cells(comps, valid, checked, params)
         if comps is None:
             return np.full((rows, cols, 2), np.nan, np.float32)
     if params.outlier_threshold > 0:
@@ -275,21 +285,14 @@ def deflection_stage(reference, frame: np.ndarray, params: FlowParams = FlowPara
     return out
 
 
-def _fill_bad_cells(comps: list, valid: np.ndarray, checked: np.ndarray | None, params: FlowParams):
-    """The flow-grid cells that ``valid`` leaves without support (:func:`_bad_cells`) filled
-    from their nearest good cell, and the cells to return as NaN: those of ``checked`` (the
-    ``invalid_check`` map; the cells that only the caller's ``invalid`` pixels emptied keep
-    their filled value). ``(None, None)`` when no cell has support."""
-    shape = comps[0].shape
-    bad = _bad_cells(valid, params.window, params.window_type, params.factor, shape)
-    if bad.all():
-        return None, None
-    filled = _nearest_fill(np.dstack(comps), bad)
-    comps = [np.ascontiguousarray(filled[..., 0]), np.ascontiguousarray(filled[..., 1])]
-    if checked is not valid:
-        bad = _bad_cells(checked, params.window, params.window_type, params.factor, shape) \
-            if checked is not None else None
-    return comps, bad
+def _combined_valid(checked: np.ndarray | None, invalid) -> np.ndarray | None:
+    """The pixels valid for ``invalid_check`` (``checked``, None: all) and not in the
+    caller's ``invalid`` (a map or :class:`~.invalid.InvalidPixels`); None: all."""
+    if isinstance(invalid, InvalidPixels):
+        invalid = invalid.mask
+    if invalid is None or not np.any(invalid):
+        return checked
+    return ~np.asarray(invalid, bool) if checked is None else checked & ~np.asarray(invalid, bool)
 
 
 def _valid_pixels(reference, frame: np.ndarray, texture_threshold: float) -> np.ndarray | None:
@@ -300,15 +303,6 @@ def _valid_pixels(reference, frame: np.ndarray, texture_threshold: float) -> np.
         else invalid_pixels(reference, texture_threshold=texture_threshold)
     inv = inv_ref | invalid_pixels(frame, texture_threshold=texture_threshold)
     return ~inv if inv.any() else None
-
-
-def _bad_cells(valid: np.ndarray, window: int, window_type: str, f: int, shape: tuple[int, int]) -> np.ndarray:
-    """Flow-grid cells where invalid pixels hold half or more of the cell or of the LK
-    window weight around its pixels."""
-    # a cell is kept if most of the window weight around its pixels lies on valid ones
-    w0 = _weight_pyramid(valid, 1)[0]
-    support = _block_mean(_window_filter(w0, _window_taps(window, window_type)), f, shape)
-    return (_block_mean(w0, f, shape) < 0.5) | (support < 0.5)
 
 
 def _replace_outliers(comps: list, threshold: float, epsilon: float) -> list:

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from flow_helpers import NoiseBackground, pixel_truth, plume_deflection, render
 
-from schlieren.pipeline.capture import (FALLBACK, GAIN_UNKNOWN, MOTION_APPLIED, PHOTOMETRIC_APPLIED, CaptureParams,
-                                        corrected_deflection, motion_displacement, motion_field, normalise_frame,
-                                        to_reference_grid)
+from schlieren.pipeline.capture import (FALLBACK, GAIN_UNKNOWN, MOTION_APPLIED, PHOTOMETRIC_APPLIED, SCREENED,
+                                        CaptureParams, corrected_deflection, motion_displacement, motion_field,
+                                        normalise_frame, to_reference_grid)
 from schlieren.pipeline.flow import FlowParams, deflection_stage, prepare_reference
 
 SHAPE = (192, 256)
@@ -88,7 +88,42 @@ def test_clean_capture_keeps_its_flow_bit_for_bit(background, prep):
     frame = render(background, SHAPE, plume_deflection(SHAPE, peak=0.4, width=15.0), noise=1.5,
                    rng=np.random.default_rng(3))
     d, corr = corrected_deflection(prep, frame, FLOW, static=_static())
-    assert corr.flags == 0
+    assert corr.flags == SCREENED  # the coarse levels' fit showed nothing to apply: no full-resolution fit
+    assert corr.fit.level > 0
+    np.testing.assert_array_equal(d, deflection_stage(prep, frame, FLOW))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_small_motion_above_the_tolerance_gets_the_full_registration(background, prep, seed):
+    # 0.012 px at the centre: 2.4 motion_tolerance and several of the coarse levels' standard
+    # deviations, so the screen passes the frame on to the full-resolution fit
+    m = np.array([0.011, -0.005, 0, 0, 0, 0, 0, 0.0])
+    frame = render(background, SHAPE, lambda u, v: motion_displacement(m, u, v, SIZE), noise=1.5,
+                   rng=np.random.default_rng(40 + seed))
+    d, corr = corrected_deflection(prep, frame, FLOW, static=_static())
+    assert corr.flags & MOTION_APPLIED and not corr.flags & SCREENED
+    assert corr.fit.level == 0
+    W, H = SIZE
+    y, x = np.mgrid[0:H:4, 0:W:4]
+    dx, dy = motion_displacement(corr.motion - m, x, y, SIZE)
+    assert np.sqrt(np.mean(dx * dx + dy * dy)) < 0.005  # px RMS over the image
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_small_gain_change_gets_the_full_registration(background, prep, seed):
+    # a 1 % flicker: 5 gain_tolerance, several of the coarse levels' standard deviations
+    frame = 1.01 * render(background, SHAPE, noise=1.5, rng=np.random.default_rng(50 + seed))
+    d, corr = corrected_deflection(prep, frame, FLOW, static=_static())
+    assert corr.flags & PHOTOMETRIC_APPLIED and not corr.flags & SCREENED
+    assert np.abs(corr.fit.photometric.gain - 1.01).max() < 0.003
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_clean_frame_is_screened_out(background, prep, seed):
+    frame = render(background, SHAPE, noise=1.5, rng=np.random.default_rng(60 + seed))
+    d, corr = corrected_deflection(prep, frame, FLOW, static=_static())
+    assert corr.flags == SCREENED and corr.fit.level > 0
+    assert corr.fit.samples < np.count_nonzero(_static())  # only the coarse levels' samples were fitted
     np.testing.assert_array_equal(d, deflection_stage(prep, frame, FLOW))
 
 
@@ -154,6 +189,26 @@ def test_defective_pixels_get_no_weight_and_no_nan(background):
     err_blind = np.abs(d_blind - d_clean)[around].mean()
     assert err_blind > 0.01  # px: pulled towards 0 around the hot pixels
     assert err < 0.5 * err_blind
+
+
+@pytest.mark.parametrize("invalid_check", [True, False])
+@pytest.mark.parametrize("clipped", [False, True])  # a saturated patch: the frame has invalid pixels of its own
+def test_prepared_invalid_pixels_give_the_same_flow(background, prep, invalid_check, clipped):
+    from schlieren.pipeline.flow import frame_pyramid, prepare_invalid
+
+    frame = render(background, SHAPE, plume_deflection(SHAPE, peak=0.4, width=15.0), noise=1.5,
+                   rng=np.random.default_rng(9))
+    if clipped:
+        frame[60:90, 20:60] = frame.max()
+    bad = np.zeros(SHAPE, bool)
+    bad[[30, 31, 90, 150], [40, 40, 200, 120]] = True
+    bad[100:104, 10:14] = True  # a cluster: empties a cell, filled from its neighbours
+    params = FlowParams(window=9, factor=2, auto_factor=False, invalid_check=invalid_check)
+    expect = deflection_stage(prep, frame, params, invalid=bad)
+    got = deflection_stage(prep, frame, params, invalid=prepare_invalid(prep, bad, params),
+                           pyramid=frame_pyramid(prep, frame))
+    np.testing.assert_array_equal(got, expect)
+    assert prepare_invalid(prep, np.zeros(SHAPE, bool), params) is None
 
 
 def test_flow_moved_back_onto_the_reference_grid():

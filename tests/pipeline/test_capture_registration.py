@@ -50,6 +50,19 @@ def test_known_affine_motion_recovered(background, reference, shift):
     assert fit.noise < 2.5
 
 
+def test_stop_early_returns_the_coarse_levels_fit(background, reference):
+    m = np.array([0.3, -0.2, 0, 0, 0, 0, 0.0, 0.0])
+    frame = render(background, SHAPE, _moved(m), noise=1.5, rng=np.random.default_rng(5))
+    seen = []
+    coarse = register_background(reference, frame, stop_early=lambda fit: seen.append(fit) or True)
+    assert seen == [coarse] and coarse.level == 1  # asked once, before the finest level
+    assert _rms_error(coarse.motion, m) < 0.02
+    full = register_background(reference, frame, stop_early=lambda fit: False)
+    assert full.level == 0 and full.samples > coarse.samples
+    assert _rms_error(full.motion, m) < 0.005
+    assert full.motion_sigma < coarse.motion_sigma
+
+
 def test_homography_model_recovers_a_tilt(background, reference):
     m = np.array([0.2, 0.1, 0.0, 0.0, 0.0, 0.0, 2e-6, -1.5e-6])  # 0.05 px more at the edges
     frame = render(background, SHAPE, _moved(m), noise=1.0, rng=np.random.default_rng(3))

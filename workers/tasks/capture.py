@@ -8,7 +8,8 @@ pre-smoothing is chosen from its reference's sharpness
 (:func:`~schlieren.pipeline.flow.auto_presmooth`, the sensor noise measured on the
 reference frames; Lucas-Kanade only) and stored (``presmooth``) for its flows. The
 camera's static region (the pixels whose rays miss the volume) needs only the calibration:
-each process computes it once (:func:`static_region`).
+each process computes it once (:func:`static_region`), and what the deflection tasks derive
+from these for every frame once per camera too (:func:`camera_capture`).
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from schlieren.storage.errors import SessionError
 from schlieren.storage.frames import open_frames
 from schlieren.workers.tasks.run_context import RunContext
 
-__all__ = ["capture_task", "static_region", "defective_pixels"]
+__all__ = ["capture_task", "static_region", "defective_pixels", "camera_capture"]
 
 
 def capture_task(ctx: RunContext, c: int) -> dict:
@@ -109,3 +110,11 @@ def defective_pixels(ctx: RunContext, c: int) -> np.ndarray | None:
         d = np.asarray(ctx.store.read("defective_pixels", (c,)))
         return d if d.any() else None
     return ctx.once(("defective_pixels", c), read)
+
+
+def camera_capture(ctx: RunContext, c: int, parity: int | None, flow) -> capture.CameraCapture:
+    """Camera ``c``'s :func:`~schlieren.pipeline.capture.prepare_capture` for its prepared
+    reference (of field ``parity``) and flow parameters ``flow`` (made once per process)."""
+    return ctx.once(("camera_capture", c, parity), lambda: capture.prepare_capture(
+        ctx.prepared_reference(c, parity), flow, ctx.config.capture, static=static_region(ctx, c),
+        defects=defective_pixels(ctx, c)))

@@ -4,7 +4,7 @@ The frame is compared with the camera's reference
 (:func:`~schlieren.pipeline.capture.corrected_deflection`: the flow of
 :func:`~schlieren.pipeline.flow.deflection_stage` with the camera's motion against the
 reference, the frame's gain and offset and the defective pixels removed; the reference's
-pyramid prepared once per process); the corrections (``background_motion``,
+pyramid and the camera's fixed inputs of the corrections prepared once per process); the corrections (``background_motion``,
 ``photometric``, ``capture_fit``) and the frame-quality vector are stored beside the flow:
 dark, saturated or frozen frames are flagged here and excluded by the resampling. A dropped frame, or a margin frame no output instant reads, stores a
 NaN field and its flags without computing a flow.
@@ -22,7 +22,7 @@ from schlieren.pipeline import flow as flowmod
 from schlieren.pipeline import frame_quality as fq
 from schlieren.pipeline.stages import stage
 from schlieren.storage.errors import SessionError
-from schlieren.workers.tasks.capture import defective_pixels, static_region
+from schlieren.workers.tasks.capture import camera_capture
 from schlieren.workers.tasks.resample import raw_range, resample_window
 from schlieren.workers.tasks.run_context import RunContext
 
@@ -48,7 +48,7 @@ def deflection_task(ctx: RunContext, c: int, j: int) -> dict:
     parity = src.parity(f) if hasattr(src, "parity") else None  # interlaced fields
     params = flow_params(ctx, c)
     d, corr = capture.corrected_deflection(ctx.prepared_reference(c, parity), img, params, ctx.config.capture,
-                                           static=static_region(ctx, c), defects=defective_pixels(ctx, c))
+                                           camera=camera_capture(ctx, c, parity, params))
     ctx.store.write("flow_raw", (c, j), d.astype(np.float32))
     _write_capture(ctx, c, j, corr)
     # dark, saturated or frozen frames: flagged here, excluded by resampling
