@@ -146,6 +146,8 @@ class CameraCheck:
     footprint : Footprint
     notes : tuple of str
         Warnings, one line each.
+    n_reference : int
+        The reference frames the run averages (the flow noise's reference term).
     """
 
     name: str
@@ -163,6 +165,7 @@ class CameraCheck:
     footprint: Footprint
     notes: tuple = field(default=())
     stuck: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
+    n_reference: int = 1
 
     @property
     def shift(self) -> FrameMotion | None:
@@ -321,7 +324,7 @@ def check_camera(cam: Camera, grid: Grid, reference_frames: np.ndarray, frames: 
     flash, offset = _flash(cam, strobe_rows, strobe_first, frame_rate)
     notes = _notes(flow_noise, motions, clipped, hot, dead, stuck, flash, offset, fp, strobe_rows is not None, params)
     return CameraCheck(cam.name, noise, source, flow_noise, window, focus, clipped, motions, hot, dead, flash,
-                       offset, fp, tuple(notes), stuck)
+                       offset, fp, tuple(notes), stuck, n_ref)
 
 
 def _flow_noise(reference: np.ndarray, fp: Footprint, *, noise: float, n_reference: int, window: int,
