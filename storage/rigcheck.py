@@ -25,7 +25,7 @@ from schlieren.storage.session.checks import frames_beside_strobe
 __all__ = ["CameraInputs", "camera_inputs", "family_cases", "folder_state", "FAMILY_FILES"]
 
 #: The family's results files read by :func:`family_cases` (relative to the results folder).
-FAMILY_FILES = ("realistic.json", "realistic_bounds.json")
+FAMILY_FILES = ("realistic.json", "realistic_bounds.json", "check_family.json")
 
 #: At most this many reference frames are read. Enough: the sensor noise from 8 frames has
 #: 7 degrees of freedom per pixel over some 10^5 pixels (a relative error of a few 1e-4),
@@ -135,8 +135,9 @@ def camera_inputs(session, c: int, *, motion_frames: int = 3) -> CameraInputs:
 
 def family_cases(results_dir: str | os.PathLike) -> tuple[list[FamilyCase], list[str]]:
     """The benchmark family's cases (``realistic.json``: each case's run; its bounds from
-    ``realistic_bounds.json`` where present) and the files read; ``([], [])`` when the
-    folder has neither."""
+    ``realistic_bounds.json`` and its cameras' flow noise by LK window from
+    ``check_family.json`` where present) and the files read; ``([], [])`` when the
+    folder has none."""
     root = Path(results_dir)
     runs, bounds, read = {}, {}, []
     p = root / FAMILY_FILES[0]
@@ -147,6 +148,11 @@ def family_cases(results_dir: str | os.PathLike) -> tuple[list[FamilyCase], list
     if p.is_file():
         bounds = json.loads(p.read_text(encoding="utf-8")).get("cases", {})
         read.append(str(p))
+    noise = {}
+    p = root / FAMILY_FILES[2]
+    if p.is_file():
+        noise = json.loads(p.read_text(encoding="utf-8")).get("cases", {})
+        read.append(str(p))
     cases = []
     for name, c in runs.items():
         row = c.get("rows", {}).get("optical_flow")
@@ -154,9 +160,12 @@ def family_cases(results_dir: str | os.PathLike) -> tuple[list[FamilyCase], list
             continue
         b = bounds.get(name, {}).get("rows", {}).get("consistent, run hull", {})
         bound = b.get("plume_db")
+        fn = noise.get(name, {})
         cases.append(FamilyCase(name, int(c["cameras"]), tuple(c["size"]), bool(c.get("video")),
                                 float(row["psnr"]), float(row["psnr_plume"]),
-                                None if bound is None else float(bound)))
+                                None if bound is None else float(bound), float(fn.get("noise", 1.5)),
+                                tuple(sorted((int(w), float(v)) for w, v in fn.get("flow_noise", {}).items())),
+                                int(fn.get("n_reference", 16))))
     return cases, read
 
 

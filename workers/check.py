@@ -22,7 +22,8 @@ import numpy as np
 
 from schlieren.pipeline.capture.params import CaptureParams
 from schlieren.pipeline.flow.params import FlowParams
-from schlieren.pipeline.rigcheck import CameraCheck, CheckParams, FamilyCase, check_camera, expected_accuracy
+from schlieren.pipeline.rigcheck import (FLOW_NOISE_SHARE, CameraCheck, CheckParams, FamilyCase, check_camera,
+                                         expected_accuracy, expected_psnr)
 from schlieren.storage.errors import SchlierenInputError
 
 log = logging.getLogger(__name__)
@@ -135,6 +136,46 @@ def table_rows(rig: RigCheck, params: CheckParams = CheckParams()) -> list[list[
     return rows
 
 
+def flow_noise_ratios(rig: RigCheck) -> dict[str, tuple[float, float]]:
+    """Per checked camera: its predicted flow noise over what the family case's in-focus
+    background gives at its LK window, at its own sensor noise and reference frames (what
+    is left is the background: focus and texture) and at the family's (everything, the
+    sensor and the reference included); empty without the family's flow noise
+    (``check_family.json``)."""
+    f = rig.family
+    out = {}
+    for c in rig.checked:
+        ref = f.flow_noise_at(c.window) if f is not None else None
+        if ref and np.isfinite(c.flow_noise) and np.isfinite(c.noise) and c.noise > 0:
+            out[c.name] = (c.flow_noise / f.flow_noise_at(c.window, c.noise, c.n_reference), c.flow_noise / ref)
+    return out
+
+
+def _loss(ratio: float) -> float:
+    """The in-plume dB a rig of cameras with this flow-noise ratio loses (expect.py)."""
+    return 10.0 * np.log10(1.0 - FLOW_NOISE_SHARE + FLOW_NOISE_SHARE * ratio * ratio)
+
+
+def _flow_noise_notes(rig: RigCheck, params: CheckParams) -> list[str]:
+    """One line naming the cameras whose background gives well more flow noise than the
+    family's in focus, one for those whose flow noise is high for another reason (the sensor)."""
+    ratios = flow_noise_ratios(rig)
+    soft = {k: v for k, v in ratios.items() if v[0] > params.max_flow_noise_excess}
+    noisy = {k: v for k, v in ratios.items() if k not in soft and v[1] > params.max_flow_noise_excess}
+    out = []
+    if soft:
+        r = [v[0] for v in soft.values()]
+        out.append(f"{', '.join(soft)}: predicted flow noise {min(r):.2f}-{max(r):.2f}x what the benchmark family's "
+                   f"in-focus background gives at the same window and sensor noise: out of focus, or a weaker "
+                   f"texture (about -{_loss(float(np.median(r))):.1f} dB in plume)")
+    if noisy:
+        r = [v[1] for v in noisy.values()]
+        out.append(f"{', '.join(noisy)}: predicted flow noise {min(r):.2f}-{max(r):.2f}x the benchmark family's at "
+                   f"the same window: a noisier sensor or fewer reference frames (about "
+                   f"-{_loss(float(np.median(r))):.1f} dB in plume)")
+    return out
+
+
 def _notes(rig: RigCheck, params: CheckParams) -> list[str]:
     best = _focus_best(rig)
     out = []
@@ -144,27 +185,34 @@ def _notes(rig: RigCheck, params: CheckParams) -> list[str]:
             notes.append(f"focus {c.focus / best:.2f} of the rig's best: out of focus, or a coarser view of the "
                          "background")
         out += [f"{c.name}: {n}" for n in notes]
-    return out
+    return out + _flow_noise_notes(rig, params)
 
 
 def expectation_text(rig: RigCheck) -> str:
-    """The in-plume accuracy to expect, and where it comes from."""
+    """The in-plume accuracy to expect from this rig's predicted flow noise, and where it comes from."""
     f = rig.family
     if f is None:
         return "expected accuracy: no benchmark family results found (benchmarks/results/realistic.json)"
-    bound = f" (its tomography's bound {f.plume_bound:.1f} dB)" if f.plume_bound is not None else ""
-    noise = [c.noise for c in rig.checked if np.isfinite(c.noise)]
-    ratio = ""
-    if noise:
-        r = float(np.median(noise)) / f.noise
-        ratio = f"; this rig's sensor noise is {r:.2g}x the family's {f.noise:g} grey levels"
-        if r > 1.5:
-            ratio += ": expect less"
     files = ", ".join(os.path.relpath(p) if not os.path.relpath(p).startswith("..") else p
                       for p in rig.family_files)
-    return (f"expected in plume: {f.plume:.1f} dB, whole box {f.whole:.1f} dB{bound}, as the benchmark family's "
-            f"nearest case {f.name} ({f.cameras} cameras, {f.size[0]}x{f.size[1]}, "
-            f"{'video' if f.video else 'lossless'}) reached for 0.25-0.4 px deflections{ratio} [{files}]")
+    case = (f"the benchmark family's nearest case {f.name} ({f.cameras} cameras, {f.size[0]}x{f.size[1]}, "
+            f"{'video' if f.video else 'lossless'}), which reached {f.plume:.1f} dB in plume and {f.whole:.1f} dB "
+            f"in the whole box for 0.25-0.4 px deflections")
+    bound = f" (its tomography's bound {f.plume_bound:.1f} dB)" if f.plume_bound is not None else ""
+    ratios = [v[1] for v in flow_noise_ratios(rig).values()]
+    if not ratios:
+        noise = [c.noise for c in rig.checked if np.isfinite(c.noise)]
+        r = float(np.median(noise)) / f.noise if noise else float("nan")
+        return (f"expected in plume: {f.plume:.1f} dB, whole box {f.whole:.1f} dB{bound}, as {case}; this rig's "
+                f"sensor noise is {r:.2g}x the family's {f.noise:g} grey levels (the family's flow noise is not "
+                f"measured: check_family.json) [{files}]")
+    plume = expected_psnr(f.plume, ratios, bound=f.plume_bound)
+    whole = expected_psnr(f.whole, ratios)
+    rms = float(np.sqrt(np.mean(np.square(ratios))))
+    return (f"expected in plume: {plume:.1f} dB, whole box {whole:.1f} dB, from this rig's predicted flow noise "
+            f"({rms:.2f}x, RMS over the cameras, what the family's in-focus background gives at the same window, "
+            f"the family's {f.noise:.2f} grey levels and {f.n_reference} reference frames) against {case}{bound} "
+            f"[{files}]")
 
 
 def _format_table(header: list[str], units: list[str], rows: list[list[str]]) -> list[str]:

@@ -98,6 +98,16 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"schlieren {args.command}: interrupted; completed chunks are kept", file=sys.stderr)
         return 130
+    finally:
+        _settle_zarr()
+
+
+def _settle_zarr() -> None:
+    """No zarr operation left running when the process exits (storage/inflight.py)."""
+    if "zarr" in sys.modules:
+        from schlieren.storage.inflight import settle
+
+        settle(timeout=10.0)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -93,4 +93,5 @@ class CaptureParams:
     defect_frames: int = param(
         8, unit="frames", ge=0, le=1000,
         help="Capture frames read (evenly spread over the processed range) beside the reference frames to find "
-             "defective pixels. The stuck test needs at least 8 frames in all.")
+             "defective pixels. More frames find more stuck pixels: one is flagged only where a normal pixel would "
+             "not keep its values that close by chance.")

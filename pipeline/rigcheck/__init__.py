@@ -14,11 +14,11 @@ with a rig like it (:mod:`.expect`). Reading the files is storage's
 
 from schlieren.pipeline.rigcheck.camera import (CameraCheck, Footprint, FrameMotion, check_camera, footprint,
                                                frame_motions)
-from schlieren.pipeline.rigcheck.expect import FamilyCase, expected_accuracy
+from schlieren.pipeline.rigcheck.expect import FLOW_NOISE_SHARE, FamilyCase, expected_accuracy, expected_psnr
 from schlieren.pipeline.rigcheck.image import clipped_fractions, focus_energy
 from schlieren.pipeline.rigcheck.noise import predicted_flow_noise, sensor_noise, sensor_noise_from_pairs
 from schlieren.pipeline.rigcheck.params import CheckParams
 
-__all__ = ["CameraCheck", "CheckParams", "FamilyCase", "Footprint", "FrameMotion", "check_camera",
-           "clipped_fractions", "expected_accuracy", "focus_energy", "footprint", "frame_motions",
+__all__ = ["CameraCheck", "CheckParams", "FLOW_NOISE_SHARE", "FamilyCase", "Footprint", "FrameMotion", "check_camera",
+           "clipped_fractions", "expected_accuracy", "expected_psnr", "focus_energy", "footprint", "frame_motions",
            "predicted_flow_noise", "sensor_noise", "sensor_noise_from_pairs"]

@@ -148,6 +148,8 @@ class CameraCheck:
     footprint : Footprint
     notes : tuple of str
         Warnings, one line each.
+    n_reference : int
+        The reference frames the run averages (the flow noise's reference term).
     """
 
     name: str
@@ -165,6 +167,7 @@ class CameraCheck:
     footprint: Footprint
     notes: tuple = field(default=())
     stuck: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
+    n_reference: int = 1
 
     @property
     def shift(self) -> FrameMotion | None:
@@ -238,21 +241,12 @@ def frame_motions(cam: Camera, grid: Grid, reference: np.ndarray, frames, *, fra
     return tuple(out)
 
 
-#: Frames the check's stuck-pixel test needs (the run's needs fewer: it reads more frames).
-#: A pixel of a static view repeats one quantised value in all ``n`` frames by chance with
-#: probability about ``(0.4 / noise)^(n - 1)``: at 1.5 grey levels, 3e-5 with 9 frames
-#: (dozens of false stuck pixels in a 1.6 Mpx image), 3e-9 with 16.
-MIN_STUCK_FRAMES = 16
-
-
-def _defects(reference: np.ndarray, frames, capture: CaptureParams) -> np.ndarray:
-    """The run's defective-pixel map (its tests and thresholds) from the reference (the
-    mean of its frames: a defect is in every one, and the frames of one static view add
-    only their noise to the test) and the checked frames; the stuck test only with
-    :data:`MIN_STUCK_FRAMES` of them."""
-    stack = [reference] + ([] if frames is None else list(frames))
-    return cap.find_defective_pixels(stack, threshold=capture.defect_threshold, stuck_ratio=capture.stuck_ratio,
-                                     min_stuck_frames=MIN_STUCK_FRAMES)
+def _defects(reference_frames: np.ndarray, frames, capture: CaptureParams) -> np.ndarray:
+    """The run's defective-pixel map (its tests and thresholds, its false-alarm control of
+    the stuck test) from the reference frames, each one as the run reads them, and the
+    checked frames."""
+    stack = list(reference_frames) + ([] if frames is None else list(frames))
+    return cap.find_defective_pixels(stack, threshold=capture.defect_threshold, stuck_ratio=capture.stuck_ratio)
 
 
 def _notes(flow_noise: float, motions, clipped, hot, dead, stuck, flash: str, offset, fp: Footprint, strobe: bool,
@@ -326,7 +320,7 @@ def check_camera(cam: Camera, grid: Grid, reference_frames: np.ndarray, frames: 
                              window=window, flow=flow)
     focus = focus_energy(reference, noise=(noise if np.isfinite(noise) else 0.0) / np.sqrt(len(refs)))
     clipped = clipped_fractions(reference, full_scale=full_scale)
-    defects = _defects(reference, frames, capture) if capture.defective_pixels else None
+    defects = _defects(refs, frames, capture) if capture.defective_pixels else None
     hot, dead, stuck = ((np.argwhere(defects & bit) if defects is not None else np.zeros((0, 2), np.int64))
                         for bit in (cap.HOT, cap.DEAD, cap.STUCK))
     motions = () if capture.motion_model == "none" else \
@@ -335,7 +329,7 @@ def check_camera(cam: Camera, grid: Grid, reference_frames: np.ndarray, frames: 
     flash, offset = _flash(cam, strobe_rows, strobe_first, frame_rate)
     notes = _notes(flow_noise, motions, clipped, hot, dead, stuck, flash, offset, fp, strobe_rows is not None, params)
     return CameraCheck(cam.name, noise, source, flow_noise, window, focus, clipped, motions, hot, dead, flash,
-                       offset, fp, tuple(notes), stuck)
+                       offset, fp, tuple(notes), stuck, n_ref)
 
 
 def _flow_noise(reference: np.ndarray, fp: Footprint, *, noise: float, n_reference: int, window: int,

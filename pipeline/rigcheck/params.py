@@ -22,6 +22,11 @@ class CheckParams:
         0.03, unit="px", gt=0, le=100,
         help="A camera whose predicted flow noise exceeds this is flagged (a tenth of the weakest "
              "deflections worth reconstructing).")
+    max_flow_noise_excess: float = param(
+        1.3, unit="1", gt=1, le=100,
+        help="A camera whose predicted flow noise exceeds this multiple of what the benchmark family's in-focus "
+             "background gives at its LK window is flagged (at its own sensor noise: out of focus or a weak "
+             "texture; at the family's: a noisy sensor).")
     min_focus_ratio: float = param(
         0.7, unit="1", ge=0, le=1,
         help="A camera whose finest-scale texture energy is below this fraction of the rig's best "

@@ -283,3 +283,30 @@ def test_check_camera_reports_every_injected_defect(tex):
     assert any("1 hot and 0 dead pixels" in n for n in r.notes)
     assert r.window == 5 or r.window % 2 == 1
     assert 0 < r.flow_noise < 0.05
+
+
+def test_expected_psnr_from_the_cameras_flow_noise():
+    """The tune case's noise-matched copies (realistic_lab.md): flow noise x1.39 lost 0.63 dB
+    in plume, x1.69 lost 1.23 dB; the model with the share 0.17 gives both within 0.1 dB,
+    the case's own flow noise gives the case's PSNR, and less noise never beats the bound."""
+    from schlieren.pipeline.rigcheck import expected_psnr
+
+    assert expected_psnr(30.68, [1.0, 1.0]) == pytest.approx(30.68)
+    assert expected_psnr(30.68, [1.39] * 16) == pytest.approx(30.05, abs=0.1)
+    assert expected_psnr(30.68, [1.69] * 16) == pytest.approx(29.45, abs=0.1)
+    assert expected_psnr(30.68, [0.1] * 4, bound=31.0) == 31.0
+    # a mean of squares: one very noisy camera of four costs what its variance adds
+    assert expected_psnr(30.0, [1, 1, 1, 2]) == pytest.approx(expected_psnr(30.0, [np.sqrt(7 / 4)] * 4))
+
+
+def test_family_flow_noise_at_a_window_noise_and_reference():
+    case = FamilyCase("a", 16, (640, 480), False, 45.6, 30.7, 34.4, noise=1.5,
+                      flow_noise=((9, 0.012), (15, 0.0072)), n_reference=16)
+    assert case.flow_noise_at(9) == pytest.approx(0.012)
+    assert case.flow_noise_at(3) == pytest.approx(0.012) and case.flow_noise_at(25) == pytest.approx(0.0072)
+    mid = case.flow_noise_at(11)
+    assert 0.0072 < mid < 0.012 and np.log(0.012 / mid) / np.log(11 / 9) == pytest.approx(np.log(0.012 / 0.0072)
+                                                                                            / np.log(15 / 9))
+    assert case.flow_noise_at(9, noise=3.0) == pytest.approx(0.024)
+    assert case.flow_noise_at(9, n_reference=1) == pytest.approx(0.012 * np.sqrt(2 / (1 + 1 / 16)))
+    assert FamilyCase("b", 8, (960, 720), False, 43.5, 28.5).flow_noise_at(9) is None

@@ -14,6 +14,7 @@ import logging
 import time
 
 from schlieren.pipeline.stages import stage
+from schlieren.storage.inflight import settle
 from schlieren.workers.monitoring import log_receipt
 from schlieren.workers.tasks.capture import capture_task
 from schlieren.workers.tasks.deflection import deflection_task
@@ -99,8 +100,10 @@ def _run_one(store_path: str, stage_name: str, index: tuple[int, ...], run_token
     try:
         return _run_task(store_path, stage_name, index, run_token)
     except TaskFailed:
+        settle()  # the failed call's other chunk reads and writes end before the failure is reported
         raise
     except Exception as exc:  # the store unreadable, the disk full while marking...: one line
+        settle()
         raise TaskFailed(failure_text(f"{stage_name} {list(index)}", exc)) from exc
 
 
