@@ -17,7 +17,7 @@ import numpy as np
 from schlieren.pipeline import capture, sync
 from schlieren.pipeline import flow as flowmod
 from schlieren.pipeline.residuals import predict_flows
-from schlieren.workers.tasks.capture import defective_pixels, static_region
+from schlieren.workers.tasks.capture import camera_capture
 from schlieren.workers.tasks.deflection import flow_params
 from schlieren.workers.tasks.resample import frames_read
 from schlieren.workers.tasks.run_context import RunContext
@@ -41,16 +41,19 @@ def _camera_flow(ctx: RunContext, c: int, k: int, predicted: np.ndarray) -> np.n
     src = ctx.frames(c)
     lo, hi, excluded, _ = frames_read(ctx, c, k)
 
-    def corrected(prep, img, p):
-        return capture.corrected_deflection(prep, img, p, ctx.config.capture, static=static_region(ctx, c),
-                                            defects=defective_pixels(ctx, c))[0]
-
     raw = []
     for f in range(lo, hi + 1):
         if f in excluded or f in src.dropped:  # skipped by the resampling: its stored (NaN or flagged) flow
             raw.append(ctx.read_upstream("flow_raw", (c, f - ctx.raw_first)))
             continue
         parity = src.parity(f) if hasattr(src, "parity") else None
+        # the camera's fixed inputs of the corrections depend on the reference's shape and
+        # levels only, not its values: the deflection tasks' apply to the warped reference too
+        fixed = camera_capture(ctx, c, parity, params)
+
+        def corrected(prep, img, p, fixed=fixed):
+            return capture.corrected_deflection(prep, img, p, ctx.config.capture, camera=fixed)[0]
+
         raw.append(flowmod.refined_deflection(ctx.prepared_reference(c, parity), ctx.frame(c, f), pixels, params,
                                               deflection=corrected))
     return sync.resample_flow(np.stack(raw), lo, float(ctx.times()[k]), offset=ctx.time_offset(c),
