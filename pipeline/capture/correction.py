@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from schlieren.pipeline.flow import FlowParams, deflection_stage, frame_pyramid, prepare_reference
+from schlieren.pipeline.flow import FlowParams, deflection_stage, frame_pyramid, nonfinite_cells, prepare_reference
 from schlieren.pipeline.flow.splines import warp_image
 
 from .camera import CameraCapture, prepare_capture
@@ -236,7 +236,7 @@ def to_reference_grid(flow: np.ndarray, motion, image_size, factor: int) -> np.n
     factor : int
     """
     shift = -motion_field(motion, image_size, factor) / np.float32(factor)  # flow cells
-    bad = ~np.isfinite(flow).all(axis=-1)
+    bad = nonfinite_cells(flow)
     src = np.where(bad[..., None], 0.0, flow).astype(np.float32)
     out = np.dstack([warp_image(src[..., k], shift) for k in range(2)])
     if bad.any():
