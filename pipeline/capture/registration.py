@@ -342,7 +342,7 @@ class _Solver:
             cols = np.array(motion + [nm + k, nm + k1, nm + nk + k, nm + nk + k1])
             Jw = J[s0:s1] * wt[s0:s1, None]
             if k1 != k:  # distinct columns: one addition per entry, as np.add.at makes
-                A[np.ix_(cols, cols)] += Jw.T @ J[s0:s1]
+                A[cols[:, None], cols] += Jw.T @ J[s0:s1]
                 rhs[cols] += Jw.T @ e[s0:s1]
             else:  # the last knot's interval names its knot twice: the additions accumulate
                 np.add.at(A, (cols[:, None], cols[None, :]), Jw.T @ J[s0:s1])
