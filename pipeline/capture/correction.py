@@ -14,7 +14,10 @@ kernel of the ``deflection`` stage with :class:`~.params.CaptureParams`.
    (:func:`~.motion.fit_flow_motion`) and, whenever a motion was applied, removed too,
    however small: the registration's error is a bias on every cell, which the masks'
    potential (:func:`~schlieren.pipeline.masks.flow_potential`) integrates into a ramp
-   across the image; where the static region is too small the
+   across the image. When the registration's motion was not applied (below its
+   significance, as against a reference of few noisy frames) but this fit of thousands of
+   cells shows one above ``motion_tolerance`` and its own significance, it is the motion
+   and is removed the same way; where the static region is too small the
    registration used every pixel, and this fit on the flow's low-deflection cells is what
    separates the plume from the motion;
 5. with ``motion_source: camera`` the deflections are moved back onto the reference's
@@ -155,8 +158,12 @@ def corrected_deflection(reference, frame: np.ndarray, flow: FlowParams = FlowPa
         d = deflection_stage(prep, img, flow, info=info, motion=start, invalid=bad, pyramid=pyramid)
     residual = float("nan")
     if capture.motion_model != "none":
-        extra, _ = fit_flow_motion(d, cam.cells, size, flow.factor, model=capture.motion_model)
+        extra, finfo = fit_flow_motion(d, cam.cells, size, flow.factor, model=capture.motion_model)
         residual = motion_extent(extra, size)
+        if not moved and _flow_motion_applies(residual, finfo, capture):
+            # the registration's motion was not applied (below its significance against a noisy
+            # reference), but the flow's static cells show one: it is the whole motion
+            moved, motion = True, np.zeros_like(motion)
         if moved:  # a bias left on every cell becomes a ramp of the masks' potential
             d = d - motion_field(extra, size, flow.factor)
             motion = motion + extra
@@ -174,6 +181,18 @@ def _motion_applies(fit: BackgroundFit, capture: CaptureParams, size, margin: fl
     extent = motion_extent(fit.motion, size)
     return capture.motion_model != "none" and extent > margin * capture.motion_tolerance and \
         not extent <= margin * capture.significance * fit.motion_sigma
+
+
+def _flow_motion_applies(extent: float, info: dict, capture: CaptureParams) -> bool:
+    """Whether the motion the flow shows on the static cells (:func:`~.motion.fit_flow_motion`,
+    largest displacement ``extent``) moves some pixel by more than ``motion_tolerance`` and by
+    more than ``significance`` of its standard deviation (the fit's residual RMS over the
+    square root of its cells: the translation's, a lower bound of the extent's)."""
+    cells = int(info.get("cells", 0))
+    if capture.motion_model == "none" or cells == 0 or not np.isfinite(extent):
+        return False
+    sigma = float(info.get("rms", np.inf)) / np.sqrt(cells)
+    return extent > capture.motion_tolerance and extent > capture.significance * sigma
 
 
 def _photometric_applies(fit: BackgroundFit, capture: CaptureParams, prep, margin: float = 1.0) -> bool:
