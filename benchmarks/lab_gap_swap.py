@@ -88,6 +88,82 @@ def swap(clean: Path, lab: Path, truth: Path, frame: int) -> dict:
     return {"frame": k, "rows": rows, "stats": stats}
 
 
+def flow_errors(store: Path, truth: Path, plume_px: float = 0.02) -> dict:
+    """The stored flows against the truth's deflections on the flow cells (the flow's window
+    blur included): RMS error on the cells where the truth exceeds ``plume_px`` (in plume) and
+    where it is zero (quiet), and each split into the part common to every frame (fixed
+    pattern: what a reference's noise leaves) and the part that changes from frame to frame,
+    from the cells' mean error over the frames and their spread (``F = mean(m^2) - s^2 / n``)."""
+    from schlieren.storage import synthetic_io as sio
+    from schlieren.storage.store import ResultStore
+    from schlieren.workers.bench.realistic_metrics import _quiet_cells
+
+    st = ResultStore.open(store, mode="r")
+    flow = np.asarray(st.read("flow"), dtype=np.float64)  # camera, frame, v, u, 2
+    u, v = (np.asarray(st.read(k), dtype=np.float64) for k in ("u", "v"))
+    t = sio.read_truth(truth)
+    tf = int(t.attrs.get("flow_factor", 3))
+    tdef = np.asarray(t.group["deflection"][...], dtype=np.float64)
+    n = min(flow.shape[1], tdef.shape[1])
+    rows = np.clip((v // tf).astype(int), 0, tdef.shape[2] - 1)
+    cols = np.clip((u // tf).astype(int), 0, tdef.shape[3] - 1)
+    out = {}
+    for name in ("plume", "quiet"):
+        tot, fixed, cells = 0.0, 0.0, 0
+        for c in range(flow.shape[0]):
+            td = tdef[c, :n][:, rows][:, :, cols]  # frame, v, u, 2
+            if name == "quiet":
+                sel = np.all([_quiet_cells(tdef[c, k], tf, u, v) for k in range(n)], axis=0)
+            else:
+                sel = np.all(np.hypot(td[..., 0], td[..., 1]) > plume_px, axis=0)
+            e = flow[c, :n] - td
+            ok = sel & np.isfinite(e).all(axis=(0, -1))
+            e = e[:, ok]  # frame, cells, 2
+            if e.shape[1] == 0:
+                continue
+            m = e.mean(axis=0)
+            s2 = e.var(axis=0, ddof=1) if n > 1 else np.zeros_like(m)
+            tot += float(np.sum(e ** 2) / n)
+            fixed += float(np.sum(m ** 2) - np.sum(s2) / n)
+            cells += e.shape[1]
+        out[name] = {"rms": float(np.sqrt(tot / max(cells, 1))),
+                     "fixed_rms": float(np.sqrt(max(fixed, 0.0) / max(cells, 1))), "cells": cells}
+    return out
+
+
+def hull_variants(store: Path, truth: Path, frame: int) -> dict:
+    """One run's frame solved from its own flows through hulls carved from its own masks
+    with other settings: the strict intersection (the run's), one or two cameras allowed to
+    miss a voxel (``hull.max_misses``), the masks dilated by one more cell; and the hull's
+    plume voxels lost (the truth's plume, ``|n - n_amb|`` above 1 % of its range)."""
+    import dataclasses
+
+    from realistic_bounds import integrate_and_score
+    from scipy import ndimage
+
+    from schlieren.pipeline import hull as hullmod
+    from schlieren.pipeline import metrics, tomography
+    from schlieren.workers import tasks
+
+    k = int(frame)
+    ctx, geom, t_on, r_amb = _context(store, truth, k)
+    params, blur = tasks.tomo_params(ctx), tasks.flow_blur(ctx)
+    flows = ctx.tomography_flows(k)
+    ms = np.stack([np.asarray(ctx.store.read("mask", (c, k)), bool) for c in range(len(ctx.cameras))])
+    plume = metrics.plume_mask(t_on, r_amb)
+    rows = {}
+    for name, misses, grow in (("run hull", 0, 0), ("max_misses 1", 1, 0), ("max_misses 2", 2, 0),
+                               ("masks dilated 1 more cell", 0, 1)):
+        m = ms if not grow else np.stack([ndimage.binary_dilation(x, iterations=grow) for x in ms])
+        hp = dataclasses.replace(ctx.config.hull, max_misses=misses)
+        h = hullmod.visual_hull(m, ctx.cameras, ctx.session.grid, ctx.flow_grid, params=hp)
+        g, _ = tomography.solve_gradient(geom, flows, h, params=params, **blur)
+        w, p = integrate_and_score(ctx, g, h, t_on, r_amb)
+        rows[name] = {"whole_db": w, "plume_db": p, "hull_voxels": int(h.sum()),
+                      "plume_voxels_outside": int((plume & ~h).sum()), "plume_voxels": int(plume.sum())}
+    return rows
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--clean", required=True)
@@ -95,7 +171,18 @@ def main(argv=None) -> int:
     ap.add_argument("--truth", required=True)
     ap.add_argument("--frame", type=int, default=1)
     ap.add_argument("--out", default=None, help="JSON file to write")
+    ap.add_argument("--hulls", action="store_true", help="only each run's own flows through other hulls")
+    ap.add_argument("--errors-only", action="store_true", help="only the flows' errors against the truth")
     a = ap.parse_args(argv)
+    if a.hulls:
+        for s in (a.clean, a.lab):
+            for name, r in hull_variants(Path(s), Path(a.truth), a.frame).items():
+                print(s, name, json.dumps(r), flush=True)
+        return 0
+    if a.errors_only:
+        for s in (a.clean, a.lab):
+            print(s, json.dumps(flow_errors(Path(s), Path(a.truth))))
+        return 0
     res = swap(Path(a.clean), Path(a.lab), Path(a.truth), a.frame)
     res["command"] = "python benchmarks/lab_gap_swap.py " + " ".join(argv or sys.argv[1:])
     for name, r in res["rows"].items():
