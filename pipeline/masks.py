@@ -97,10 +97,10 @@ class MaskParams:
              "times `deflection_threshold` (lossy video). 0 (or at least `noise_factor`) disables it.",
         see="benchmarks/results/realistic_no_grow.md", tuned=True)
     baseline: str = param(
-        "static", choices=("static", "median"),
-        help="Zero of each potential: `static` subtracts the quadratic surface it shows on the cells whose rays "
-             "miss the volume, where a small affine bias of the flow integrates into one (else, or with `median`, "
-             "the whole potential's median, as in the paper).",
+        "median", choices=("median", "static"),
+        help="Zero of each potential: `median` subtracts the whole potential's median (the paper); `static` the "
+             "quadratic surface it shows on the cells whose rays miss the volume, where a small affine bias of the "
+             "flow integrates into one (lab captures, few reference frames; else the median).",
         see="benchmarks/results/realistic_labgap.md")
 
 
@@ -176,8 +176,8 @@ def static_baseline(potential: np.ndarray, cells: np.ndarray) -> np.ndarray | No
     :data:`BASELINE_MIN_CELLS` or span less than :data:`BASELINE_SPAN` of either axis.
 
     Where no ray crosses the volume the potential must vanish; an affine bias of the flow
-    (a camera motion or a lighting change removed a little off, the reference's noise seen
-    through the registration) integrates into a quadratic potential over the whole image,
+    (a camera's motion or the lighting's change removed a little off, as against a reference
+    of few noisy frames) integrates into a quadratic potential over the whole image,
     which this removes; the plume's own potential, inside the volume's image, is not fitted.
     """
     cells = np.asarray(cells, bool)

@@ -2,8 +2,8 @@
 
 A mask is the part of a camera's image whose deflections belong to the flow, not to the
 noise (:mod:`schlieren.pipeline.masks`): each camera-frame's flow is integrated into a
-potential (paper sec. 4; its zero the quadratic surface it shows on the cells whose rays
-miss the volume, ``masks.baseline``) and summarised; one ``threshold`` task pools the summaries of
+potential (paper sec. 4; with ``masks.baseline: static`` its zero is the quadratic surface
+it shows on the cells whose rays miss the volume) and summarised; one ``threshold`` task pools the summaries of
 the whole sequence into one threshold; each mask then thresholds the evidence of its
 frame and its temporal neighbours.
 """
