@@ -42,6 +42,7 @@ __all__ = [
     "frame_evidence",
     "mask_from_evidence",
     "flow_noise",
+    "static_baseline",
     "GROW_NOISE_RATIO",
 ]
 
@@ -96,21 +97,39 @@ class MaskParams:
              "connect to the evidence join it, where the noise lifts the criterion above `GROW_NOISE_RATIO` "
              "times `deflection_threshold` (lossy video). 0 (or at least `noise_factor`) disables it.",
         see="benchmarks/results/realistic_no_grow.md", tuned=True)
+    baseline: str = param(
+        "median", choices=("median", "static"),
+        help="Zero of each potential: `median` subtracts the whole potential's median (the paper); `static` the "
+             "quadratic surface it shows on the cells whose rays miss the volume, where a small affine bias of the "
+             "flow integrates into one (lab captures, few reference frames; else the median).",
+        see="benchmarks/results/realistic_labgap.md")
 
 
-def flow_potential(flow: np.ndarray) -> np.ndarray:
+#: :func:`flow_potential`'s quadratic baseline needs static cells spanning at least this
+#: fraction of the grid along both axes (a surface fitted on one side of the volume's image
+#: would be extrapolated across it) and at least :data:`BASELINE_MIN_CELLS` of them.
+BASELINE_SPAN = 0.75
+BASELINE_MIN_CELLS = 100
+
+
+def flow_potential(flow: np.ndarray, *, static: np.ndarray | None = None) -> np.ndarray:
     """Least-squares 2-D Poisson integration of a deflection field (paper sec. 4).
 
     Solves ``min_P sum_edges (P_b - P_a + <delta>_ab)^2`` over all horizontal and vertical
     neighbour pairs ``a -> b`` of the grid, where ``<delta>_ab`` is the mean of the two
     cells' deflection component along the edge: the normal equations are the 5-point
     Laplacian with Neumann boundaries, ``L P = -div(delta)``, diagonalised by the DCT-II
-    and solved exactly. The constant is fixed by subtracting the median (background ~0).
+    and solved exactly. The constant is fixed by subtracting the median (background ~0), or
+    with ``static`` the quadratic surface the potential shows where no ray crosses the volume.
 
     Parameters
     ----------
     flow : ndarray, shape (h, w, 2)
         Deflection on the flow grid (image pixels; component 0 = u, 1 = v).
+    static : ndarray, shape (h, w), bool, optional
+        Cells whose rays miss the volume (``masks.baseline: static``): the potential minus
+        the quadratic surface fitted to it there (:func:`static_baseline`) instead of minus
+        its median, when these cells surround the volume's image.
 
     Returns
     -------
@@ -142,10 +161,39 @@ def flow_potential(flow: np.ndarray) -> np.ndarray:
     p_hat = r / lam
     p_hat[0, 0] = 0.0
     P = fft.idctn(p_hat, type=2, norm="ortho")
-    P -= np.median(P[~invalid]) if not invalid.all() else np.median(P)
+    base = static_baseline(P, static & ~invalid) if static is not None else None
+    if base is not None:
+        P -= base
+    else:
+        P -= np.median(P[~invalid]) if not invalid.all() else np.median(P)
     if invalid.any():
         P[invalid] = np.nan
     return P.astype(np.float32)
+
+
+def static_baseline(potential: np.ndarray, cells: np.ndarray) -> np.ndarray | None:
+    """The quadratic surface ``a + b x + c y + d x^2 + e x y + f y^2`` least-squares fitted to
+    ``potential`` on ``cells``, over the whole grid; None when the cells are fewer than
+    :data:`BASELINE_MIN_CELLS` or span less than :data:`BASELINE_SPAN` of either axis.
+
+    Where no ray crosses the volume the potential must vanish; an affine bias of the flow
+    (a camera's motion or the lighting's change removed a little off, as against a reference
+    of few noisy frames) integrates into a quadratic potential over the whole image,
+    which this removes; the plume's own potential, inside the volume's image, is not fitted.
+    """
+    cells = np.asarray(cells, bool)
+    if cells.shape != potential.shape or np.count_nonzero(cells) < BASELINE_MIN_CELLS:
+        return None
+    h, w = potential.shape
+    rows, cols = np.nonzero(cells)
+    if (np.ptp(rows) + 1) < BASELINE_SPAN * h or (np.ptp(cols) + 1) < BASELINE_SPAN * w:
+        return None
+    y, x = np.mgrid[0:h, 0:w]
+    x = (x - 0.5 * (w - 1)) / w
+    y = (y - 0.5 * (h - 1)) / h
+    terms = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=-1)
+    coef, *_ = np.linalg.lstsq(terms[cells], np.asarray(potential, np.float64)[cells], rcond=None)
+    return terms @ coef
 
 
 def _magnitude(potential: np.ndarray, smooth_sigma: float) -> np.ndarray:

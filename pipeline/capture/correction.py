@@ -14,7 +14,11 @@ kernel of the ``deflection`` stage with :class:`~.params.CaptureParams`.
    (:func:`~.motion.fit_flow_motion`) and, whenever a motion was applied, removed too,
    however small: the registration's error is a bias on every cell, which the masks'
    potential (:func:`~schlieren.pipeline.masks.flow_potential`) integrates into a ramp
-   across the image; where the static region is too small the
+   across the image. When the registration's motion exceeds ``motion_tolerance`` but was
+   not applied (below its significance, as against a reference of few noisy frames) and
+   this fit of thousands of cells confirms it (the same motion within half of it, above the
+   tolerance and its own significance), that is the motion and is removed the same way; where the static region
+   is too small the
    registration used every pixel, and this fit on the flow's low-deflection cells is what
    separates the plume from the motion;
 5. with ``motion_source: camera`` the deflections are moved back onto the reference's
@@ -161,8 +165,12 @@ def corrected_deflection(reference, frame: np.ndarray, flow: FlowParams = FlowPa
         d = deflection_stage(prep, img, flow, info=info, motion=start, invalid=bad, pyramid=pyramid)
     residual = float("nan")
     if capture.motion_model != "none":
-        extra, _ = fit_flow_motion(d, cam.cells, size, flow.factor, model=capture.motion_model)
+        extra, finfo = fit_flow_motion(d, cam.cells, size, flow.factor, model=capture.motion_model)
         residual = motion_extent(extra, size)
+        if not moved and _flow_confirms(fit.motion, extra, residual, finfo, capture, size):
+            # the registration's motion beyond the tolerance was not applied (below its
+            # significance against a noisy reference), but the flow's static cells confirm it
+            moved, motion = True, np.zeros_like(motion)
         if moved:  # a bias left on every cell becomes a ramp of the masks' potential
             d = d - motion_field(extra, size, flow.factor)
             motion = motion + extra
@@ -217,6 +225,28 @@ def _motion_applies(fit: BackgroundFit, capture: CaptureParams, size, margin: fl
     extent = motion_extent(fit.motion, size)
     return capture.motion_model != "none" and extent > margin * capture.motion_tolerance and \
         not extent <= margin * capture.significance * fit.motion_sigma
+
+
+def _flow_confirms(registered, flow_motion, extent: float, info: dict, capture: CaptureParams, size) -> bool:
+    """Whether the flow's static cells confirm a registration's motion that was not applied:
+    both beyond ``motion_tolerance``, the flow's fit significant (:func:`_flow_motion_applies`),
+    and the two the same motion within half of it (their difference moves no pixel by more
+    than half the registration's extent)."""
+    reg = motion_extent(registered, size)
+    return reg > capture.motion_tolerance and _flow_motion_applies(extent, info, capture) and \
+        motion_extent(np.asarray(flow_motion) - np.asarray(registered), size) < 0.5 * reg
+
+
+def _flow_motion_applies(extent: float, info: dict, capture: CaptureParams) -> bool:
+    """Whether the motion the flow shows on the static cells (:func:`~.motion.fit_flow_motion`,
+    largest displacement ``extent``) moves some pixel by more than ``motion_tolerance`` and by
+    more than ``significance`` of its standard deviation (the fit's residual RMS over the
+    square root of its cells: the translation's, a lower bound of the extent's)."""
+    cells = int(info.get("cells", 0))
+    if capture.motion_model == "none" or cells == 0 or not np.isfinite(extent):
+        return False
+    sigma = float(info.get("rms", np.inf)) / np.sqrt(cells)
+    return extent > capture.motion_tolerance and extent > capture.significance * sigma
 
 
 def _photometric_applies(fit: BackgroundFit, capture: CaptureParams, prep, margin: float = 1.0) -> bool:

@@ -217,3 +217,42 @@ def test_grow_factor_follows_faint_flanks_connected_to_the_plume_and_not_the_noi
         assert flank.sum() > 300
         assert grown[flank].mean() > plain[flank].mean() + 0.3, (plain[flank].mean(), grown[flank].mean())
         assert grown[far].mean() < plain[far].mean() + 0.01, (plain[far].mean(), grown[far].mean())
+
+
+def _static_frame(h, w, margin):
+    """Cells whose rays miss a volume imaged in the middle ``w - 2 margin`` columns and
+    ``h - 2 margin`` rows (a frame of static cells around it)."""
+    s = np.ones((h, w), bool)
+    s[margin:h - margin, margin:w - margin] = False
+    return s
+
+
+def test_static_baseline_removes_the_potential_of_an_affine_flow_bias():
+    # a plume plus a small affine bias of the flow (a registration a little off: 0.003 px
+    # shift, 2e-5 px/cell scale): integrated over the image, the bias is a quadratic
+    # potential comparable to the plume's flanks; the baseline fitted where no ray crosses
+    # the volume removes it and leaves the plume's own potential
+    h, w = 80, 120
+    flow, phi = hot_plume_flow(h, w, cx=60, cy=40, s=6.0, amp=0.3)
+    y, x = np.mgrid[0:h, 0:w].astype(np.float32)
+    bias = np.stack([0.003 + 2e-5 * (x - 60), -0.002 + 2e-5 * (y - 40)], -1)
+    static = _static_frame(h, w, 22)
+    P_static = M.flow_potential(flow + bias, static=static)
+    P_median = M.flow_potential(flow + bias)
+    truth = phi  # zero far from the plume
+    assert np.abs(P_median - truth).max() > 0.2  # the bias' quadratic, as large as the plume's core
+    assert np.abs(P_static - truth).max() < 0.01
+    assert np.abs(P_static[static]).max() < 0.01
+
+
+def test_static_baseline_falls_back_to_the_median_without_surrounding_static_cells():
+    h, w = 60, 80
+    flow, _ = hot_plume_flow(h, w, cx=40, cy=30, s=5.0, amp=0.5)
+    one_side = np.zeros((h, w), bool)
+    one_side[:, :15] = True  # the volume fills the rest: no surface can be fitted across it
+    few = np.zeros((h, w), bool)
+    few[0, :50] = True
+    ref = M.flow_potential(flow)
+    for static in (one_side, few, np.zeros((h, w), bool)):
+        np.testing.assert_array_equal(M.flow_potential(flow, static=static), ref)
+    assert M.static_baseline(ref, one_side) is None

@@ -2,7 +2,8 @@
 
 A mask is the part of a camera's image whose deflections belong to the flow, not to the
 noise (:mod:`schlieren.pipeline.masks`): each camera-frame's flow is integrated into a
-potential (paper sec. 4) and summarised; one ``threshold`` task pools the summaries of
+potential (paper sec. 4; with ``masks.baseline: static`` its zero is the quadratic surface
+it shows on the cells whose rays miss the volume) and summarised; one ``threshold`` task pools the summaries of
 the whole sequence into one threshold; each mask then thresholds the evidence of its
 frame and its temporal neighbours.
 """
@@ -11,7 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from schlieren.pipeline import capture
 from schlieren.pipeline import masks as masksmod
+from schlieren.workers.tasks.capture import static_region
 from schlieren.workers.tasks.run_context import RunContext
 
 __all__ = ["potential_task", "threshold_task", "mask_task"]
@@ -25,12 +28,24 @@ def potential_task(ctx: RunContext, c: int, k: int) -> dict:
     single ``threshold`` task that every mask waits for only pools small vectors.
     """
     f = ctx.read_upstream("flow", (c, k))
-    p = np.asarray(masksmod.flow_potential(f), dtype=np.float32)
     params = ctx.config.masks
+    p = np.asarray(masksmod.flow_potential(f, static=_static_cells(ctx, c, f.shape[:2])), dtype=np.float32)
     ctx.store.write("potential", (c, k), p)
     ctx.store.write("potential_summary", (c, k), masksmod.potential_summary(
         p, smooth_sigma=params.smooth_sigma, n_quantiles=params.n_quantiles))
     return {}
+
+
+def _static_cells(ctx: RunContext, c: int, shape) -> np.ndarray | None:
+    """Camera ``c``'s flow cells whose rays miss the volume (``masks.baseline: static``; the
+    capture stage's static region, computed once per process), or None."""
+    if ctx.config.masks.baseline != "static":
+        return None
+
+    def make():
+        cells = capture.static_cells(static_region(ctx, c), ctx.flow_grid.factor)
+        return cells if cells.shape == tuple(shape) else None
+    return ctx.once(("static_cells", c), make)
 
 
 def threshold_task(ctx: RunContext) -> dict:
