@@ -52,6 +52,12 @@ class RefineParams:
              "(flow of the residual, prediction added back) and solved again without the flow-window model; "
              "each pass costs about one deflection stage and one solve per frame. 0: the paper's single flow.",
         see="benchmarks/results/flow_refinement.md")
+    window_scale: float = param(
+        0.0, unit="1", ge=0, le=2,
+        help="Factor on the modelled flow window (the stored `flow_window`) in the solves of the refined flows: "
+             "a refined flow is a window mean of the residual only, so part of the window model still fits; "
+             "0 solves them without it.",
+        see="benchmarks/results/tomography_gap.md")
 
 
 def cells_to_pixels(cells: np.ndarray, factor: int, size: tuple[int, int]) -> np.ndarray:

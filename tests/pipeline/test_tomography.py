@@ -963,3 +963,35 @@ def test_block_support_gives_the_frames_own_system(setup, caplog):
     for sup in (support, block_support([empty, empty], params.hull_dilation)):
         ge, ie = solve_gradient(geom, rhs, empty, params=params, support=sup)
         assert ie.stop_reason == "empty" and not ge.any()
+
+
+def test_refined_flows_fit_a_share_of_the_window_model(setup):
+    """A flow re-measured around a prediction ``p`` is ``p + W (d - p)`` (``W`` the flow's
+    window mean, pipeline/flow/refine.py): the window model of the full width over-corrects it
+    and none under-corrects it; a share of the width (``refine.window_scale``) recovers the
+    gradient closer than either, against the blob's own gradient."""
+    from schlieren.pipeline.tomography import MeasurementBlur, volume_sigma
+
+    grid, cams, fg, geom = setup
+    centre, sigma, amp = np.array([0.001, -0.002, 0.04]), 0.004, -8e-5
+    _, grad_true = blob_field(grid, centre, sigma, amp)
+    cell_sigma = [1.5] * geom.flow_shape[0]
+    W = MeasurementBlur(geom.flow_shape, cell_sigma)
+    vs = volume_sigma(cell_sigma, cams, grid, fg.factor)
+
+    def project(g):
+        return np.stack([geom.S @ g[..., k].ravel() for k in range(3)], axis=1).reshape(*geom.flow_shape, 3)
+
+    d = project(grad_true)
+    p = 0.5 * d  # a prediction of half the strength, as after a first, window-biased solve
+    refined = p + W.apply(d - p).astype(np.float64)
+    hull = np.linalg.norm(grid.centres() - centre, axis=-1) < 4 * sigma
+    params = TomoParams(reg_weight=0.002, max_iter=300, tol=1e-5)
+
+    def err(scale):
+        kw = {"volume_blur": scale * vs} if scale > 0 else {}
+        g, _ = solve_gradient(geom, refined, hull, params=params, **kw)
+        return np.sqrt(np.mean((g - grad_true) ** 2)) / np.abs(grad_true).max()
+
+    e = {s: err(s) for s in (0.0, 0.6, 1.0)}
+    assert e[0.6] < 0.5 * min(e[0.0], e[1.0]), e  # measured 0.0019 against 0.0069 (none), 0.019 (full)
