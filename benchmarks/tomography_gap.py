@@ -36,6 +36,7 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -171,6 +172,19 @@ def traced_rows(case: Case, fine: float, weights: list[float]) -> dict:
         b = np.stack([geom.S @ x[:, i] for i in range(3)], -1).reshape(shape)
         rows[name] = case.solve_score(geom, b, case.hull)
     rows["traced, truth hull"] = case.solve_score(geom, traced, case.truth_hull)
+    # the tracer's rays plus noise of the run's measured level (rhs_noise, rays outside the
+    # masks), correlated over one flow cell as the flow's window correlates it: what a given
+    # data error leaves of the noise-free figure
+    noise = np.asarray(ctx.store.read("rhs_noise", ()), dtype=np.float64)
+    rng = np.random.default_rng(0)
+    n = rng.normal(size=traced.shape)
+    for c in range(n.shape[0]):
+        for i in range(3):
+            n[c, ..., i] = cv2.GaussianBlur(n[c, ..., i], (0, 0), 1.0)
+    n *= 1.0 / n.reshape(-1, 3).std(axis=0)
+    for f in (0.5, 1.0, 1.5):
+        rows[f"traced + correlated noise x{f:g} of the run's rhs_noise"] = case.solve_score(
+            geom, traced + f * noise * n, case.hull)
     conv = dataclasses.replace(p, max_iter=200, tol=1e-4)
     for f in weights:
         rows[f"traced, converged, weight x{f:g}"] = case.solve_score(

@@ -49,7 +49,8 @@ class RefineParams:
     passes: int = param(
         0, unit="1", ge=0, le=4,
         help="Times each frame's flows are measured again around the deflections its solution predicts "
-             "(flow of the residual, prediction added back) and solved again without the flow-window model; "
+             "(flow of the residual, prediction added back) and solved again (with `refine.window_scale` of the "
+             "flow-window model); "
              "each pass costs about one deflection stage and one solve per frame. 0: the paper's single flow.",
         see="benchmarks/results/flow_refinement.md")
     window_scale: float = param(
