@@ -22,7 +22,7 @@ from schlieren.workers.bench.realistic_report import _capture, _f, _pct, lab_mar
 
 RESULTS = Path(__file__).resolve().parent / "results"
 DEFAULT_LABELS = ("i33v_p2", "i33v_dots", "i33v_dots_fix", "i33v_turb", "i33v_longro", "i33v_laball", "i33v_tex",
-                  "i33v_candle", "m3v_clean", "m3v_fix", "m3v_turb", "m3v_tex")
+                  "i33v_candle", "m3v_clean", "m3v_fix", "m3v_turb", "m3v_tex", "m3_jetcandle")
 
 
 def merge(labels) -> dict:

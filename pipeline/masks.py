@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 from scipy import fft
 
+from schlieren.pipeline.flow.images import nonfinite_cells
 from schlieren.pipeline.params import param, parameters
 
 __all__ = [
@@ -121,7 +122,7 @@ def flow_potential(flow: np.ndarray) -> np.ndarray:
     d = np.asarray(flow, dtype=np.float64)
     if d.ndim != 3 or d.shape[-1] != 2:
         raise ValueError(f"flow must have shape (h, w, 2), got {d.shape}")
-    invalid = ~np.isfinite(d).all(axis=-1)
+    invalid = nonfinite_cells(d)
     if invalid.any():
         d = np.where(invalid[..., None], 0.0, d)
     h, w = d.shape[:2]

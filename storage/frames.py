@@ -56,7 +56,7 @@ from schlieren.storage.readers.kinds import (
     is_pattern,
     is_video,
 )
-from schlieren.storage.readers.opening import open_frames, read_reference
+from schlieren.storage.readers.opening import ReferenceMean, open_frames, read_reference, reference_frames
 from schlieren.storage.readers.sequence import ImageSequence
 from schlieren.storage.readers.tiff import MultiPageTiff
 from schlieren.storage.readers.video import FORWARD_GRAB_LIMIT, VideoFrames, slots_of_timestamps
@@ -75,6 +75,8 @@ __all__ = [
     "is_glob",
     "open_frames",
     "read_reference",
+    "reference_frames",
+    "ReferenceMean",
     "read_image",
     "is_pattern",
     "is_video",

@@ -30,16 +30,16 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from schlieren.pipeline.flow import FlowParams, deflection_stage, frame_pyramid, prepare_reference
+from schlieren.pipeline.flow import FlowParams, deflection_stage, frame_pyramid, nonfinite_cells, prepare_reference
 from schlieren.pipeline.flow.splines import warp_image
 
 from .camera import CameraCapture, prepare_capture
 from .motion import fit_flow_motion, motion_displacement, motion_extent, motion_field
 from .params import CaptureParams
-from .photometric import normalise_frame
+from .photometric import Photometric, normalise_frame
 from .registration import BackgroundFit, register_background
 
-__all__ = ["CaptureCorrection", "corrected_deflection", "to_reference_grid", "MOTION_APPLIED",
+__all__ = ["CaptureCorrection", "corrected_deflection", "stored_fit", "to_reference_grid", "MOTION_APPLIED",
            "PHOTOMETRIC_APPLIED", "FALLBACK", "NOT_CONVERGED", "GAIN_UNKNOWN", "SCREENED", "CAPTURE_STATS",
            "SCREEN_MARGIN"]
 
@@ -94,7 +94,8 @@ class CaptureCorrection:
 def corrected_deflection(reference, frame: np.ndarray, flow: FlowParams = FlowParams(),
                          capture: CaptureParams = CaptureParams(), *, static: np.ndarray | None = None,
                          defects: np.ndarray | None = None, info: dict | None = None,
-                         camera: CameraCapture | None = None) -> tuple[np.ndarray, CaptureCorrection]:
+                         camera: CameraCapture | None = None,
+                         fit: BackgroundFit | None = None) -> tuple[np.ndarray, CaptureCorrection]:
     """The deflection stage of one camera-frame with its motion, lighting and defective
     pixels removed.
 
@@ -116,6 +117,10 @@ def corrected_deflection(reference, frame: np.ndarray, flow: FlowParams = FlowPa
         The camera's :func:`~.camera.prepare_capture` of ``reference``, ``flow``,
         ``capture``, ``static`` and ``defects`` (saves their preparation on every frame;
         ``static`` and ``defects`` are then not read).
+    fit : BackgroundFit, optional
+        The frame's registration when it is known already (e.g. :func:`stored_fit` of what
+        the run's deflection task measured, for a flow measured again): used as step 1's
+        result instead of measuring it; the rest is as without it.
 
     Returns
     -------
@@ -130,9 +135,10 @@ def corrected_deflection(reference, frame: np.ndarray, flow: FlowParams = FlowPa
     size = (W, H)
     cam = camera if camera is not None else prepare_capture(prep, flow, capture, static=static, defects=defects)
     pyramid = frame_pyramid(prep, frame)  # the registration's and, unless normalised, the flow's
-    fit = register_background(prep, frame, model=capture.motion_model, photometric=capture.photometric,
-                              banding_rows=capture.banding_rows, region=cam.region, pyramid=pyramid,
-                              stop_early=functools.partial(_nothing_to_apply, capture=capture, prep=prep))
+    if fit is None:
+        fit = register_background(prep, frame, model=capture.motion_model, photometric=capture.photometric,
+                                  banding_rows=capture.banding_rows, region=cam.region, pyramid=pyramid,
+                                  stop_early=functools.partial(_nothing_to_apply, capture=capture, prep=prep))
     flags = (FALLBACK if fit.fallback else 0) | (0 if fit.converged else NOT_CONVERGED) | \
         (SCREENED if fit.level > 0 else 0)
     img = frame
@@ -165,6 +171,43 @@ def corrected_deflection(reference, frame: np.ndarray, flow: FlowParams = FlowPa
             if source == "camera":
                 d = to_reference_grid(d, motion, size, flow.factor)
     return d.astype(np.float32), CaptureCorrection(motion, fit, residual, flags)
+
+
+def stored_fit(motion, photometric, stats, knots) -> BackgroundFit:
+    """A frame's registration rebuilt from what :func:`corrected_deflection` returned and a
+    run stores, for measuring the frame's flow again without registering it again.
+
+    The motion is the correction's (the registration's plus what the flow still showed on
+    the static cells, when a motion was applied), so a flow started from it has nothing
+    left to remove there; the gain and offset profiles are the registration's. The
+    standard deviations are not stored: they are set so that the decisions of
+    :func:`corrected_deflection` are the stored flags' (0 where a correction was applied:
+    its tolerance alone decides; where not, an infinite motion and an unknown (NaN) gain
+    and offset deviation).
+
+    Parameters
+    ----------
+    motion : array_like, shape (8,)
+        :attr:`CaptureCorrection.motion`.
+    photometric : array_like, shape (2, K)
+        The gain and the offset at the knots.
+    stats : array_like
+        :meth:`CaptureCorrection.stats` (:data:`CAPTURE_STATS`).
+    knots : array_like, shape (K,)
+        Image rows of the profiles' knots (:func:`~.photometric.row_knots`).
+    """
+    st = dict(zip(CAPTURE_STATS, np.asarray(stats, np.float64)))
+    flags = int(st["flags"])
+    ph = np.asarray(photometric, np.float64)
+    knots = np.asarray(knots, np.float64)
+    applied = 0.0 if flags & PHOTOMETRIC_APPLIED else np.nan  # NaN: no estimate, never departs
+    return BackgroundFit(np.asarray(motion, np.float64).copy(), Photometric(knots, ph[0].copy(), ph[1].copy()),
+                         noise=float(st["noise"]), samples=int(st["samples"]),
+                         static_fraction=float(st["static_fraction"]), fallback=bool(flags & FALLBACK),
+                         converged=not flags & NOT_CONVERGED,
+                         motion_sigma=0.0 if flags & MOTION_APPLIED else np.inf,
+                         gain_sigma=np.full(len(knots), applied), level_sigma=np.full(len(knots), applied),
+                         level=1 if flags & SCREENED else 0)
 
 
 def _motion_applies(fit: BackgroundFit, capture: CaptureParams, size, margin: float = 1.0) -> bool:
@@ -236,7 +279,7 @@ def to_reference_grid(flow: np.ndarray, motion, image_size, factor: int) -> np.n
     factor : int
     """
     shift = -motion_field(motion, image_size, factor) / np.float32(factor)  # flow cells
-    bad = ~np.isfinite(flow).all(axis=-1)
+    bad = nonfinite_cells(flow)
     src = np.where(bad[..., None], 0.0, flow).astype(np.float32)
     out = np.dstack([warp_image(src[..., k], shift) for k in range(2)])
     if bad.any():

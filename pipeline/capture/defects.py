@@ -41,6 +41,7 @@ import cv2
 import numpy as np
 from scipy.special import ndtr
 
+from ._defects_kernels import abs_median_every_second
 from .params import CaptureParams
 
 __all__ = ["HOT", "DEAD", "STUCK", "DEFECT_NAMES", "find_defective_pixels", "defect_counts", "valid_pixels",
@@ -62,7 +63,7 @@ def _standard_residual(img: np.ndarray) -> np.ndarray:
     deviations (1.4826 x the median absolute residual, every second pixel)."""
     r = cv2.filter2D(img, cv2.CV_32F, _PREDICT, borderType=cv2.BORDER_REPLICATE)
     np.subtract(img, r, out=r)
-    scale = 1.4826 * float(np.median(np.abs(r[::2, ::2]), overwrite_input=True))
+    scale = 1.4826 * abs_median_every_second(r)
     if scale <= 0:
         return np.zeros_like(r)
     np.divide(r, np.float32(scale), out=r)
@@ -149,7 +150,11 @@ def _stuck(st: _FrameStats, stuck_ratio: float) -> np.ndarray:
     neighbour, not clipped, and a spread no normal pixel keeps by chance."""
     n = st.n
     mean = st.s1 / n
-    sd = np.sqrt(np.maximum(st.s2 / n - mean * mean, 0.0)).astype(np.float32)
+    var = st.s2 / n  # the variance over the frames, in place (a frame is 1-2 million pixels)
+    np.multiply(mean, mean, out=mean)
+    np.subtract(var, mean, out=var)
+    np.maximum(var, 0.0, out=var)
+    sd = np.sqrt(var, out=var).astype(np.float32)
     ring = np.ones((3, 3), np.uint8)
     ring[1, 1] = 0
     around = cv2.erode(sd, ring, borderType=cv2.BORDER_REFLECT_101)

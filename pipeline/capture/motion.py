@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from schlieren.pipeline.flow.images import nonfinite_cells
 from schlieren.pipeline.geometry import FlowGrid
 
 __all__ = ["MOTION_PARAMS", "motion_size", "no_motion", "motion_displacement", "motion_field",
@@ -147,7 +148,7 @@ def fit_flow_motion(flow: np.ndarray, cells: np.ndarray, image_size, factor: int
     out = no_motion()
     rows, cols = np.nonzero(cells)
     vals = flow[rows, cols]  # (m, 2), the cells' deflections only
-    fin = np.isfinite(vals).all(axis=1)
+    fin = ~nonfinite_cells(vals)
     if not fin.all():
         rows, cols, vals = rows[fin], cols[fin], vals[fin]
     if n == 0 or len(rows) < 2 * n:

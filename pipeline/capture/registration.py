@@ -334,14 +334,19 @@ class _Solver:
         P = nm + 2 * nk
         A = np.zeros((P, P))
         rhs = np.zeros(P)
-        cuts = np.flatnonzero(np.diff(kk)) + 1
-        for s0, s1 in zip(np.r_[0, cuts], np.r_[cuts, len(kk)]):
+        cuts = (np.flatnonzero(np.diff(kk)) + 1).tolist()
+        motion = list(range(nm))
+        for s0, s1 in zip([0] + cuts, cuts + [len(kk)]):
             k = int(kk[s0])
             k1 = min(k + 1, nk - 1)
-            cols = np.r_[np.arange(nm), nm + k, nm + k1, nm + nk + k, nm + nk + k1]
+            cols = np.array(motion + [nm + k, nm + k1, nm + nk + k, nm + nk + k1])
             Jw = J[s0:s1] * wt[s0:s1, None]
-            np.add.at(A, (cols[:, None], cols[None, :]), Jw.T @ J[s0:s1])
-            np.add.at(rhs, cols, Jw.T @ e[s0:s1])
+            if k1 != k:  # distinct columns: one addition per entry, as np.add.at makes
+                A[cols[:, None], cols] += Jw.T @ J[s0:s1]
+                rhs[cols] += Jw.T @ e[s0:s1]
+            else:  # the last knot's interval names its knot twice: the additions accumulate
+                np.add.at(A, (cols[:, None], cols[None, :]), Jw.T @ J[s0:s1])
+                np.add.at(rhs, cols, Jw.T @ e[s0:s1])
         return A, rhs
 
     def _step(self, state, e, J, kk, wt) -> np.ndarray | None:

@@ -30,6 +30,7 @@ re-projection refinement), and the numba kernels in :mod:`._kernels`.
 
 from schlieren.pipeline.metrics import endpoint_error
 
+from .images import nonfinite_cells
 from .focus import auto_presmooth, reference_blur, resolve_presmooth
 from .lk import ici_windows
 from .params import (CELL_SOLVE_MIN_CELLS, METHODS, FlowParams, camera_window, px_per_voxel, uses_cell_solve,
@@ -50,6 +51,7 @@ __all__ = [
     "frame_pyramid",
     "InvalidPixels",
     "prepare_invalid",
+    "nonfinite_cells",
     "deflection_field",
     "deflection_stage",
     "remove_outliers",

@@ -34,6 +34,17 @@ def _fill_nonfinite(img: np.ndarray, value: float) -> np.ndarray:
     return img
 
 
+def nonfinite_cells(field) -> np.ndarray:
+    """True where any component (last axis) of ``field`` is NaN or infinite: the same as
+    ``~np.isfinite(field).all(axis=-1)``, one component at a time (NumPy reduces over a
+    short trailing axis element by element, some 30x slower on a flow field)."""
+    field = np.asarray(field)
+    ok = np.isfinite(field[..., 0])
+    for k in range(1, field.shape[-1]):
+        ok &= np.isfinite(field[..., k])
+    return ~ok
+
+
 def _gaussian_taps(sigma: float) -> np.ndarray:
     r = max(1, int(np.ceil(3.0 * sigma)))
     x = np.arange(-r, r + 1, dtype=np.float64)

@@ -13,6 +13,7 @@ import numpy as np
 from scipy import ndimage
 
 from schlieren.pipeline.flow.splines import spline_coefficients, warp_coefficient_rows
+from schlieren.pipeline.flow.images import nonfinite_cells
 from schlieren.pipeline.geometry import FlowGrid
 
 from .motion import _digest, cached_field_motion
@@ -87,7 +88,7 @@ def resample_flow(raw: np.ndarray, first_frame: int, target_time: float, *, offs
     if n_clamped:
         log.debug("resample_flow: %d of %d rows clamped to the ends of frames %d..%d",
                   n_clamped, h, first_frame + usable[0], first_frame + usable[-1])
-    invalid = ~np.isfinite(raw).all(axis=-1)
+    invalid = nonfinite_cells(raw)
     if not invalid.any():
         return _blend_rows(raw, j0, j1, alpha, params, digests)
     # the motion and the spline coefficients spread a NaN over whole rows, columns and

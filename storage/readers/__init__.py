@@ -10,7 +10,8 @@
   (:class:`MultiPageTiff`), :mod:`.video` (:class:`VideoFrames`), :mod:`.interlaced`
   (:class:`InterlacedFields`, the two fields of interlaced frames);
 * :mod:`.opening`: :func:`open_frames` (the reader for a specification) and
-  :func:`read_reference` (a camera's averaged no-flow background).
+  :func:`read_reference` (a camera's averaged no-flow background; its frames one by one,
+  :func:`reference_frames`, and their :class:`ReferenceMean`).
 
 :mod:`schlieren.storage.frames` re-exports the public names (the module users import).
 """

@@ -1,5 +1,7 @@
 """Open a camera's frames for random access (:func:`open_frames`) and read its reference
-(no-flow background) image, averaging several frames (:func:`read_reference`)."""
+(no-flow background) image, averaging several frames (:func:`read_reference`; the frames
+one by one, :func:`reference_frames`, and their average, :class:`ReferenceMean`, for a
+caller that reads them anyway)."""
 
 from __future__ import annotations
 
@@ -85,13 +87,7 @@ def read_reference(source, *, camera_name: str | None = None, parity: int | None
     reference : ndarray, shape (H, W), float32
         Averages are accumulated in float64 and rounded to float32 once.
     """
-    order = None
-    if hasattr(source, "reference") and hasattr(source, "name") and not isinstance(source, (str, os.PathLike)):
-        path = os.fspath(source.reference)
-        name = camera_name if camera_name is not None else source.name
-        order = getattr(source, "interlaced", None)
-    else:
-        path, name = os.fspath(source), camera_name
+    path, name, order = _reference_path(source, camera_name)
     kind = frames_kind(path)
     if order and parity is not None:
         if kind in ("sequence", "glob", "folder", "tiff", "video"):
@@ -99,29 +95,68 @@ def read_reference(source, *, camera_name: str | None = None, parity: int | None
             return _average((bob_field(src.read(i), parity) for i in src.present()), path, name)
         img, _ = read_image(path, camera_name=name, field="reference")
         return bob_field(img, parity)
-    if kind == "video" and not order:
-        vid = VideoFrames(path, camera_name=name)
-        return _average(vid.iter_sequential(), path, name)
-    if kind in ("sequence", "glob", "folder", "tiff", "video"):
-        src = open_frames(path, camera_name=name)
-        if order:  # the mean of both fields of every reference frame, like the frames
-            src = InterlacedFields(src, order)
-        return _average((src.read(i) for i in src.present()), path, name)
+    if kind in _MULTI_FRAME:
+        return _average(reference_frames(source, camera_name=camera_name), path, name)
     img, _ = read_image(path, camera_name=name, field="reference")
     return img
 
 
+#: Kinds of reference specification that :func:`read_reference` averages frame by frame.
+_MULTI_FRAME = ("sequence", "glob", "folder", "tiff", "video")
+
+
+def _reference_path(source, camera_name):
+    """``(path, name, interlaced order)`` of a camera's reference specification."""
+    if hasattr(source, "reference") and hasattr(source, "name") and not isinstance(source, (str, os.PathLike)):
+        return (os.fspath(source.reference), camera_name if camera_name is not None else source.name,
+                getattr(source, "interlaced", None))
+    return os.fspath(source), camera_name, None
+
+
+def reference_frames(source, *, camera_name: str | None = None):
+    """The frames of a camera's reference one by one, read as :func:`read_reference` (without
+    ``parity``) reads them: their :class:`ReferenceMean` is its reference, bit for bit (one
+    image: that image)."""
+    path, name, order = _reference_path(source, camera_name)
+    kind = frames_kind(path)
+    if kind == "video" and not order:
+        yield from VideoFrames(path, camera_name=name).iter_sequential()
+    elif kind in _MULTI_FRAME:
+        src = open_frames(path, camera_name=name)
+        if order:  # the mean of both fields of every reference frame, like the frames
+            src = InterlacedFields(src, order)
+        for i in src.present():
+            yield src.read(i)
+    else:
+        yield read_image(path, camera_name=name, field="reference")[0]
+
+
+class ReferenceMean:
+    """The average of a reference's frames, added one at a time: float64 sums, rounded to
+    float32 once (:func:`read_reference`)."""
+
+    def __init__(self, path: str = "", name: str | None = None):
+        self.path, self.name = path, name
+        self.acc: np.ndarray | None = None
+        self.n = 0
+
+    def add(self, img: np.ndarray) -> None:
+        if self.acc is None:
+            self.acc = np.zeros(img.shape, dtype=np.float64)
+        elif img.shape != self.acc.shape:
+            raise SessionError(f"reference frame {self.n} has shape {img.shape}, frame 0 has {self.acc.shape}",
+                               file=self.path, camera=self.name, field=f"reference[{self.n}]")
+        self.acc += img
+        self.n += 1
+
+    def result(self) -> np.ndarray:
+        if self.n == 0:
+            raise SessionError("the reference holds no frames", file=self.path, camera=self.name, field="reference")
+        return (self.acc / self.n).astype(np.float32)
+
+
 def _average(frames, path: str, name: str | None) -> np.ndarray:
-    acc = None
-    n = 0
+    mean = ReferenceMean(path, name)
     for img in frames:
-        if acc is None:
-            acc = np.zeros(img.shape, dtype=np.float64)
-        elif img.shape != acc.shape:
-            raise SessionError(f"reference frame {n} has shape {img.shape}, frame 0 has {acc.shape}",
-                               file=path, camera=name, field=f"reference[{n}]")
-        acc += img
-        n += 1
-    if n == 0:
-        raise SessionError("the reference holds no frames", file=path, camera=name, field="reference")
-    return (acc / n).astype(np.float32)
+        mean.add(img)
+    return mean.result()

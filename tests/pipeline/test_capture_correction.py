@@ -12,7 +12,8 @@ from flow_helpers import NoiseBackground, pixel_truth, plume_deflection, render
 
 from schlieren.pipeline.capture import (FALLBACK, GAIN_UNKNOWN, MOTION_APPLIED, PHOTOMETRIC_APPLIED, SCREENED,
                                         CaptureParams, corrected_deflection, motion_displacement, motion_field,
-                                        normalise_frame, to_reference_grid)
+                                        normalise_frame, register_background, row_knots, stored_fit,
+                                        to_reference_grid)
 from schlieren.pipeline.flow import FlowParams, deflection_stage, prepare_reference
 
 SHAPE = (192, 256)
@@ -151,6 +152,64 @@ def test_moved_flickering_capture_gives_the_clean_deflections(background, prep):
     d_off, _ = corrected_deflection(prep, lab, FLOW, CaptureParams(motion_model="none", photometric=False),
                                     static=_static())
     assert _cells(d_off - t) > 5 * e_clean
+
+
+def _lab_frame(background, m, seed):
+    """A frame of the plume whose camera moved by ``m``, with flicker and row banding."""
+    plume = plume_deflection(SHAPE, peak=0.4, width=15.0)
+
+    def camera_turned(u, v):
+        mx, my = motion_displacement(m, u, v, SIZE)
+        du, dv = plume(u + mx, v + my)
+        return du + mx, dv + my
+
+    rows = np.arange(SHAPE[0])[:, None]
+    moved = render(background, SHAPE, camera_turned, noise=1.5, rng=np.random.default_rng(seed))
+    return (1.02 * (1 + 0.01 * np.sin(rows / 40.0)) * moved + 1.0).astype(np.float32), pixel_truth(plume, SHAPE)
+
+
+@pytest.mark.parametrize("m", [[0.25, 0.15, 0.0, -2e-4, 2e-4, 0.0, 0, 0], [0.0] * 8])
+def test_a_known_registration_gives_the_flow_of_measuring_it(background, prep, m):
+    # the frame's own registration passed in: the same flow and correction bit for bit
+    capture = CaptureParams()
+    frame, _ = _lab_frame(background, np.array(m), 5)
+    d, corr = corrected_deflection(prep, frame, FLOW, capture, static=_static())
+    d_known, corr_known = corrected_deflection(prep, frame, FLOW, capture, static=_static(), fit=corr.fit)
+    np.testing.assert_array_equal(d_known, d)
+    np.testing.assert_array_equal(corr_known.motion, corr.motion)
+    assert corr_known.flags == corr.flags and corr_known.residual == corr.residual
+    # a registration measured apart, to convergence at full resolution, is used as given
+    fit = register_background(prep, frame, static=_static(), presmooth=FLOW.presmooth, levels=FLOW.levels)
+    _, corr_fit = corrected_deflection(prep, frame, FLOW, capture, static=_static(), fit=fit)
+    assert corr_fit.fit is fit
+
+
+def test_the_stored_registration_keeps_the_corrections_and_the_flow(background, prep):
+    # what a run stores of a moved, flickering frame's correction (motion, float32 profiles
+    # and statistics) measures the frame's flow again without registering it: the same
+    # corrections applied, the flow within the registration's own noise of the first
+    capture = CaptureParams()
+    m = np.array([0.25, 0.15, 0.0, -2e-4, 2e-4, 0.0, 0, 0])
+    frame, truth = _lab_frame(background, m, 6)
+    d, corr = corrected_deflection(prep, frame, FLOW, capture, static=_static())
+    assert corr.flags & MOTION_APPLIED and corr.flags & PHOTOMETRIC_APPLIED
+    ph = corr.fit.photometric
+    fit = stored_fit(corr.motion, np.stack([ph.gain, ph.offset]).astype(np.float32), corr.stats(),
+                     row_knots(SHAPE[0], capture.banding_rows))
+    d2, corr2 = corrected_deflection(prep, frame, FLOW, capture, static=_static(), fit=fit)
+    assert corr2.flags == corr.flags
+    assert np.abs(corr2.motion - corr.motion).max() < 1e-3  # the flow's refit finds (almost) nothing left
+    assert _cells(d2 - d) < 0.002  # px
+    t = truth.reshape(SHAPE[0] // 2, 2, SHAPE[1] // 2, 2, 2).mean(axis=(1, 3))
+    assert _cells(d2 - t) < 1.02 * _cells(d - t)
+    # a frame whose corrections were not applied keeps them unapplied
+    clean = render(background, SHAPE, noise=1.5, rng=np.random.default_rng(7))
+    d0, corr0 = corrected_deflection(prep, clean, FLOW, capture, static=_static())
+    ph0 = corr0.fit.photometric
+    fit0 = stored_fit(corr0.motion, np.stack([ph0.gain, ph0.offset]), corr0.stats(), ph0.knots)
+    d0_known, corr0_known = corrected_deflection(prep, clean, FLOW, capture, static=_static(), fit=fit0)
+    assert not corr0.flags & (MOTION_APPLIED | PHOTOMETRIC_APPLIED) and corr0_known.flags == corr0.flags
+    np.testing.assert_array_equal(d0_known, d0)
 
 
 def test_small_static_region_falls_back_to_the_low_deflection_cells(background, prep):

@@ -158,3 +158,16 @@ def test_range_chance_against_sampled_pixels():
     x = rng.normal(0, 1.3, size=(400_000, 5))
     p = float((x.max(axis=1) - x.min(axis=1) <= 1.0).mean())
     assert float(range_chance(1.0, 1.3, 5, quantum=0)) == pytest.approx(p, rel=0.03)
+
+
+@pytest.mark.parametrize("shape", [(1080, 1440), (7, 9), (8, 6), (1, 1), (3, 1)])
+def test_the_residual_median_is_numpys_bit_for_bit(shape):
+    from schlieren.pipeline.capture._defects_kernels import abs_median_every_second
+
+    rng = np.random.default_rng(sum(shape))
+    for r in (rng.normal(size=shape).astype(np.float32),
+              np.round(rng.normal(size=shape) * 3).astype(np.float32),  # many ties, zeros of both signs
+              -np.abs(rng.normal(size=shape)).astype(np.float32) * 1e-30):
+        want = np.median(np.abs(r[::2, ::2]))
+        got = abs_median_every_second(r)
+        assert np.float32(got) == want and isinstance(got, float)

@@ -468,3 +468,17 @@ def test_window_for_voxel():
     assert F.window_for_voxel(2.62, 3.8) == 11     # 9.96 -> 10 -> odd 11
     assert F.window_for_voxel(8.6, 3.8) == 25      # capped
     assert F.window_for_voxel(0.5, 3.8) == 5
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_nonfinite_cells_is_the_reduction_over_the_components(dtype):
+    rng = np.random.default_rng(3)
+    field = rng.normal(size=(3, 17, 23, 2)).astype(dtype)
+    for value in (np.nan, np.inf, -np.inf):
+        idx = tuple(rng.integers(0, n, 40) for n in field.shape)
+        field[idx] = value
+    want = ~np.isfinite(field).all(axis=-1)
+    got = F.nonfinite_cells(field)
+    assert got.dtype == bool and got.shape == want.shape
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(F.nonfinite_cells(field[0, ..., :1]), ~np.isfinite(field[0, ..., 0]))

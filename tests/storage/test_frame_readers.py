@@ -346,6 +346,31 @@ def test_reference_from_camera_source(tmp_path, grey8):
     np.testing.assert_array_equal(src.open_frames().read(6), grey8[6])
 
 
+@pytest.mark.parametrize("kind", ["image", "sequence", "video"])
+def test_reference_frames_average_to_the_reference_bit_for_bit(tmp_path, grey8, rng, kind):
+    from schlieren.storage.frames import ReferenceMean, reference_frames
+
+    if kind == "image":
+        path = tmp_path / "ref.png"
+        cv2.imwrite(str(path), grey8[2])
+        want = [grey8[2]]
+    elif kind == "sequence":
+        stack = rng.integers(0, 65536, size=(5, H, W)).astype(np.uint16)
+        path, want = write_sequence(tmp_path / "ref", stack), stack
+    else:
+        path, want = write_video(tmp_path / "ref.avi", grey8, "FFV1"), grey8
+    got = list(reference_frames(path, camera_name="c"))
+    assert len(got) == len(want)
+    for g, w in zip(got, want):
+        np.testing.assert_array_equal(g, w)
+    mean = ReferenceMean(str(path), "c")
+    for img in got:
+        mean.add(img)
+    np.testing.assert_array_equal(mean.result(), read_reference(path, camera_name="c"))
+    with pytest.raises(SessionError, match="no frames"):
+        ReferenceMean(str(path), "c").result()
+
+
 def test_reference_corrupt_video_names_the_frame(tmp_path, grey8):
     path = _corrupt_png_avi(tmp_path, grey8, 5)
     with pytest.raises(SessionError) as info:

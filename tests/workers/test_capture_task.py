@@ -91,3 +91,29 @@ def test_the_pre_smoothing_is_chosen_per_camera_stored_logged_and_reported(tiny_
     rd = ReportReader(out)
     table = _camera_table(rd, rd.whole("background_motion"), rd.camera_names(len(q)), (192, 144))
     assert "flow pre-smoothing (px)" in table and "0.6" in table
+
+
+def test_the_reference_is_averaged_from_the_frames_the_defect_test_reads(tmp_path, monkeypatch):
+    """A reference of several frames: the capture task's reading of them leaves the
+    process's reference (the mean ``read_reference`` makes, bit for bit) without a second read."""
+    from types import SimpleNamespace
+
+    from schlieren.storage.frames import read_reference
+    from schlieren.storage.session import CameraSource
+    from schlieren.workers.tasks import capture as capture_task
+
+    rng = np.random.default_rng(2)
+    stack = rng.integers(0, 65536, size=(4, 24, 32)).astype(np.uint16)
+    (tmp_path / "ref").mkdir()
+    for i, img in enumerate(stack):
+        cv2.imwrite(str(tmp_path / "ref" / f"{i:03d}.png"), img)
+    src = CameraSource("cam00", str(tmp_path / "f" / "%03d.png"), str(tmp_path / "ref" / "%03d.png"), "sequence",
+                       "sequence")
+    small: dict = {}
+    ctx = SimpleNamespace(session=SimpleNamespace(sources=[src]),
+                          once=lambda key, make: small[key] if key in small else small.setdefault(key, make()))
+    frames = list(capture_task._reference_frames(ctx, 0))
+    assert len(frames) == 4
+    np.testing.assert_array_equal(small[("reference", 0, None)], read_reference(src))
+    np.testing.assert_array_equal(small[("reference", 0, None)],
+                                  stack.astype(np.float64).mean(axis=0).astype(np.float32))

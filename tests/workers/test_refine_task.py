@@ -78,3 +78,25 @@ def test_refined_solves_model_the_given_share_of_the_flow_window(store_copy):
         ctx.config, refine=RefineParams(passes=1, window_scale=0.5)))
     tomography_task(ctx, 0)
     assert np.isfinite(np.asarray(ctx.store.read("gradient", (0,)), np.float64)).all()
+
+
+def test_the_stored_registration_gives_the_flows_of_registering_again(store_copy, monkeypatch):
+    """The refinement reuses each raw frame's stored registration (nothing measured again);
+    on the tiny session, whose frames need no correction, registering each frame again
+    against the warped reference gives the same refined flows bit for bit."""
+    from schlieren.pipeline import capture
+    from schlieren.workers.tasks import refine
+    from schlieren.workers.tasks.geometry import cached_geometry, geometry_key
+
+    ctx = _context(store_copy, 1)
+    geom = cached_geometry(ctx.store_path, geometry_key(ctx))
+    grad = np.asarray(ctx.store.read("gradient", (1,)), np.float64)
+    calls = []
+    register = capture.correction.register_background
+    monkeypatch.setattr(capture.correction, "register_background", lambda *a, **k: calls.append(1) or register(*a, **k))
+    reused = refine.refined_flows(ctx, 1, geom, grad)
+    assert not calls
+    monkeypatch.setattr(refine, "_stored_fit", lambda *a: None)
+    again = refine.refined_flows(ctx, 1, geom, grad)
+    assert calls
+    np.testing.assert_array_equal(reused, again)

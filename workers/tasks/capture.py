@@ -6,7 +6,9 @@ processed range; the map is stored (``defective_pixels``) for the camera's defle
 tasks, which give those pixels no weight. With ``flow.presmooth: auto`` the camera's
 pre-smoothing is chosen from its reference's sharpness
 (:func:`~schlieren.pipeline.flow.auto_presmooth`, the sensor noise measured on the
-reference frames; Lucas-Kanade only) and stored (``presmooth``) for its flows. The
+reference frames; Lucas-Kanade only) and stored (``presmooth``) for its flows; the
+reference it measures is averaged from the frames the defect test reads (each frame is
+decoded once). The
 camera's static region (the pixels whose rays miss the volume) needs only the calibration:
 each process computes it once (:func:`static_region`), and what the deflection tasks derive
 from these for every frame once per camera too (:func:`camera_capture`).
@@ -22,7 +24,7 @@ from schlieren.pipeline import capture
 from schlieren.pipeline.flow.focus import AUTO, resolve_presmooth
 from schlieren.pipeline.rigcheck import sensor_noise
 from schlieren.storage.errors import SessionError
-from schlieren.storage.frames import open_frames
+from schlieren.storage.frames import ReferenceMean, reference_frames
 from schlieren.workers.tasks.run_context import RunContext
 
 __all__ = ["capture_task", "static_region", "defective_pixels", "camera_capture"]
@@ -69,15 +71,16 @@ def _presmooth(ctx: RunContext, c: int, kept: list) -> float:
 
 def _reference_frames(ctx: RunContext, c: int):
     """Camera ``c``'s reference frames (one by one; none for interlaced cameras, whose
-    fields are compared with per-field references)."""
+    fields are compared with per-field references). Once all are read, their average is the
+    process's reference of the camera (:meth:`RunContext.reference`: not read again)."""
     s = ctx.session.sources[c]
-    if not getattr(s, "interlaced", None):
-        try:
-            ref = open_frames(s.reference, camera_name=s.name)
-            for i in ref.present():
-                yield ref.read(i)
-        except SessionError:  # one reference image (not a sequence): the mean below stands for it
-            yield ctx.reference(c)
+    if getattr(s, "interlaced", None):
+        return
+    mean = ReferenceMean(s.reference, s.name)
+    for img in reference_frames(s, camera_name=s.name):
+        mean.add(img)
+        yield img
+    ctx.once(("reference", c, None), mean.result)
 
 
 def _capture_frames(ctx: RunContext, c: int):

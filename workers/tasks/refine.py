@@ -5,7 +5,8 @@ its solution (:func:`~schlieren.pipeline.residuals.predict_flows` on the ray gri
 :func:`~schlieren.pipeline.flow.cells_to_pixels` to the pixels), re-measures the flow of each
 raw frame that frame ``k``'s resampling reads around that prediction
 (:func:`~schlieren.pipeline.flow.refined_deflection` with the deflection task's capture
-correction), and resamples them to the output instant as the ``resample`` task does. The
+correction: its stored registration, :func:`~schlieren.pipeline.capture.stored_fit`, is
+not measured again), and resamples them to the output instant as the ``resample`` task does. The
 raw frames' deflection tasks are done by then (the tomography waits for its resampling),
 and nothing is stored but the solve the task writes.
 """
@@ -50,12 +51,22 @@ def _camera_flow(ctx: RunContext, c: int, k: int, predicted: np.ndarray) -> np.n
         # the camera's fixed inputs of the corrections depend on the reference's shape and
         # levels only, not its values: the deflection tasks' apply to the warped reference too
         fixed = camera_capture(ctx, c, parity, params)
+        fit = _stored_fit(ctx, c, f - ctx.raw_first)
 
-        def corrected(prep, img, p, fixed=fixed):
-            return capture.corrected_deflection(prep, img, p, ctx.config.capture, camera=fixed)[0]
+        def corrected(prep, img, p, fixed=fixed, fit=fit):
+            return capture.corrected_deflection(prep, img, p, ctx.config.capture, camera=fixed, fit=fit)[0]
 
         raw.append(flowmod.refined_deflection(ctx.prepared_reference(c, parity), ctx.frame(c, f), pixels, params,
                                               deflection=corrected))
     return sync.resample_flow(np.stack(raw), lo, float(ctx.times()[k]), offset=ctx.time_offset(c),
                               frame_rate=ctx.session.frame_rate, line_time=cam.line_time, flow_grid=ctx.flow_grid,
                               excluded_frames=excluded, params=ctx.config.resample)
+
+
+def _stored_fit(ctx: RunContext, c: int, j: int) -> capture.BackgroundFit:
+    """The registration camera ``c``'s deflection task measured for raw frame ``j`` (its
+    stored ``background_motion``, ``photometric`` and ``capture_fit``)."""
+    cam = ctx.cameras[c]
+    return capture.stored_fit(ctx.read_upstream("background_motion", (c, j)), ctx.read_upstream("photometric", (c, j)),
+                              ctx.read_upstream("capture_fit", (c, j)),
+                              capture.row_knots(cam.height, ctx.config.capture.banding_rows))
