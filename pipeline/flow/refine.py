@@ -49,9 +49,16 @@ class RefineParams:
     passes: int = param(
         0, unit="1", ge=0, le=4,
         help="Times each frame's flows are measured again around the deflections its solution predicts "
-             "(flow of the residual, prediction added back) and solved again without the flow-window model; "
+             "(flow of the residual, prediction added back) and solved again (with `refine.window_scale` of the "
+             "flow-window model); "
              "each pass costs about one deflection stage and one solve per frame. 0: the paper's single flow.",
         see="benchmarks/results/flow_refinement.md")
+    window_scale: float = param(
+        0.0, unit="1", ge=0, le=2,
+        help="Factor on the modelled flow window (the stored `flow_window`) in the solves of the refined flows: "
+             "a refined flow is a window mean of the residual only, so part of the window model still fits; "
+             "0 solves them without it.",
+        see="benchmarks/results/tomography_gap.md")
 
 
 def cells_to_pixels(cells: np.ndarray, factor: int, size: tuple[int, int]) -> np.ndarray:

@@ -61,6 +61,25 @@ def test_direct_reconstruction_refuses_refinement():
         check_config(RunConfig(reconstruction="direct", refine=RefineParams(passes=1)))
 
 
+def test_refined_solves_model_the_given_share_of_the_flow_window(store_copy):
+    """``refine.window_scale`` scales the stored flow averaging the refined solves model: 0 none,
+    ``s`` the plain solve's width times ``s``; the task runs with it."""
+    from schlieren.workers.tasks.tomography import flow_blur, refined_blur, tomography_task
+
+    ctx = _context(store_copy, 1)
+    plain = flow_blur(ctx)
+    assert refined_blur(ctx, 0.0) == {}
+    got = refined_blur(ctx, 0.5)
+    assert set(got) == set(plain)
+    for key, v in plain.items():
+        if key == "volume_blur":
+            assert got[key] == pytest.approx(0.5 * v)
+    ctx = dataclasses.replace(ctx, config=dataclasses.replace(
+        ctx.config, refine=RefineParams(passes=1, window_scale=0.5)))
+    tomography_task(ctx, 0)
+    assert np.isfinite(np.asarray(ctx.store.read("gradient", (0,)), np.float64)).all()
+
+
 def test_the_stored_registration_gives_the_flows_of_registering_again(store_copy, monkeypatch):
     """The refinement reuses each raw frame's stored registration (nothing measured again);
     on the tiny session, whose frames need no correction, registering each frame again

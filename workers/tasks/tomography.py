@@ -23,7 +23,7 @@ from schlieren.workers.tasks.regularisation import window_model
 from schlieren.workers.tasks.run_context import RunContext, solver_receipt
 from schlieren.workers.tasks.spacetime import per_frame_array
 
-__all__ = ["tomography_task", "tomo_params", "flow_blur"]
+__all__ = ["tomography_task", "tomo_params", "flow_blur", "refined_blur"]
 
 
 def flow_blur(ctx: RunContext) -> dict:
@@ -31,6 +31,15 @@ def flow_blur(ctx: RunContext) -> dict:
     solver's keyword (:func:`~schlieren.workers.tasks.regularisation.window_model`)."""
     return ctx.once("flow_blur", lambda: window_model(
         ctx, np.asarray(ctx.store.read("flow_window", ()), dtype=np.float64)))
+
+
+def refined_blur(ctx: RunContext, scale: float) -> dict:
+    """The solver's keyword for the refined flows' solves: the stored flow averaging times
+    ``scale`` (``refine.window_scale``; empty for 0)."""
+    if scale <= 0:
+        return {}
+    return ctx.once(("refined_blur", float(scale)), lambda: window_model(
+        ctx, scale * np.asarray(ctx.store.read("flow_window", ()), dtype=np.float64)))
 
 
 def tomo_params(ctx: RunContext):
@@ -64,11 +73,14 @@ def tomography_task(ctx: RunContext, k: int) -> dict:
     support = _block_support(ctx, k, params.hull_dilation)
     grad, info = tomography.solve_gradient(geom, flows, hull, params=params, x0=x0, support=support,
                                            **flow_blur(ctx))
-    for _ in range(ctx.config.refine.passes):
+    passes, window_scale = ctx.config.refine.passes, ctx.config.refine.window_scale
+    for _ in range(passes):
         # beyond the paper: the flows re-measured around this solution's prediction carry the
-        # window's bias of the residual only, so they are solved without the flow-window model
+        # window's bias of the residual only, so they are solved with a share of the flow-window
+        # model (refine.window_scale; 0: without it)
         refined = tomography.bin_cells(refined_flows(ctx, k, geom, grad), ctx.ray_binning)
-        grad, info = tomography.solve_gradient(geom, refined, hull, params=params, support=support)
+        grad, info = tomography.solve_gradient(geom, refined, hull, params=params, support=support,
+                                               **refined_blur(ctx, window_scale))
     ctx.store.write(per_frame_array(ctx), (k,), np.asarray(grad, dtype=np.float32))
     return solver_receipt(info)
 
