@@ -209,7 +209,6 @@ def flow_rows(case: Case, weights: list[float]) -> dict:
     """Rows from the run's own flows: plain with the window model, and refined."""
     from schlieren.pipeline import tomography
     from schlieren.workers.tasks import flow_blur
-    from schlieren.workers.tasks.tomography import refined_blur
     from schlieren.workers.tasks.geometry import cached_geometry, geometry_key
     from schlieren.workers.tasks.refine import refined_flows
     from schlieren.workers.tasks.regularisation import window_model
@@ -227,7 +226,7 @@ def flow_rows(case: Case, weights: list[float]) -> dict:
     refined, scale = None, ctx.config.refine.window_scale
     for _ in range(passes):
         refined = tomography.bin_cells(refined_flows(ctx, k, geom, grad), ctx.ray_binning)
-        grad, _ = tomography.solve_gradient(geom, refined, case.hull, params=p, **refined_blur(ctx, scale))
+        grad, _ = tomography.solve_gradient(geom, refined, case.hull, params=p, **flow_blur(ctx, scale))
     for f in weights:
         rows[f"refined flows, weight x{f:g}"] = case.solve_score(
             geom, refined, case.hull, params=dataclasses.replace(p, reg_weight=p.reg_weight * f))

@@ -101,6 +101,7 @@ def test_the_reference_is_averaged_from_the_frames_the_defect_test_reads(tmp_pat
     from schlieren.storage.frames import read_reference
     from schlieren.storage.session import CameraSource
     from schlieren.workers.tasks import capture as capture_task
+    from schlieren.workers.tasks.run_context import RunContext
 
     rng = np.random.default_rng(2)
     stack = rng.integers(0, 65536, size=(4, 24, 32)).astype(np.uint16)
@@ -112,6 +113,7 @@ def test_the_reference_is_averaged_from_the_frames_the_defect_test_reads(tmp_pat
     small: dict = {}
     ctx = SimpleNamespace(session=SimpleNamespace(sources=[src]),
                           once=lambda key, make: small[key] if key in small else small.setdefault(key, make()))
+    ctx.reference_averaged = lambda c, make: RunContext.reference_averaged(ctx, c, make)
     frames = list(capture_task._reference_frames(ctx, 0))
     assert len(frames) == 4
     np.testing.assert_array_equal(small[("reference", 0, None)], read_reference(src))

@@ -64,12 +64,12 @@ def test_direct_reconstruction_refuses_refinement():
 def test_refined_solves_model_the_given_share_of_the_flow_window(store_copy):
     """``refine.window_scale`` scales the stored flow averaging the refined solves model: 0 none,
     ``s`` the plain solve's width times ``s``; the task runs with it."""
-    from schlieren.workers.tasks.tomography import flow_blur, refined_blur, tomography_task
+    from schlieren.workers.tasks.tomography import flow_blur, tomography_task
 
     ctx = _context(store_copy, 1)
     plain = flow_blur(ctx)
-    assert refined_blur(ctx, 0.0) == {}
-    got = refined_blur(ctx, 0.5)
+    assert flow_blur(ctx, 0.0) == {}
+    got = flow_blur(ctx, 0.5)
     assert set(got) == set(plain)
     for key, v in plain.items():
         if key == "volume_blur":

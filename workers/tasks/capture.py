@@ -80,7 +80,7 @@ def _reference_frames(ctx: RunContext, c: int):
     for img in reference_frames(s, camera_name=s.name):
         mean.add(img)
         yield img
-    ctx.once(("reference", c, None), mean.result)
+    ctx.reference_averaged(c, mean.result)
 
 
 def _capture_frames(ctx: RunContext, c: int):

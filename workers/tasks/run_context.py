@@ -134,6 +134,11 @@ class RunContext:
         s = self.session.sources[c]
         return self.once(("reference", c, parity), lambda: read_reference(s, camera_name=s.name, parity=parity))
 
+    def reference_averaged(self, c: int, make) -> np.ndarray:
+        """Camera ``c``'s reference (not interlaced) from ``make()``, a task's own average of its
+        frames as :func:`read_reference` averages them, unless this process has it already."""
+        return self.once(("reference", c, None), make)
+
     def presmooth(self, c: int) -> float:
         """Camera ``c``'s flow pre-smoothing (pixels): ``flow.presmooth``, or with ``auto`` the
         capture stage's choice from the camera's reference (stored ``presmooth``)."""

@@ -23,22 +23,17 @@ from schlieren.workers.tasks.regularisation import window_model
 from schlieren.workers.tasks.run_context import RunContext, solver_receipt
 from schlieren.workers.tasks.spacetime import per_frame_array
 
-__all__ = ["tomography_task", "tomo_params", "flow_blur", "refined_blur"]
+__all__ = ["tomography_task", "tomo_params", "flow_blur"]
 
 
-def flow_blur(ctx: RunContext) -> dict:
-    """The flow averaging the regularisation stage chose (stored ``flow_window``), as the
-    solver's keyword (:func:`~schlieren.workers.tasks.regularisation.window_model`)."""
-    return ctx.once("flow_blur", lambda: window_model(
-        ctx, np.asarray(ctx.store.read("flow_window", ()), dtype=np.float64)))
-
-
-def refined_blur(ctx: RunContext, scale: float) -> dict:
-    """The solver's keyword for the refined flows' solves: the stored flow averaging times
-    ``scale`` (``refine.window_scale``; empty for 0)."""
+def flow_blur(ctx: RunContext, scale: float = 1.0) -> dict:
+    """The flow averaging the regularisation stage chose (stored ``flow_window``) times
+    ``scale``, as the solver's keyword
+    (:func:`~schlieren.workers.tasks.regularisation.window_model`); empty for ``scale`` 0
+    (the refined flows' solves take ``refine.window_scale`` of it)."""
     if scale <= 0:
         return {}
-    return ctx.once(("refined_blur", float(scale)), lambda: window_model(
+    return ctx.once(("flow_blur", float(scale)), lambda: window_model(
         ctx, scale * np.asarray(ctx.store.read("flow_window", ()), dtype=np.float64)))
 
 
@@ -80,7 +75,7 @@ def tomography_task(ctx: RunContext, k: int) -> dict:
         # model (refine.window_scale; 0: without it)
         refined = tomography.bin_cells(refined_flows(ctx, k, geom, grad), ctx.ray_binning)
         grad, info = tomography.solve_gradient(geom, refined, hull, params=params, support=support,
-                                               **refined_blur(ctx, window_scale))
+                                               **flow_blur(ctx, window_scale))
     ctx.store.write(per_frame_array(ctx), (k,), np.asarray(grad, dtype=np.float32))
     return solver_receipt(info)
 
