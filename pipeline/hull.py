@@ -37,6 +37,12 @@ class HullParams:
              "mask: 0 is the paper's strict intersection; 1 may suit many cameras with ragged masks from "
              "lossy video.",
         see="benchmarks/results/realistic_hull_misses1.md", tuned=True)
+    outlier_ratio: float = param(
+        0.0, unit="1", ge=0, le=1000,
+        help="A camera whose mask alone carves more than this many times the median camera's share of the "
+             "frame's hull disagrees with the others' consensus: the voxels only it rejects are kept. A rig whose "
+             "masks agree keeps the strict intersection; 0 disables.",
+        see="benchmarks/results/lab_hull.md")
 
 
 @dataclass(frozen=True)
@@ -135,12 +141,27 @@ def visual_hull(masks: np.ndarray, cameras: list[Camera], grid: Grid, flow_grid:
     n_vox = int(np.prod(grid.shape))
     if projection is not None and projection.pixel.shape != (len(cameras), n_vox):
         raise ValueError(f"projection {projection.pixel.shape} is not of {len(cameras)} cameras x {n_vox} voxels")
-    # Only the voxels every earlier camera kept are tested (the result is the same: a
-    # carved voxel stays carved, and a kept voxel has been seen by all earlier cameras),
-    # so the later cameras look up (or project) a hull-sized set instead of the whole grid.
+    limit = params.max_misses + (1 if params.outlier_ratio > 0 else 0)
+    cand, views, misses, who = _carve(masks, cameras, grid, flow_grid, params, projection, limit)
+    if params.outlier_ratio > 0:
+        cand = cand[(misses[cand] <= params.max_misses) | _forgiven(cand, misses, who, params, len(cameras))]
+    keep = np.zeros(n_vox, bool)
+    keep[cand] = True
+    keep &= views >= params.min_views
+    return keep.reshape(grid.shape)
+
+
+def _carve(masks, cameras, grid, flow_grid, params, projection, limit):
+    """The voxels that no more than ``limit`` cameras put outside their masks, with every voxel's
+    count of cameras that see it, of cameras that reject it and the last camera that did."""
+    # Only the voxels every earlier camera kept (rejected by at most ``limit``) are tested (the
+    # result is the same: a carved voxel stays carved), so the later cameras look up (or
+    # project) a hull-sized set instead of the whole grid.
+    n_vox = int(np.prod(grid.shape))
     cand = np.arange(n_vox)
     views = np.zeros(n_vox, np.int32)
-    misses = np.zeros(n_vox, np.int32) if params.max_misses > 0 else None
+    misses = np.zeros(n_vox, np.int32) if limit > 0 else None
+    who = np.full(n_vox, -1, np.int32) if limit > 0 else None
     X = grid.centres().reshape(-1, 3) if projection is None else None
     for c, cam in enumerate(cameras):
         if cand.size == 0:  # everything carved already
@@ -157,11 +178,23 @@ def visual_hull(masks: np.ndarray, cameras: list[Camera], grid: Grid, flow_grid:
             dist = _distance_to_mask(masks[c]).ravel()
             ok = np.ones(len(cand), bool)
             ok[inside] = dist[pix[inside]] <= tol[inside]
-        if misses is not None:  # carved only once more than max_misses cameras rejected it
+        if misses is not None:  # carved only once more than ``limit`` cameras rejected it
             misses[cand[~ok]] += 1
-            ok |= misses[cand] <= params.max_misses
+            who[cand[~ok]] = c
+            ok |= misses[cand] <= limit
         cand = cand[ok]
-    keep = np.zeros(n_vox, bool)
-    keep[cand] = True
-    keep &= views >= params.min_views
-    return keep.reshape(grid.shape)
+    if misses is None:
+        misses = np.zeros(n_vox, np.int32)
+    return cand, views, misses, who
+
+
+def _forgiven(cand, misses, who, params: HullParams, n_cameras: int) -> np.ndarray:
+    """Which of ``cand`` (voxels rejected by at most ``max_misses + 1`` cameras) only outlier
+    cameras' masks carve beyond ``max_misses``: a camera is an outlier when the voxels it alone
+    rejects (every other camera keeps them) exceed ``outlier_ratio`` times the median camera's
+    count, and at least one voxel."""
+    extra = misses[cand] == params.max_misses + 1
+    alone = np.bincount(who[cand[extra]], minlength=n_cameras) if params.max_misses == 0 else \
+        np.zeros(n_cameras, np.int64)
+    outlier = alone > params.outlier_ratio * max(float(np.median(alone)), 1.0)
+    return extra & outlier[np.maximum(who[cand], 0)]

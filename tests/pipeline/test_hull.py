@@ -166,3 +166,43 @@ def test_max_misses_keeps_voxels_one_noisy_mask_cut_off(shared):
     empty[0] = False
     assert not visual_hull(empty, cams, grid, fg).any()
     assert visual_hull(empty, cams, grid, fg, params=HullParams(max_misses=1))[inside].all()
+
+
+@pytest.mark.parametrize("shared", [False, True])
+def test_outlier_camera_is_forgiven_and_agreeing_masks_stay_strict(shared):
+    """``outlier_ratio``: one camera whose mask lost part of the sphere (a known voxel set only it
+    rejects) is an outlier against the others' consensus, and the sphere survives whole; where the
+    masks agree (the analytic silhouettes, or all of them with random holes) every camera alone
+    carves about as much as the median camera and the hull equals the strict intersection
+    exactly; two cameras missing the same part still carve it."""
+    from schlieren.pipeline.hull import hull_projection
+
+    grid = Grid((-0.05, -0.05, -0.05), (0.05, 0.05, 0.05), 0.0025)
+    image = (160, 120)
+    fg = FlowGrid(image, 2)
+    cams = ring(8, grid, image)
+    centre, R = np.array([0.002, -0.003, 0.001]), 0.02
+    masks = sphere_masks(cams, fg, centre, R)
+    r = np.linalg.norm(grid.centres() - centre, axis=-1)
+    inside = r <= R + 0.5 * grid.voxel_size
+    params = HullParams(outlier_ratio=3.0)
+    proj = hull_projection(cams, grid, fg, params=params) if shared else None
+
+    def hull(m, p=params):
+        return visual_hull(m, cams, grid, fg, params=p, projection=proj)
+
+    strict = HullParams()
+    np.testing.assert_array_equal(hull(masks), hull(masks, strict))
+    rng = np.random.default_rng(2)
+    ragged = masks & (rng.random(masks.shape) > 0.03)
+    np.testing.assert_array_equal(hull(ragged), hull(ragged, strict))
+    cut = masks.copy()
+    cut[3, : fg.shape[0] // 2] = False  # camera 3 misses the sphere's upper half
+    assert not hull(cut, strict)[inside].all()
+    kept = hull(cut)
+    assert kept[inside].all()
+    others = [c for c in range(len(cams)) if c != 3]  # what only camera 3 carved comes back, nothing more
+    seven = visual_hull(masks[others], [cams[c] for c in others], grid, fg, params=strict)
+    assert (kept >= hull(masks, strict)).all() and (kept <= seven).all()
+    cut[5, : fg.shape[0] // 2] = False
+    assert not hull(cut)[inside].all()
