@@ -17,7 +17,7 @@ import numpy as np
 from schlieren.pipeline.geometry import Camera, FlowGrid, Grid
 from schlieren.pipeline.params import param, parameters
 
-__all__ = ["HullParams", "HullProjection", "hull_projection", "visual_hull"]
+__all__ = ["HullParams", "HullProjection", "hull_projection", "visual_hull", "lone_rejections"]
 
 
 @parameters
@@ -42,7 +42,7 @@ class HullParams:
         help="A camera whose mask alone carves more than this many times the median camera's share of the "
              "frame's hull disagrees with the others' consensus: the voxels only it rejects are kept. A rig whose "
              "masks agree keeps the strict intersection; 0 disables.",
-        see="benchmarks/results/lab_hull.md")
+        see="benchmarks/results/lab_hull.md", tuned=True)
 
 
 @dataclass(frozen=True)
@@ -149,6 +149,19 @@ def visual_hull(masks: np.ndarray, cameras: list[Camera], grid: Grid, flow_grid:
     keep[cand] = True
     keep &= views >= params.min_views
     return keep.reshape(grid.shape)
+
+
+def lone_rejections(masks: np.ndarray, cameras: list[Camera], grid: Grid, flow_grid: FlowGrid, *,
+                    params: HullParams = HullParams(), projection: HullProjection | None = None) -> np.ndarray:
+    """How many voxels each camera's mask alone rejects (every other camera that sees them keeps
+    them): the counts ``outlier_ratio`` compares with the median camera's.
+
+    Returns
+    -------
+    counts : ndarray, shape (C,) int
+    """
+    _, _, misses, who = _carve(np.asarray(masks, bool), cameras, grid, flow_grid, params, projection, 1)
+    return np.bincount(who[misses == 1], minlength=len(cameras))
 
 
 def _carve(masks, cameras, grid, flow_grid, params, projection, limit):
