@@ -1,9 +1,11 @@
 """Visual hull of the flow from per-camera masks (paper sec. 4 "Visual hull generation", sec. 5).
 
-A voxel survives if its footprint touches the mask of every camera that sees it. The
-test is conservative: a voxel is kept by a camera if the distance (in flow-grid pixels)
-from its projected centre to the nearest mask pixel is at most the radius of its
-projected bounding sphere plus half a pixel diagonal (plus ``margin_px``). Voxels seen by
+A voxel survives if its footprint touches the mask of every camera that sees it (beyond the
+paper, optionally but for ``max_misses`` cameras, or but for a camera whose mask disagrees with
+the others' consensus in that frame: ``outlier_ratio``). The test is conservative: a voxel
+is kept by a camera if the distance (in flow-grid pixels) from its projected centre to the
+nearest mask pixel is at most the radius of its projected bounding sphere plus half a pixel
+diagonal (plus ``margin_px``). Voxels seen by
 fewer than ``min_views`` cameras are carved (nothing can be reconstructed there).
 """
 
@@ -39,9 +41,9 @@ class HullParams:
         see="benchmarks/results/realistic_hull_misses1.md", tuned=True)
     outlier_ratio: float = param(
         0.0, unit="1", ge=0, le=1000,
-        help="A camera whose mask alone carves more than this many times the median camera's share of the "
-             "frame's hull disagrees with the others' consensus: the voxels only it rejects are kept. A rig whose "
-             "masks agree keeps the strict intersection; 0 disables.",
+        help="With `max_misses` 0, a camera whose mask alone rejects more than this many times as many voxels as "
+             "the median camera's (voxels all others keep) disagrees with the rig's consensus in that frame, and the "
+             "voxels only it rejects are kept; masks that agree keep the strict intersection exactly (0 disables).",
         see="benchmarks/results/lab_hull.md", tuned=True)
 
 
@@ -112,7 +114,8 @@ def _distance_to_mask(mask: np.ndarray) -> np.ndarray:
 def visual_hull(masks: np.ndarray, cameras: list[Camera], grid: Grid, flow_grid: FlowGrid, *,
                 params: HullParams = HullParams(), projection: HullProjection | None = None) -> np.ndarray:
     """Carve the voxels whose projection falls outside the mask of any camera that sees them
-    (of more than ``params.max_misses`` cameras).
+    (of more than ``params.max_misses`` cameras; with ``params.outlier_ratio``, a voxel only an
+    outlier camera rejects is kept: :func:`lone_rejections`).
 
     Parameters
     ----------
