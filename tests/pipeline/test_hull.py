@@ -175,7 +175,7 @@ def test_outlier_camera_is_forgiven_and_agreeing_masks_stay_strict(shared):
     masks agree (the analytic silhouettes, or all of them with random holes) every camera alone
     carves about as much as the median camera and the hull equals the strict intersection
     exactly; two cameras missing the same part still carve it."""
-    from schlieren.pipeline.hull import hull_projection
+    from schlieren.pipeline.hull import hull_projection, lone_rejections
 
     grid = Grid((-0.05, -0.05, -0.05), (0.05, 0.05, 0.05), 0.0025)
     image = (160, 120)
@@ -199,6 +199,9 @@ def test_outlier_camera_is_forgiven_and_agreeing_masks_stay_strict(shared):
     cut = masks.copy()
     cut[3, : fg.shape[0] // 2] = False  # camera 3 misses the sphere's upper half
     assert not hull(cut, strict)[inside].all()
+    alone = lone_rejections(cut, cams, grid, fg, projection=proj)
+    assert alone.argmax() == 3 and alone[3] > 3.0 * np.median(alone)
+    assert lone_rejections(masks, cams, grid, fg).max() <= 3.0 * max(np.median(lone_rejections(masks, cams, grid, fg)), 1)
     kept = hull(cut)
     assert kept[inside].all()
     others = [c for c in range(len(cams)) if c != 3]  # what only camera 3 carved comes back, nothing more
