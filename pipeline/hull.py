@@ -40,7 +40,7 @@ class HullParams:
              "lossy video.",
         see="benchmarks/results/realistic_hull_misses1.md", tuned=True)
     outlier_ratio: float = param(
-        0.0, unit="1", ge=0, le=1000,
+        3.0, unit="1", ge=0, le=1000,
         help="With `max_misses` 0, a camera whose mask alone rejects more than this many times as many voxels as "
              "the median camera's (voxels all others keep) disagrees with the rig's consensus in that frame, and the "
              "voxels only it rejects are kept; masks that agree keep the strict intersection exactly (0 disables).",

@@ -67,14 +67,18 @@ def test_unseen_voxels_and_empty_masks():
     full = np.ones((4,) + fg.shape, bool)
     assert visual_hull(full, cams, grid, fg).all()
     empty = full.copy()
-    empty[2] = False  # one camera sees no flow anywhere: everything it sees is carved
-    assert not visual_hull(empty, cams, grid, fg).any()
+    empty[2] = False  # one camera sees no flow anywhere: in the strict intersection everything it sees is carved
+    strict = HullParams(outlier_ratio=0.0)
+    assert not visual_hull(empty, cams, grid, fg, params=strict).any()
+    # ... by default it disagrees with the three others' consensus (it alone rejects every voxel they keep)
+    assert visual_hull(empty, cams, grid, fg).all()
     # the first camera carves everything: the distorted cameras after it have nothing to test
     lens = [Camera(c.name, c.K, np.array([-0.05, 0.01, 0.0, 0.0, 0.0]), c.R, c.t, image, c.bg_point, c.bg_normal)
             for c in cams]
     first_empty = full.copy()
     first_empty[0] = False
-    assert not visual_hull(first_empty, lens, grid, fg).any()
+    assert not visual_hull(first_empty, lens, grid, fg, params=strict).any()
+    assert not visual_hull(np.zeros_like(full), lens, grid, fg).any()  # no camera sees flow: nothing is kept
     assert visual_hull(full, lens, grid, fg).sum() > 0
     # A camera that does not see the volume cannot carve it.
     away = cams[0]
@@ -145,7 +149,7 @@ def test_max_misses_keeps_voxels_one_noisy_mask_cut_off(shared):
     r = np.linalg.norm(grid.centres() - centre, axis=-1)
     inside = r <= R + 0.5 * grid.voxel_size
     for k, expect_whole in ((0, False), (1, True)):
-        params = HullParams(max_misses=k)
+        params = HullParams(max_misses=k, outlier_ratio=0.0)
         proj = hull_projection(cams, grid, fg, params=params) if shared else None
         hull = visual_hull(cut, cams, grid, fg, params=params, projection=proj)
         assert hull[inside].all() == expect_whole, k
@@ -164,7 +168,7 @@ def test_max_misses_keeps_voxels_one_noisy_mask_cut_off(shared):
     # an empty mask counts as one rejection of everything its camera sees
     empty = masks.copy()
     empty[0] = False
-    assert not visual_hull(empty, cams, grid, fg).any()
+    assert not visual_hull(empty, cams, grid, fg, params=HullParams(outlier_ratio=0.0)).any()
     assert visual_hull(empty, cams, grid, fg, params=HullParams(max_misses=1))[inside].all()
 
 
@@ -191,7 +195,8 @@ def test_outlier_camera_is_forgiven_and_agreeing_masks_stay_strict(shared):
     def hull(m, p=params):
         return visual_hull(m, cams, grid, fg, params=p, projection=proj)
 
-    strict = HullParams()
+    strict = HullParams(outlier_ratio=0.0)
+    assert HullParams().outlier_ratio == params.outlier_ratio  # the default
     np.testing.assert_array_equal(hull(masks), hull(masks, strict))
     rng = np.random.default_rng(2)
     ragged = masks & (rng.random(masks.shape) > 0.03)
