@@ -59,9 +59,16 @@ class RefineParams:
              "a refined flow is a window mean of the residual only, so part of the window model still fits; "
              "0 solves them without it.",
         see="benchmarks/results/tomography_gap.md")
+    crop: bool = param(
+        True,
+        help="Measure each refined flow only on the crop of the image where the prediction (grown by the flow's "
+             "reach) is not zero, keeping the stored plain flow elsewhere, where the two agree to float noise; "
+             "false: on the whole image.",
+        see="benchmarks/results/refine_roi.md")
 
 
-def cells_to_pixels(cells: np.ndarray, factor: int, size: tuple[int, int]) -> np.ndarray:
+def cells_to_pixels(cells: np.ndarray, factor: int, size: tuple[int, int], *,
+                    box: tuple[int, int, int, int] | None = None) -> np.ndarray:
     """A field given per flow cell, cubic-interpolated from the cells' centres to every pixel.
 
     Parameters
@@ -73,14 +80,18 @@ def cells_to_pixels(cells: np.ndarray, factor: int, size: tuple[int, int]) -> np
         Pixels per cell edge.
     size : (int, int)
         Image width and height.
+    box : (x0, y0, x1, y1), optional
+        Only these pixels (columns ``x0 .. x1 - 1``, rows ``y0 .. y1 - 1``): the same values
+        as the full image's there.
 
     Returns
     -------
-    ndarray, shape (H, W, 2), float32
+    ndarray, shape (H, W, 2) or (y1 - y0, x1 - x0, 2), float32
         Cubic B-spline interpolation of the cell values, the cells continued beyond the
         edges by point reflection about the edge cells (exact on a linear field).
     """
     W, H = size
+    x0, y0, x1, y1 = (0, 0, W, H) if box is None else box
     a = np.nan_to_num(np.asarray(cells, np.float64))
     k = min(_PAD, a.shape[0] - 1, a.shape[1] - 1)
     # point reflection about the edge cells: a linear field stays linear across the edges
@@ -89,8 +100,8 @@ def cells_to_pixels(cells: np.ndarray, factor: int, size: tuple[int, int]) -> np
         lo = 2 * np.take(a, [0], axis) - np.flip(np.take(a, range(1, k + 1), axis), axis)
         hi = 2 * np.take(a, [n - 1], axis) - np.flip(np.take(a, range(n - 1 - k, n - 1), axis), axis)
         a = np.concatenate([lo, a, hi], axis=axis)
-    ys = (np.arange(H) - (factor - 1) / 2.0) / factor + k
-    xs = (np.arange(W) - (factor - 1) / 2.0) / factor + k
+    ys = (np.arange(y0, y1) - (factor - 1) / 2.0) / factor + k
+    xs = (np.arange(x0, x1) - (factor - 1) / 2.0) / factor + k
     my, mx = np.meshgrid(ys, xs, indexing="ij")
     # cubic B-splines with their interpolating prefilter (OpenCV's cubic convolution is not
     # exact even on a linear field)

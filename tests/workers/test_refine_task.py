@@ -18,11 +18,12 @@ def store_copy(serial_store, tmp_path):
     return copy_store(serial_store, tmp_path)
 
 
-def _context(store, passes: int):
+def _context(store, passes: int, crop: bool = True):
     from schlieren.workers.tasks import context
 
     ctx = context(str(store), f"refine-{passes}")
-    return dataclasses.replace(ctx, config=dataclasses.replace(ctx.config, refine=RefineParams(passes=passes)))
+    return dataclasses.replace(ctx, config=dataclasses.replace(ctx.config, refine=RefineParams(passes=passes,
+                                                                                                 crop=crop)))
 
 
 def test_a_zero_prediction_gives_the_runs_own_flows(store_copy):
@@ -88,7 +89,7 @@ def test_the_stored_registration_gives_the_flows_of_registering_again(store_copy
     from schlieren.workers.tasks import refine
     from schlieren.workers.tasks.geometry import cached_geometry, geometry_key
 
-    ctx = _context(store_copy, 1)
+    ctx = _context(store_copy, 1, crop=False)
     geom = cached_geometry(ctx.store_path, geometry_key(ctx))
     grad = np.asarray(ctx.store.read("gradient", (1,)), np.float64)
     calls = []
@@ -100,3 +101,26 @@ def test_the_stored_registration_gives_the_flows_of_registering_again(store_copy
     again = refine.refined_flows(ctx, 1, geom, grad)
     assert calls
     np.testing.assert_array_equal(reused, again)
+
+
+def test_the_cropped_refinement_gives_the_full_images_flows(store_copy, monkeypatch):
+    """``refine.crop`` (the refined flow measured only where the prediction reaches, the stored
+    flow elsewhere) gives the whole image's refined flows within 5e-4 px (the resampling's
+    own floor at zero displacement, which the stored flow outside the crop does not have),
+    and its crops are those :func:`~schlieren.pipeline.flow.refine_region` chose."""
+    from schlieren.pipeline import flow as flowmod
+    from schlieren.workers.tasks import refine
+    from schlieren.workers.tasks.geometry import cached_geometry, geometry_key
+
+    ctx = _context(store_copy, 1, crop=False)
+    geom = cached_geometry(ctx.store_path, geometry_key(ctx))
+    grad = np.asarray(ctx.store.read("gradient", (1,)), np.float64)
+    full = refine.refined_flows(ctx, 1, geom, grad)
+    regions = []
+    make = flowmod.refine_region
+    monkeypatch.setattr(flowmod, "refine_region", lambda *a, **k: regions.append(make(*a, **k)) or regions[-1])
+    cropped = refine.refined_flows(_context(store_copy, 1), 1, geom, grad)
+    assert len(regions) == len(ctx.cameras) and not any(r.empty for r in regions)
+    ok = np.isfinite(full)
+    np.testing.assert_array_equal(ok, np.isfinite(cropped))
+    np.testing.assert_allclose(cropped[ok], full[ok], atol=5e-4)

@@ -37,30 +37,58 @@ def refined_flows(ctx: RunContext, k: int, geom, gradient: np.ndarray) -> np.nda
 def _camera_flow(ctx: RunContext, c: int, k: int, predicted: np.ndarray) -> np.ndarray:
     """Camera ``c``'s refined flow at output instant ``k`` from its prediction on the ray grid."""
     cam = ctx.cameras[c]
-    pixels = flowmod.cells_to_pixels(predicted, ctx.ray_grid.factor, cam.image_size)
     params = flow_params(ctx, c)
     src = ctx.frames(c)
     lo, hi, excluded, _ = frames_read(ctx, c, k)
-
+    region = _region(ctx, predicted, params, cam.image_size)
+    pixels = None
     raw = []
     for f in range(lo, hi + 1):
+        j = f - ctx.raw_first
         if f in excluded or f in src.dropped:  # skipped by the resampling: its stored (NaN or flagged) flow
-            raw.append(ctx.read_upstream("flow_raw", (c, f - ctx.raw_first)))
+            raw.append(ctx.read_upstream("flow_raw", (c, j)))
             continue
         parity = src.parity(f) if hasattr(src, "parity") else None
         # the camera's fixed inputs of the corrections depend on the reference's shape and
         # levels only, not its values: the deflection tasks' apply to the warped reference too
         fixed = camera_capture(ctx, c, parity, params)
-        fit = _stored_fit(ctx, c, f - ctx.raw_first)
+        fit = _stored_fit(ctx, c, j)
+        prep = ctx.prepared_reference(c, parity)
+        if region is not None and not capture.moves(fit, ctx.config.capture, cam.image_size):
+            raw.append(_region_flow(ctx, c, f, region, predicted, params, prep, fixed, fit))
+            continue
 
-        def corrected(prep, img, p, fixed=fixed, fit=fit):
-            return capture.corrected_deflection(prep, img, p, ctx.config.capture, camera=fixed, fit=fit)[0]
+        def corrected(ref, img, p, fixed=fixed, fit=fit):
+            return capture.corrected_deflection(ref, img, p, ctx.config.capture, camera=fixed, fit=fit)[0]
 
-        raw.append(flowmod.refined_deflection(ctx.prepared_reference(c, parity), ctx.frame(c, f), pixels, params,
-                                              deflection=corrected))
+        if pixels is None:
+            pixels = flowmod.cells_to_pixels(predicted, ctx.ray_grid.factor, cam.image_size)
+        raw.append(flowmod.refined_deflection(prep, ctx.frame(c, f), pixels, params, deflection=corrected))
     return sync.resample_flow(np.stack(raw), lo, float(ctx.times()[k]), offset=ctx.time_offset(c),
                               frame_rate=ctx.session.frame_rate, line_time=cam.line_time, flow_grid=ctx.flow_grid,
                               excluded_frames=excluded, params=ctx.config.resample)
+
+
+def _region(ctx: RunContext, predicted: np.ndarray, params, image_size) -> flowmod.RefineRegion | None:
+    """Where camera ``c``'s refined flow can differ from its plain flow (``refine.crop``;
+    None: the whole image, as without it or for flows other than Lucas-Kanade's)."""
+    if not ctx.config.refine.crop or params.method != "lk":
+        return None
+    return flowmod.refine_region(predicted, ctx.ray_grid.factor, params, image_size)
+
+
+def _region_flow(ctx: RunContext, c: int, f: int, region, predicted, params, prep, fixed, fit) -> np.ndarray:
+    """Raw frame ``f``'s refined flow computed on ``region`` alone, its stored plain flow elsewhere."""
+    plain = ctx.read_upstream("flow_raw", (c, f - ctx.raw_first))
+    if region.empty:
+        return np.asarray(plain, np.float32)
+
+    def corrected(ref, img, p):
+        return capture.corrected_crop_deflection(ref, img, p, ctx.config.capture, fit=fit, crop=region.crop,
+                                                 whole=prep, bad=fixed.bad)
+
+    return flowmod.refined_deflection_in_region(prep.image, ctx.frame(c, f), predicted, ctx.ray_grid.factor, plain,
+                                                region, params, deflection=corrected)
 
 
 def _stored_fit(ctx: RunContext, c: int, j: int) -> capture.BackgroundFit:
