@@ -39,6 +39,7 @@ from .stage import deflection_stage
 __all__ = ["RefineParams", "cells_to_pixels", "refined_deflection"]
 
 _PAD = 8  # cells added beyond each edge: the B-spline prefilter's edge error decays as 0.27 per cell
+_SCIPY_PAD = 12  # edge padding scipy's map_coordinates(mode="nearest") gives its prefilter
 
 
 @parameters
@@ -102,11 +103,29 @@ def cells_to_pixels(cells: np.ndarray, factor: int, size: tuple[int, int], *,
         a = np.concatenate([lo, a, hi], axis=axis)
     ys = (np.arange(y0, y1) - (factor - 1) / 2.0) / factor + k
     xs = (np.arange(x0, x1) - (factor - 1) / 2.0) / factor + k
-    my, mx = np.meshgrid(ys, xs, indexing="ij")
     # cubic B-splines with their interpolating prefilter (OpenCV's cubic convolution is not
-    # exact even on a linear field)
-    return np.stack([ndimage.map_coordinates(a[..., i], [my, mx], order=3, mode="nearest")
-                     for i in range(2)], axis=-1).astype(np.float32)
+    # exact even on a linear field), as scipy's map_coordinates(order=3, mode="nearest")
+    # makes them (the cells padded by their edge values before the prefilter), evaluated on
+    # the pixels' tensor grid one axis at a time: 4 taps per axis
+    rows, cols = _cubic_taps(ys + _SCIPY_PAD), _cubic_taps(xs + _SCIPY_PAD)
+    out = np.empty((len(ys), len(xs), 2), np.float32)
+    for i in range(2):
+        coef = ndimage.spline_filter(np.pad(a[..., i], _SCIPY_PAD, mode="edge"), order=3, mode="nearest",
+                                     output=np.float64)
+        along = sum(w[:, None] * coef[j] for j, w in zip(*rows))
+        out[..., i] = sum(w[None, :] * along[:, j] for j, w in zip(*cols))
+    return out
+
+
+def _cubic_taps(pos: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The four samples and cubic B-spline weights of each position: ``value(pos) =
+    sum_t w_t coef[j_t]``."""
+    j = np.floor(pos).astype(np.intp)
+    t = pos - j
+    t2, t3 = t * t, t * t * t
+    weights = [(1.0 - t) ** 3 / 6.0, (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0, (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0,
+               t3 / 6.0]
+    return [j - 1, j, j + 1, j + 2], weights
 
 
 def refined_deflection(reference, frame: np.ndarray, prediction: np.ndarray, params: FlowParams = FlowParams(), *,

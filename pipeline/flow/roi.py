@@ -31,7 +31,7 @@ import numpy as np
 
 from .images import _gaussian_taps
 from .params import FlowParams
-from .refine import cells_to_pixels, refined_deflection
+from .refine import refined_deflection
 
 __all__ = ["RefineRegion", "flow_reach", "prediction_reach", "refine_region", "refined_deflection_in_region"]
 
@@ -196,8 +196,7 @@ def _aligned(lo: int, hi: int, a: int, n: int, need: int) -> tuple[int, int]:
 
 
 def refined_deflection_in_region(reference: np.ndarray, frame: np.ndarray, prediction: np.ndarray,
-                                 cell_factor: int, plain: np.ndarray, region: RefineRegion,
-                                 params: FlowParams = FlowParams(), *,
+                                 plain: np.ndarray, region: RefineRegion, params: FlowParams = FlowParams(), *,
                                  deflection: Callable | None = None) -> np.ndarray:
     """:func:`~.refine.refined_deflection` of one camera-frame computed on ``region`` alone.
 
@@ -206,13 +205,12 @@ def refined_deflection_in_region(reference: np.ndarray, frame: np.ndarray, predi
     reference : ndarray, shape (H, W)
         The camera's background (grey levels).
     frame : ndarray, shape (H, W)
-    prediction : ndarray, shape (rows, cols, 2)
-        Predicted deflection per ``cell_factor`` cell (:func:`refine_region`).
-    cell_factor : int
+    prediction : ndarray, shape (y1 - y0, x1 - x0, 2)
+        Predicted deflection on the region's crop (:func:`~.refine.cells_to_pixels` of the
+        prediction :func:`refine_region` was given, with ``box=region.crop``; pixels).
     plain : ndarray, shape (H // f, W // f, 2)
         The plain flow of the frame (what the refined flow is outside the region).
     region : RefineRegion
-        :func:`refine_region` of ``prediction``.
     params : FlowParams
     deflection : callable, optional
         As :func:`~.refine.refined_deflection`'s, called on the crop.
@@ -225,11 +223,9 @@ def refined_deflection_in_region(reference: np.ndarray, frame: np.ndarray, predi
     out = np.array(plain, np.float32, copy=True)
     if region.empty:
         return out
-    H, W = np.shape(frame)[:2]
     x0, y0, x1, y1 = region.crop
-    pixels = cells_to_pixels(prediction, cell_factor, (W, H), box=region.crop)
     ref = np.asarray(reference, np.float32)[y0:y1, x0:x1]
-    crop = refined_deflection(ref, np.asarray(frame)[y0:y1, x0:x1], pixels, params, deflection=deflection)
+    crop = refined_deflection(ref, np.asarray(frame)[y0:y1, x0:x1], prediction, params, deflection=deflection)
     f = int(params.factor)
     r0, c0, r1, c1 = region.cells
     out[r0:r1, c0:c1] = crop[r0 - y0 // f:r1 - y0 // f, c0 - x0 // f:c1 - x0 // f]

@@ -74,7 +74,8 @@ def test_cropped_refinement_is_the_full_refinement(scene, params):
     x0, y0, _, _ = region.crop
     a = params.factor * 2 ** (params.levels - 1)
     assert x0 % a == 0 and y0 % a == 0  # flow cells and pyramid pixels coincide with the image's
-    cropped = refined_deflection_in_region(ref, frame, pred, RAY_FACTOR, plain, region, params)
+    pixels = cells_to_pixels(pred, RAY_FACTOR, (W, H), box=region.crop)
+    cropped = refined_deflection_in_region(ref, frame, pixels, plain, region, params)
     assert cropped.shape == full.shape
     r0, c0, r1, c1 = region.cells
     inside = np.zeros(full.shape[:2], bool)
@@ -115,8 +116,7 @@ def test_no_prediction_keeps_the_plain_flow(scene):
     region = refine_region(pred, RAY_FACTOR, params, (W, H))
     assert region.empty and region.share((W, H)) == 0.0
     plain = np.random.default_rng(0).standard_normal((H // 3, W // 3, 2)).astype(np.float32)
-    np.testing.assert_array_equal(refined_deflection_in_region(ref, frame, pred, RAY_FACTOR, plain, region, params),
-                                  plain)
+    np.testing.assert_array_equal(refined_deflection_in_region(ref, frame, None, plain, region, params), plain)
 
 
 def test_cells_to_pixels_box_is_the_full_field_there():

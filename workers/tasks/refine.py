@@ -41,7 +41,7 @@ def _camera_flow(ctx: RunContext, c: int, k: int, predicted: np.ndarray) -> np.n
     src = ctx.frames(c)
     lo, hi, excluded, _ = frames_read(ctx, c, k)
     region = _region(ctx, predicted, params, cam.image_size)
-    pixels = None
+    pixels = crop_pixels = None
     raw = []
     for f in range(lo, hi + 1):
         j = f - ctx.raw_first
@@ -55,7 +55,10 @@ def _camera_flow(ctx: RunContext, c: int, k: int, predicted: np.ndarray) -> np.n
         fit = _stored_fit(ctx, c, j)
         prep = ctx.prepared_reference(c, parity)
         if region is not None and not capture.moves(fit, ctx.config.capture, cam.image_size):
-            raw.append(_region_flow(ctx, c, f, region, predicted, params, prep, fixed, fit))
+            if crop_pixels is None and not region.empty:
+                crop_pixels = flowmod.cells_to_pixels(predicted, ctx.ray_grid.factor, cam.image_size,
+                                                      box=region.crop)
+            raw.append(_region_flow(ctx, c, f, region, crop_pixels, params, prep, fixed, fit))
             continue
 
         def corrected(ref, img, p, fixed=fixed, fit=fit):
@@ -77,8 +80,9 @@ def _region(ctx: RunContext, predicted: np.ndarray, params, image_size) -> flowm
     return flowmod.refine_region(predicted, ctx.ray_grid.factor, params, image_size)
 
 
-def _region_flow(ctx: RunContext, c: int, f: int, region, predicted, params, prep, fixed, fit) -> np.ndarray:
-    """Raw frame ``f``'s refined flow computed on ``region`` alone, its stored plain flow elsewhere."""
+def _region_flow(ctx: RunContext, c: int, f: int, region, pixels, params, prep, fixed, fit) -> np.ndarray:
+    """Raw frame ``f``'s refined flow computed on ``region`` alone (``pixels``: the prediction
+    on its crop), its stored plain flow elsewhere."""
     plain = ctx.read_upstream("flow_raw", (c, f - ctx.raw_first))
     if region.empty:
         return np.asarray(plain, np.float32)
@@ -87,8 +91,8 @@ def _region_flow(ctx: RunContext, c: int, f: int, region, predicted, params, pre
         return capture.corrected_crop_deflection(ref, img, p, ctx.config.capture, fit=fit, crop=region.crop,
                                                  whole=prep, bad=fixed.bad)
 
-    return flowmod.refined_deflection_in_region(prep.image, ctx.frame(c, f), predicted, ctx.ray_grid.factor, plain,
-                                                region, params, deflection=corrected)
+    return flowmod.refined_deflection_in_region(prep.image, ctx.frame(c, f), pixels, plain, region, params,
+                                                deflection=corrected)
 
 
 def _stored_fit(ctx: RunContext, c: int, j: int) -> capture.BackgroundFit:
