@@ -15,7 +15,6 @@ difference between the two flows (after the resampling to the output instant).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import time
 from pathlib import Path
@@ -32,8 +31,6 @@ def measure(store: str, frames: list[int] | None) -> dict:
     from schlieren.workers.tasks.resample import frames_read
 
     ctx = context(store, "refine-roi-bench")
-    modes = {crop: dataclasses.replace(ctx, config=dataclasses.replace(
-        ctx.config, refine=dataclasses.replace(ctx.config.refine, crop=crop))) for crop in (False, True)}
     geom = cached_geometry(ctx.store_path, geometry_key(ctx))
     frames = list(range(ctx.n_frames)) if frames is None else frames
     rows = []
@@ -54,7 +51,7 @@ def measure(store: str, frames: list[int] | None) -> dict:
             out = {}
             for crop in ((False, True) if c % 2 == 0 else (True, False)):
                 t0 = time.process_time()
-                out[crop] = refine._camera_flow(modes[crop], c, k, predicted[c])
+                out[crop] = refine._camera_flow(ctx, c, k, predicted[c], crop)
                 cpu[crop] += time.process_time() - t0
             ok = np.isfinite(out[False]) & np.isfinite(out[True])
             diffs.append(float(np.abs(out[False][ok] - out[True][ok]).max()) if ok.any() else 0.0)

@@ -16,7 +16,8 @@ of the plain flow.
 The kernels: :func:`cells_to_pixels` (a flow-grid field to every image pixel) and
 :func:`refined_deflection` (one camera-frame's refined flow); :class:`RefineParams` says how
 many times a run's tomography task re-measures its frame's flows around its own solution
-and solves again (beyond the paper; off by default). Measurements:
+and solves again (beyond the paper; off by default). Where the prediction is zero the refined
+flow is the plain one: :mod:`.roi` measures it only where the prediction reaches. Measurements:
 benchmarks/results/flow_refinement.md.
 """
 
@@ -62,9 +63,9 @@ class RefineParams:
         see="benchmarks/results/tomography_gap.md")
     crop: bool = param(
         True,
-        help="Measure each refined flow only on the crop of the image where the prediction (grown by the flow's "
-             "reach) is not zero, keeping the stored plain flow elsewhere, where the two agree to float noise; "
-             "false: on the whole image.",
+        help="Measure each refined flow only on the crop of the image where the prediction, grown by the flow's "
+             "reach, exceeds 1e-5 px, keeping the stored plain flow elsewhere (the whole image's refined flow "
+             "differs from it there by under 1e-4 px beyond its resampling's own floor); false: the whole image.",
         see="benchmarks/results/refine_roi.md")
 
 

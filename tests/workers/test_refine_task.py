@@ -18,12 +18,11 @@ def store_copy(serial_store, tmp_path):
     return copy_store(serial_store, tmp_path)
 
 
-def _context(store, passes: int, crop: bool = True):
+def _context(store, passes: int):
     from schlieren.workers.tasks import context
 
     ctx = context(str(store), f"refine-{passes}")
-    return dataclasses.replace(ctx, config=dataclasses.replace(ctx.config, refine=RefineParams(passes=passes,
-                                                                                                 crop=crop)))
+    return dataclasses.replace(ctx, config=dataclasses.replace(ctx.config, refine=RefineParams(passes=passes)))
 
 
 def test_a_zero_prediction_gives_the_runs_own_flows(store_copy):
@@ -89,16 +88,16 @@ def test_the_stored_registration_gives_the_flows_of_registering_again(store_copy
     from schlieren.workers.tasks import refine
     from schlieren.workers.tasks.geometry import cached_geometry, geometry_key
 
-    ctx = _context(store_copy, 1, crop=False)
+    ctx = _context(store_copy, 1)
     geom = cached_geometry(ctx.store_path, geometry_key(ctx))
     grad = np.asarray(ctx.store.read("gradient", (1,)), np.float64)
     calls = []
     register = capture.correction.register_background
     monkeypatch.setattr(capture.correction, "register_background", lambda *a, **k: calls.append(1) or register(*a, **k))
-    reused = refine.refined_flows(ctx, 1, geom, grad)
+    reused = refine.refined_flows(ctx, 1, geom, grad, crop=False)
     assert not calls
     monkeypatch.setattr(refine, "_stored_fit", lambda *a: None)
-    again = refine.refined_flows(ctx, 1, geom, grad)
+    again = refine.refined_flows(ctx, 1, geom, grad, crop=False)
     assert calls
     np.testing.assert_array_equal(reused, again)
 
@@ -112,14 +111,14 @@ def test_the_cropped_refinement_gives_the_full_images_flows(store_copy, monkeypa
     from schlieren.workers.tasks import refine
     from schlieren.workers.tasks.geometry import cached_geometry, geometry_key
 
-    ctx = _context(store_copy, 1, crop=False)
+    ctx = _context(store_copy, 1)
     geom = cached_geometry(ctx.store_path, geometry_key(ctx))
     grad = np.asarray(ctx.store.read("gradient", (1,)), np.float64)
-    full = refine.refined_flows(ctx, 1, geom, grad)
+    full = refine.refined_flows(ctx, 1, geom, grad, crop=False)
     regions = []
     make = flowmod.refine_region
     monkeypatch.setattr(flowmod, "refine_region", lambda *a, **k: regions.append(make(*a, **k)) or regions[-1])
-    cropped = refine.refined_flows(_context(store_copy, 1), 1, geom, grad)
+    cropped = refine.refined_flows(ctx, 1, geom, grad, crop=True)
     assert len(regions) == len(ctx.cameras) and not any(r.empty for r in regions)
     ok = np.isfinite(full)
     np.testing.assert_array_equal(ok, np.isfinite(cropped))

@@ -6,7 +6,10 @@ its solution (:func:`~schlieren.pipeline.residuals.predict_flows` on the ray gri
 raw frame that frame ``k``'s resampling reads around that prediction
 (:func:`~schlieren.pipeline.flow.refined_deflection` with the deflection task's capture
 correction: its stored registration, :func:`~schlieren.pipeline.capture.stored_fit`, is
-not measured again), and resamples them to the output instant as the ``resample`` task does. The
+not measured again), and resamples them to the output instant as the ``resample`` task does. With ``refine.crop``
+each camera's flows are measured only on the crop where its prediction reaches
+(:func:`~schlieren.pipeline.flow.refine_region`), the stored ``flow_raw`` elsewhere; a frame
+whose stored registration applied a motion is measured on the whole image. The
 raw frames' deflection tasks are done by then (the tomography waits for its resampling),
 and nothing is stored but the solve the task writes.
 """
@@ -26,21 +29,22 @@ from schlieren.workers.tasks.run_context import RunContext
 __all__ = ["refined_flows"]
 
 
-def refined_flows(ctx: RunContext, k: int, geom, gradient: np.ndarray) -> np.ndarray:
+def refined_flows(ctx: RunContext, k: int, geom, gradient: np.ndarray, *, crop: bool = True) -> np.ndarray:
     """Frame ``k``'s flows of every camera (C, h, w, 2) on the flow grid, each raw frame's
-    measured around the deflections ``gradient`` (nz, ny, nx, 3) predicts."""
+    measured around the deflections ``gradient`` (nz, ny, nx, 3) predicts (``crop``
+    (``refine.crop``): only where the prediction reaches)."""
     predicted = predict_flows(geom, ctx.cameras, np.asarray(gradient, np.float64),
                               n_ambient=ctx.session.medium.n_ambient)
-    return np.stack([_camera_flow(ctx, c, k, predicted[c]) for c in range(len(ctx.cameras))])
+    return np.stack([_camera_flow(ctx, c, k, predicted[c], crop) for c in range(len(ctx.cameras))])
 
 
-def _camera_flow(ctx: RunContext, c: int, k: int, predicted: np.ndarray) -> np.ndarray:
+def _camera_flow(ctx: RunContext, c: int, k: int, predicted: np.ndarray, crop: bool = True) -> np.ndarray:
     """Camera ``c``'s refined flow at output instant ``k`` from its prediction on the ray grid."""
     cam = ctx.cameras[c]
     params = flow_params(ctx, c)
     src = ctx.frames(c)
     lo, hi, excluded, _ = frames_read(ctx, c, k)
-    region = _region(ctx, predicted, params, cam.image_size)
+    region = _region(ctx, predicted, params, cam.image_size) if crop else None
     pixels = crop_pixels = None
     raw = []
     for f in range(lo, hi + 1):
@@ -73,9 +77,9 @@ def _camera_flow(ctx: RunContext, c: int, k: int, predicted: np.ndarray) -> np.n
 
 
 def _region(ctx: RunContext, predicted: np.ndarray, params, image_size) -> flowmod.RefineRegion | None:
-    """Where camera ``c``'s refined flow can differ from its plain flow (``refine.crop``;
-    None: the whole image, as without it or for flows other than Lucas-Kanade's)."""
-    if not ctx.config.refine.crop or params.method != "lk":
+    """Where a camera's refined flow can differ from its plain flow (None: the whole image,
+    for flows other than Lucas-Kanade's)."""
+    if params.method != "lk":
         return None
     return flowmod.refine_region(predicted, ctx.ray_grid.factor, params, image_size)
 
