@@ -8,7 +8,9 @@ deflections from the stored gradient (the run's last solve) and measures each ca
 flows as the tomography task does (:func:`schlieren.workers.tasks.refine._camera_flow`), once
 on the whole image (``refine.crop: false``) and once on the crop (``refine.crop: true``),
 alternating which goes first per camera; CPU seconds by ``time.process_time`` (the machine may
-be loaded). Reports per frame the CPU of both, the crops' share of the image and the largest
+be loaded), after what a worker prepares once per camera (the prepared reference and the
+capture's fixed inputs). Each mode reads its raw frames itself (a run's task does; the reader
+keeps two frames per camera, the refinement reads three), so both include the frames' decoding. Reports per frame the CPU of both, the crops' share of the image and the largest
 difference between the two flows (after the resampling to the output instant).
 """
 
@@ -26,6 +28,7 @@ def measure(store: str, frames: list[int] | None) -> dict:
     from schlieren.pipeline.residuals import predict_flows
     from schlieren.workers.tasks import context
     from schlieren.workers.tasks import refine
+    from schlieren.workers.tasks.capture import camera_capture
     from schlieren.workers.tasks.deflection import flow_params
     from schlieren.workers.tasks.geometry import cached_geometry, geometry_key
     from schlieren.workers.tasks.resample import frames_read
@@ -44,7 +47,9 @@ def measure(store: str, frames: list[int] | None) -> dict:
         for c, cam in enumerate(ctx.cameras):
             lo, hi, _, _ = frames_read(ctx, c, k)
             raw += hi - lo + 1
-            for f in range(lo, hi + 1):  # frames read before timing: both modes find them read
+            # what a worker prepares once per camera, and the frames, made before timing
+            camera_capture(ctx, c, None, flow_params(ctx, c))
+            for f in range(lo, hi + 1):
                 ctx.frame(c, f)
             region = refine._region(ctx, predicted[c], flow_params(ctx, c), cam.image_size)
             shares.append(region.share(cam.image_size))

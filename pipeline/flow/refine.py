@@ -33,11 +33,11 @@ from schlieren.pipeline.params import param, parameters
 
 from .params import FlowParams
 from .post import _block_mean
-from .reference import PreparedReference
+from .reference import PreparedReference, prepare_reference
 from .splines import warp_image
 from .stage import deflection_stage
 
-__all__ = ["RefineParams", "cells_to_pixels", "refined_deflection"]
+__all__ = ["RefineParams", "cells_to_pixels", "predicted_reference", "refined_deflection"]
 
 _PAD = 8  # cells added beyond each edge: the B-spline prefilter's edge error decays as 0.27 per cell
 _SCIPY_PAD = 12  # edge padding scipy's map_coordinates(mode="nearest") gives its prefilter
@@ -129,8 +129,39 @@ def _cubic_taps(pos: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
     return [j - 1, j, j + 1, j + 2], weights
 
 
+def predicted_reference(reference, prediction: np.ndarray, params: FlowParams = FlowParams()):
+    """The reference resampled at ``q + p(q)`` (exact cubic B-splines), what
+    :func:`refined_deflection` measures a frame against: the same for every frame that
+    shares the prediction, so made once for them.
+
+    Parameters
+    ----------
+    reference : ndarray, shape (H, W), or PreparedReference
+        The camera's background (grey levels; non-finite pixels read as its mean).
+    prediction : ndarray, shape (H, W, 2)
+        Predicted deflection at every pixel (pixels).
+    params : FlowParams
+
+    Returns
+    -------
+    PreparedReference or ndarray, shape (H, W)
+        Prepared with ``params``' pre-smoothing and levels when ``presmooth`` is a number
+        (a run's are); the resampled image alone with ``auto`` (the flow resolves it).
+    """
+    img = reference.image if isinstance(reference, PreparedReference) else np.asarray(reference, np.float32)
+    H, W = img.shape
+    pred = np.asarray(prediction, np.float32)
+    if pred.shape != (H, W, 2):
+        raise ValueError(f"prediction shape {pred.shape} does not match the image ({H}, {W})")
+    fill = float(np.nanmean(img))
+    moved = warp_image(np.where(np.isfinite(img), img, np.float32(fill)).astype(np.float32), pred)
+    if isinstance(params.presmooth, str):
+        return moved
+    return prepare_reference(moved, presmooth=params.presmooth, levels=params.levels)
+
+
 def refined_deflection(reference, frame: np.ndarray, prediction: np.ndarray, params: FlowParams = FlowParams(), *,
-                       deflection: Callable | None = None, **kwargs) -> np.ndarray:
+                       deflection: Callable | None = None, around=None, **kwargs) -> np.ndarray:
     """One camera-frame's deflection measured around a prediction of it.
 
     Parameters
@@ -144,21 +175,20 @@ def refined_deflection(reference, frame: np.ndarray, prediction: np.ndarray, par
     params : FlowParams
     deflection : callable, optional
         ``deflection(reference, frame, params, **kwargs) -> (H // f, W // f, 2)``, the flow
-        of the residual against the warped reference (an ndarray, prepared by the callable);
+        of the residual against the warped reference (:func:`predicted_reference`);
         default :func:`~.stage.deflection_stage` (a run passes its capture-corrected flow).
+    around : PreparedReference or ndarray, optional
+        :func:`predicted_reference` of ``reference`` and ``prediction`` when already made
+        (frames that share the prediction).
 
     Returns
     -------
     flow : ndarray, shape (H // f, W // f, 2), float32
         The residual's flow plus the prediction's mean over each flow cell (pixels).
     """
-    img = reference.image if isinstance(reference, PreparedReference) else np.asarray(reference, np.float32)
-    H, W = img.shape
+    moved = predicted_reference(reference, prediction, params) if around is None else around
+    H, W = np.shape(frame)[:2]
     pred = np.asarray(prediction, np.float32)
-    if pred.shape != (H, W, 2):
-        raise ValueError(f"prediction shape {pred.shape} does not match the image ({H}, {W})")
-    fill = float(np.nanmean(img))
-    moved = warp_image(np.where(np.isfinite(img), img, np.float32(fill)).astype(np.float32), pred)
     run = deflection if deflection is not None else deflection_stage
     residual = np.asarray(run(moved, frame, params, **kwargs), np.float32)
     rows, cols = FlowGrid((W, H), params.factor).shape

@@ -197,7 +197,7 @@ def _aligned(lo: int, hi: int, a: int, n: int, need: int) -> tuple[int, int]:
 
 def refined_deflection_in_region(reference: np.ndarray, frame: np.ndarray, prediction: np.ndarray,
                                  plain: np.ndarray, region: RefineRegion, params: FlowParams = FlowParams(), *,
-                                 deflection: Callable | None = None) -> np.ndarray:
+                                 deflection: Callable | None = None, around=None) -> np.ndarray:
     """:func:`~.refine.refined_deflection` of one camera-frame computed on ``region`` alone.
 
     Parameters
@@ -214,6 +214,9 @@ def refined_deflection_in_region(reference: np.ndarray, frame: np.ndarray, predi
     params : FlowParams
     deflection : callable, optional
         As :func:`~.refine.refined_deflection`'s, called on the crop.
+    around : PreparedReference or ndarray, optional
+        :func:`~.refine.predicted_reference` of the crop of ``reference`` and ``prediction``
+        when already made (frames that share the prediction).
 
     Returns
     -------
@@ -225,7 +228,8 @@ def refined_deflection_in_region(reference: np.ndarray, frame: np.ndarray, predi
         return out
     x0, y0, x1, y1 = region.crop
     ref = np.asarray(reference, np.float32)[y0:y1, x0:x1]
-    crop = refined_deflection(ref, np.asarray(frame)[y0:y1, x0:x1], prediction, params, deflection=deflection)
+    crop = refined_deflection(ref, np.asarray(frame)[y0:y1, x0:x1], prediction, params, deflection=deflection,
+                              around=around)
     f = int(params.factor)
     r0, c0, r1, c1 = region.cells
     out[r0:r1, c0:c1] = crop[r0 - y0 // f:r1 - y0 // f, c0 - x0 // f:c1 - x0 // f]

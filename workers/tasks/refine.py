@@ -45,7 +45,7 @@ def _camera_flow(ctx: RunContext, c: int, k: int, predicted: np.ndarray, crop: b
     src = ctx.frames(c)
     lo, hi, excluded, _ = frames_read(ctx, c, k)
     region = _region(ctx, predicted, params, cam.image_size) if crop else None
-    pixels = crop_pixels = None
+    shared: dict = {}
     raw = []
     for f in range(lo, hi + 1):
         j = f - ctx.raw_first
@@ -59,21 +59,32 @@ def _camera_flow(ctx: RunContext, c: int, k: int, predicted: np.ndarray, crop: b
         fit = _stored_fit(ctx, c, j)
         prep = ctx.prepared_reference(c, parity)
         if region is not None and not capture.moves(fit, ctx.config.capture, cam.image_size):
-            if crop_pixels is None and not region.empty:
-                crop_pixels = flowmod.cells_to_pixels(predicted, ctx.ray_grid.factor, cam.image_size,
-                                                      box=region.crop)
-            raw.append(_region_flow(ctx, c, f, region, crop_pixels, params, prep, fixed, fit))
+            raw.append(_region_flow(ctx, c, f, region, params, prep, fixed, fit,
+                                    lambda: _around(ctx, predicted, params, prep, region.crop, shared, parity)))
             continue
 
         def corrected(ref, img, p, fixed=fixed, fit=fit):
             return capture.corrected_deflection(ref, img, p, ctx.config.capture, camera=fixed, fit=fit)[0]
 
-        if pixels is None:
-            pixels = flowmod.cells_to_pixels(predicted, ctx.ray_grid.factor, cam.image_size)
-        raw.append(flowmod.refined_deflection(prep, ctx.frame(c, f), pixels, params, deflection=corrected))
+        pixels, around = _around(ctx, predicted, params, prep, None, shared, parity)
+        raw.append(flowmod.refined_deflection(prep, ctx.frame(c, f), pixels, params, deflection=corrected,
+                                              around=around))
     return sync.resample_flow(np.stack(raw), lo, float(ctx.times()[k]), offset=ctx.time_offset(c),
                               frame_rate=ctx.session.frame_rate, line_time=cam.line_time, flow_grid=ctx.flow_grid,
                               excluded_frames=excluded, params=ctx.config.resample)
+
+
+def _around(ctx: RunContext, predicted: np.ndarray, params, prep, box, shared: dict, parity):
+    """The prediction's pixels on ``box`` (None: the whole image) and the reference (of field
+    ``parity``) resampled around them, made once for the raw frames that share them (kept in
+    ``shared``)."""
+    key = (parity, box)
+    if key not in shared:
+        H, W = prep.shape
+        pixels = flowmod.cells_to_pixels(predicted, ctx.ray_grid.factor, (W, H), box=box)
+        ref = prep if box is None else prep.image[box[1]:box[3], box[0]:box[2]]
+        shared[key] = pixels, flowmod.predicted_reference(ref, pixels, params)
+    return shared[key]
 
 
 def _region(ctx: RunContext, predicted: np.ndarray, params, image_size) -> flowmod.RefineRegion | None:
@@ -84,9 +95,10 @@ def _region(ctx: RunContext, predicted: np.ndarray, params, image_size) -> flowm
     return flowmod.refine_region(predicted, ctx.ray_grid.factor, params, image_size)
 
 
-def _region_flow(ctx: RunContext, c: int, f: int, region, pixels, params, prep, fixed, fit) -> np.ndarray:
-    """Raw frame ``f``'s refined flow computed on ``region`` alone (``pixels``: the prediction
-    on its crop), its stored plain flow elsewhere."""
+def _region_flow(ctx: RunContext, c: int, f: int, region, params, prep, fixed, fit, around) -> np.ndarray:
+    """Raw frame ``f``'s refined flow computed on ``region`` alone, its stored plain flow
+    elsewhere (``around()``: the prediction's pixels on the crop and the crop's reference
+    resampled around them)."""
     plain = ctx.read_upstream("flow_raw", (c, f - ctx.raw_first))
     if region.empty:
         return np.asarray(plain, np.float32)
@@ -95,8 +107,9 @@ def _region_flow(ctx: RunContext, c: int, f: int, region, pixels, params, prep, 
         return capture.corrected_crop_deflection(ref, img, p, ctx.config.capture, fit=fit, crop=region.crop,
                                                  whole=prep, bad=fixed.bad)
 
+    pixels, moved = around()
     return flowmod.refined_deflection_in_region(prep.image, ctx.frame(c, f), pixels, plain, region, params,
-                                                deflection=corrected)
+                                                deflection=corrected, around=moved)
 
 
 def _stored_fit(ctx: RunContext, c: int, j: int) -> capture.BackgroundFit:
