@@ -1,6 +1,7 @@
 """CPU seconds of the re-projection refinement's flows: the whole image against the crop.
 
     python benchmarks/refine_roi.py --store STORE.zarr [--frames 0,1,2] [--out results/refine_roi_CASE.json]
+        [--tasks]
 
 Reads a kept run store (``schlieren bench realistic ... --keep-stores``, or a ``schlieren run``
 store of the paper-scale session) and, for each output frame asked, predicts every camera's
@@ -12,11 +13,17 @@ be loaded), after what a worker prepares once per camera (the prepared reference
 capture's fixed inputs). Each mode reads its raw frames itself (a run's task does; the reader
 keeps two frames per camera, the refinement reads three), so both include the frames' decoding. Reports per frame the CPU of both, the crops' share of the image and the largest
 difference between the two flows (after the resampling to the output instant).
+
+With ``--tasks`` it times the whole tomography task of those frames instead (CPU seconds, the
+variants alternated per frame): the plain solve (``refine.passes: 0``), the store's refinement
+with and without the crop, and one pass with the crop (``refine.passes: 1``). The task writes
+the frame's gradient into the store: use a store of your own.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -74,13 +81,49 @@ def measure(store: str, frames: list[int] | None) -> dict:
             "load": list(__import__("os").getloadavg())}
 
 
+TASK_VARIANTS = {"plain": {"passes": 0}, "crop": {"crop": True}, "whole": {"crop": False},
+                 "one pass, crop": {"passes": 1, "crop": True}}
+
+
+def time_tasks(store: str, frames: list[int] | None) -> dict:
+    """CPU seconds of the tomography task of each frame under :data:`TASK_VARIANTS` (changes of
+    the store's ``refine`` parameters)."""
+    from schlieren.workers.tasks import context
+    from schlieren.workers.tasks.tomography import tomography_task
+
+    ctx = context(store, "refine-roi-tasks")
+    variants = {name: dataclasses.replace(ctx, config=dataclasses.replace(
+        ctx.config, refine=dataclasses.replace(ctx.config.refine, **change))) for name, change in TASK_VARIANTS.items()}
+    frames = list(range(ctx.n_frames)) if frames is None else frames
+    names = list(variants)
+    tomography_task(variants["plain"], frames[0])  # once-per-process preparations
+    cpu = {name: [] for name in names}
+    for i, k in enumerate(frames):
+        for name in names[i % len(names):] + names[:i % len(names)]:
+            t0 = time.process_time()
+            tomography_task(variants[name], k)
+            cpu[name].append(time.process_time() - t0)
+        print(f"frame {k}: " + ", ".join(f"{n} {cpu[n][-1]:.2f} s" for n in names), flush=True)
+    return {"store": store, "frames": frames, "refine": dataclasses.asdict(ctx.config.refine),
+            "cpu": cpu, "mean": {n: float(np.mean(v)) for n, v in cpu.items()},
+            "load": list(__import__("os").getloadavg())}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--store", required=True)
     ap.add_argument("--frames", default=None, help="comma-separated output frames (default all)")
     ap.add_argument("--out", default=None, help="JSON to write")
+    ap.add_argument("--tasks", action="store_true", help="time the tomography task's variants instead")
     a = ap.parse_args(argv)
     frames = None if a.frames is None else [int(x) for x in a.frames.split(",")]
+    if a.tasks:
+        res = time_tasks(a.store, frames)
+        print("mean CPU per frame: " + ", ".join(f"{n} {v:.2f} s" for n, v in res["mean"].items())
+              + f"; load {res['load']}")
+        if a.out:
+            Path(a.out).write_text(json.dumps(res, indent=1))
+        return 0
     res = measure(a.store, frames)
     m = res["mean"]
     print(f"mean per frame: full {m['cpu_full']:.2f} s, crop {m['cpu_crop']:.2f} s CPU "
