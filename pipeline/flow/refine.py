@@ -129,7 +129,8 @@ def _cubic_taps(pos: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
     return [j - 1, j, j + 1, j + 2], weights
 
 
-def predicted_reference(reference, prediction: np.ndarray, params: FlowParams = FlowParams()):
+def predicted_reference(reference, prediction: np.ndarray, *, presmooth: float | None = None,
+                        levels: int = FlowParams.levels):
     """The reference resampled at ``q + p(q)`` (exact cubic B-splines), what
     :func:`refined_deflection` measures a frame against: the same for every frame that
     shares the prediction, so made once for them.
@@ -140,13 +141,16 @@ def predicted_reference(reference, prediction: np.ndarray, params: FlowParams = 
         The camera's background (grey levels; non-finite pixels read as its mean).
     prediction : ndarray, shape (H, W, 2)
         Predicted deflection at every pixel (pixels).
-    params : FlowParams
+    presmooth : float, optional
+        The flow's pre-smoothing (pixels; a run's, resolved per camera): the result is
+        prepared for the flow with it and ``levels``. None: the resampled image alone (the
+        flow prepares it).
+    levels : int
+        The flow's pyramid levels.
 
     Returns
     -------
     PreparedReference or ndarray, shape (H, W)
-        Prepared with ``params``' pre-smoothing and levels when ``presmooth`` is a number
-        (a run's are); the resampled image alone with ``auto`` (the flow resolves it).
     """
     img = reference.image if isinstance(reference, PreparedReference) else np.asarray(reference, np.float32)
     H, W = img.shape
@@ -155,9 +159,9 @@ def predicted_reference(reference, prediction: np.ndarray, params: FlowParams = 
         raise ValueError(f"prediction shape {pred.shape} does not match the image ({H}, {W})")
     fill = float(np.nanmean(img))
     moved = warp_image(np.where(np.isfinite(img), img, np.float32(fill)).astype(np.float32), pred)
-    if isinstance(params.presmooth, str):
+    if presmooth is None:
         return moved
-    return prepare_reference(moved, presmooth=params.presmooth, levels=params.levels)
+    return prepare_reference(moved, presmooth=presmooth, levels=levels)
 
 
 def refined_deflection(reference, frame: np.ndarray, prediction: np.ndarray, params: FlowParams = FlowParams(), *,
@@ -186,7 +190,7 @@ def refined_deflection(reference, frame: np.ndarray, prediction: np.ndarray, par
     flow : ndarray, shape (H // f, W // f, 2), float32
         The residual's flow plus the prediction's mean over each flow cell (pixels).
     """
-    moved = predicted_reference(reference, prediction, params) if around is None else around
+    moved = predicted_reference(reference, prediction) if around is None else around
     H, W = np.shape(frame)[:2]
     pred = np.asarray(prediction, np.float32)
     run = deflection if deflection is not None else deflection_stage

@@ -56,7 +56,10 @@ def _gaussian_blur_reach(sigma: float) -> int:
     return 0 if sigma <= 0 else (int(round(8.0 * sigma + 1.0)) | 1) // 2
 
 
-def flow_reach(params: FlowParams, *, displacement: float = 0.0) -> int:
+def flow_reach(*, window: int = FlowParams.window, levels: int = FlowParams.levels,
+               factor: int = FlowParams.factor, presmooth: float = 0.0,
+               smoothing_sigma: float = FlowParams.smoothing_sigma, adaptive_sigma: float = FlowParams.adaptive_sigma,
+               displacement: float = 0.0) -> int:
     """Distance (full-resolution pixels) beyond which the images change a flow cell of
     :func:`~.stage.deflection_stage` (Lucas-Kanade) by float noise only.
 
@@ -72,9 +75,10 @@ def flow_reach(params: FlowParams, *, displacement: float = 0.0) -> int:
 
     Parameters
     ----------
-    params : FlowParams
-        With a numeric ``presmooth`` (a run resolves ``auto`` per camera) and ``method``
-        ``lk``.
+    window, levels, factor, smoothing_sigma, adaptive_sigma
+        The camera's :class:`~.params.FlowParams` (LK).
+    presmooth : float
+        Its pre-smoothing, resolved (pixels; a run resolves ``auto`` per camera).
     displacement : float
         Largest displacement (pixels) the flow's warps read at (the deflections').
 
@@ -82,15 +86,13 @@ def flow_reach(params: FlowParams, *, displacement: float = 0.0) -> int:
     -------
     int
     """
-    if params.method != "lk":
-        raise ValueError(f"flow_reach models Lucas-Kanade only, not {params.method!r}")
-    if isinstance(params.presmooth, str):
-        raise ValueError("flow_reach needs a numeric presmooth (resolve 'auto' per camera first)")
-    f, half = int(params.factor), int(params.window) // 2
-    reach = len(_gaussian_taps(float(params.presmooth))) // 2 if params.presmooth > 0 else 0
-    reach += half * (2 ** params.levels - 1) + _spline_reach() + int(math.ceil(displacement))
-    reach += f * (_gaussian_blur_reach(params.window / 4.0 / f) + _gaussian_blur_reach(params.smoothing_sigma / f)
-                  + _gaussian_blur_reach(params.adaptive_sigma / f))
+    if isinstance(presmooth, str):
+        raise ValueError("flow_reach needs the pre-smoothing resolved (a run resolves 'auto' per camera)")
+    f, half = int(factor), int(window) // 2
+    reach = len(_gaussian_taps(float(presmooth))) // 2 if presmooth > 0 else 0
+    reach += half * (2 ** int(levels) - 1) + _spline_reach() + int(math.ceil(displacement))
+    reach += f * (_gaussian_blur_reach(window / 4.0 / f) + _gaussian_blur_reach(smoothing_sigma / f)
+                  + _gaussian_blur_reach(adaptive_sigma / f))
     return int(reach)
 
 
@@ -132,8 +134,8 @@ class RefineRegion:
         return 0.0 if self.empty else (x1 - x0) * (y1 - y0) / float(image_size[0] * image_size[1])
 
 
-def refine_region(prediction: np.ndarray, cell_factor: int, params: FlowParams, image_size: tuple[int, int], *,
-                  tolerance: float = 1e-5, displacement: float = 0.0) -> RefineRegion:
+def refine_region(prediction: np.ndarray, cell_factor: int, image_size: tuple[int, int], *, reach: int,
+                  factor: int, levels: int, tolerance: float = 1e-5) -> RefineRegion:
     """The :class:`RefineRegion` of a camera-frame from its prediction.
 
     Parameters
@@ -143,16 +145,16 @@ def refine_region(prediction: np.ndarray, cell_factor: int, params: FlowParams, 
         grid; NaN read as 0).
     cell_factor : int
         Pixels per prediction cell edge.
-    params : FlowParams
-        The camera's flow parameters (:func:`flow_reach`).
     image_size : (int, int)
         Width and height.
+    reach : int
+        :func:`flow_reach` of the camera's flow (the prediction's own displacement is added
+        here).
+    factor, levels : int
+        The flow's ``factor`` and pyramid ``levels``.
     tolerance : float
         Prediction (pixels) taken as none: outside the region's cells the refined flow differs
         from the plain one by about this.
-    displacement : float
-        Largest displacement the flow's warps read at besides the prediction's
-        (:func:`flow_reach`).
 
     Returns
     -------
@@ -163,7 +165,7 @@ def refine_region(prediction: np.ndarray, cell_factor: int, params: FlowParams, 
         pixels on each axis, as the pyramid needs).
     """
     W, H = image_size
-    f = int(params.factor)
+    f = int(factor)
     rows, cols = H // f, W // f
     mag = np.hypot(*np.moveaxis(np.nan_to_num(np.asarray(prediction, np.float64)), -1, 0))
     amp = float(mag.max()) if mag.size else 0.0
@@ -172,17 +174,17 @@ def refine_region(prediction: np.ndarray, cell_factor: int, params: FlowParams, 
         return RefineRegion((0, 0, 0, 0), (0, 0, 0, 0))
     rr, cc = np.nonzero(support.any(axis=1))[0], np.nonzero(support.any(axis=0))[0]
     grow = prediction_reach(amp, tolerance) * cell_factor
-    reach = flow_reach(params, displacement=displacement + amp)
+    reach = int(reach) + int(math.ceil(amp))
     # pixels where |p| may exceed the tolerance, then every cell within the reach of them
     px = (cc[0] * cell_factor - grow, rr[0] * cell_factor - grow,
           (cc[-1] + 1) * cell_factor + grow, (rr[-1] + 1) * cell_factor + grow)
     cells = (max((px[1] - reach) // f, 0), max((px[0] - reach) // f, 0),
              min(-(-(px[3] + reach) // f), rows), min(-(-(px[2] + reach) // f), cols))
-    a = f * 2 ** (params.levels - 1)
-    need = _MIN_LEVEL_EDGE * 2 ** (params.levels - 1)
+    a = f * 2 ** (int(levels) - 1)
+    need = _MIN_LEVEL_EDGE * 2 ** (int(levels) - 1)
     x0, x1 = _aligned(cells[1] * f - reach, cells[3] * f + reach, a, W, need)
     y0, y1 = _aligned(cells[0] * f - reach, cells[2] * f + reach, a, H, need)
-    return RefineRegion((x0, y0, x1, y1), cells)
+    return RefineRegion((x0, y0, x1, y1), tuple(int(v) for v in cells))
 
 
 def _aligned(lo: int, hi: int, a: int, n: int, need: int) -> tuple[int, int]:
@@ -192,7 +194,7 @@ def _aligned(lo: int, hi: int, a: int, n: int, need: int) -> tuple[int, int]:
     hi = min(max(hi, lo + need), n)
     while hi - lo < need and lo > 0:
         lo -= a
-    return max(lo, 0), hi
+    return int(max(lo, 0)), int(hi)
 
 
 def refined_deflection_in_region(reference: np.ndarray, frame: np.ndarray, prediction: np.ndarray,

@@ -83,7 +83,8 @@ def _around(ctx: RunContext, predicted: np.ndarray, params, prep, box, shared: d
         H, W = prep.shape
         pixels = flowmod.cells_to_pixels(predicted, ctx.ray_grid.factor, (W, H), box=box)
         ref = prep if box is None else prep.image[box[1]:box[3], box[0]:box[2]]
-        shared[key] = pixels, flowmod.predicted_reference(ref, pixels, params)
+        shared[key] = pixels, flowmod.predicted_reference(ref, pixels, presmooth=params.presmooth,
+                                                           levels=params.levels)
     return shared[key]
 
 
@@ -92,7 +93,11 @@ def _region(ctx: RunContext, predicted: np.ndarray, params, image_size) -> flowm
     for flows other than Lucas-Kanade's)."""
     if params.method != "lk":
         return None
-    return flowmod.refine_region(predicted, ctx.ray_grid.factor, params, image_size)
+    reach = flowmod.flow_reach(window=params.window, levels=params.levels, factor=params.factor,
+                               presmooth=params.presmooth, smoothing_sigma=params.smoothing_sigma,
+                               adaptive_sigma=params.adaptive_sigma)
+    return flowmod.refine_region(predicted, ctx.ray_grid.factor, image_size, reach=reach, factor=params.factor,
+                                 levels=params.levels)
 
 
 def _region_flow(ctx: RunContext, c: int, f: int, region, params, prep, fixed, fit, around) -> np.ndarray:
