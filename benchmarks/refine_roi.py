@@ -10,8 +10,8 @@ flows as the tomography task does (:func:`schlieren.workers.tasks.refine._camera
 on the whole image (``refine.crop: false``) and once on the crop (``refine.crop: true``),
 alternating which goes first per camera; CPU seconds by ``time.process_time`` (the machine may
 be loaded), after what a worker prepares once per camera (the prepared reference and the
-capture's fixed inputs). Each mode reads its raw frames itself (a run's task does; the reader
-keeps two frames per camera, the refinement reads three), so both include the frames' decoding. Reports per frame the CPU of both, the crops' share of the image and the largest
+capture's fixed inputs) and the frames: the reader keeps the two latest frames per camera and
+the refinement reads three, so each mode decodes the earliest again, as a run's later passes do. Reports per frame the CPU of both, the crops' share of the image and the largest
 difference between the two flows (after the resampling to the output instant).
 
 With ``--tasks`` it times the whole tomography task of those frames instead (CPU seconds, the
