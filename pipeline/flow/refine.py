@@ -129,11 +129,10 @@ def _cubic_taps(pos: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
     return [j - 1, j, j + 1, j + 2], weights
 
 
-def predicted_reference(reference, prediction: np.ndarray, *, presmooth: float | None = None,
-                        levels: int = FlowParams.levels):
-    """The reference resampled at ``q + p(q)`` (exact cubic B-splines), what
-    :func:`refined_deflection` measures a frame against: the same for every frame that
-    shares the prediction, so made once for them.
+def predicted_reference(reference, prediction: np.ndarray, *, presmooth: float, levels: int):
+    """The reference resampled at ``q + p(q)`` (exact cubic B-splines) and prepared for the
+    flow, what :func:`refined_deflection` measures a frame against: the same for every frame
+    that shares the prediction, so made once for them.
 
     Parameters
     ----------
@@ -141,27 +140,27 @@ def predicted_reference(reference, prediction: np.ndarray, *, presmooth: float |
         The camera's background (grey levels; non-finite pixels read as its mean).
     prediction : ndarray, shape (H, W, 2)
         Predicted deflection at every pixel (pixels).
-    presmooth : float, optional
-        The flow's pre-smoothing (pixels; a run's, resolved per camera): the result is
-        prepared for the flow with it and ``levels``. None: the resampled image alone (the
-        flow prepares it).
+    presmooth : float
+        The flow's pre-smoothing (pixels; a run's, resolved per camera).
     levels : int
         The flow's pyramid levels.
 
     Returns
     -------
-    PreparedReference or ndarray, shape (H, W)
+    PreparedReference
     """
+    return prepare_reference(_resampled(reference, prediction), presmooth=presmooth, levels=levels)
+
+
+def _resampled(reference, prediction: np.ndarray) -> np.ndarray:
+    """``reference`` sampled at ``q + prediction(q)`` (non-finite pixels read as its mean)."""
     img = reference.image if isinstance(reference, PreparedReference) else np.asarray(reference, np.float32)
     H, W = img.shape
     pred = np.asarray(prediction, np.float32)
     if pred.shape != (H, W, 2):
         raise ValueError(f"prediction shape {pred.shape} does not match the image ({H}, {W})")
     fill = float(np.nanmean(img))
-    moved = warp_image(np.where(np.isfinite(img), img, np.float32(fill)).astype(np.float32), pred)
-    if presmooth is None:
-        return moved
-    return prepare_reference(moved, presmooth=presmooth, levels=levels)
+    return warp_image(np.where(np.isfinite(img), img, np.float32(fill)).astype(np.float32), pred)
 
 
 def refined_deflection(reference, frame: np.ndarray, prediction: np.ndarray, params: FlowParams = FlowParams(), *,
@@ -181,16 +180,17 @@ def refined_deflection(reference, frame: np.ndarray, prediction: np.ndarray, par
         ``deflection(reference, frame, params, **kwargs) -> (H // f, W // f, 2)``, the flow
         of the residual against the warped reference (:func:`predicted_reference`);
         default :func:`~.stage.deflection_stage` (a run passes its capture-corrected flow).
-    around : PreparedReference or ndarray, optional
+    around : PreparedReference, optional
         :func:`predicted_reference` of ``reference`` and ``prediction`` when already made
-        (frames that share the prediction).
+        (frames that share the prediction); without it the resampled reference is prepared
+        by ``deflection``.
 
     Returns
     -------
     flow : ndarray, shape (H // f, W // f, 2), float32
         The residual's flow plus the prediction's mean over each flow cell (pixels).
     """
-    moved = predicted_reference(reference, prediction) if around is None else around
+    moved = _resampled(reference, prediction) if around is None else around
     H, W = np.shape(frame)[:2]
     pred = np.asarray(prediction, np.float32)
     run = deflection if deflection is not None else deflection_stage

@@ -57,7 +57,7 @@ def _gaussian_blur_reach(sigma: float) -> int:
 
 
 def flow_reach(*, window: int = FlowParams.window, levels: int = FlowParams.levels,
-               factor: int = FlowParams.factor, presmooth: float = 0.0,
+               factor: int = FlowParams.factor, presmooth: float,
                smoothing_sigma: float = FlowParams.smoothing_sigma, adaptive_sigma: float = FlowParams.adaptive_sigma,
                displacement: float = 0.0) -> int:
     """Distance (full-resolution pixels) beyond which the images change a flow cell of
@@ -216,7 +216,7 @@ def refined_deflection_in_region(reference: np.ndarray, frame: np.ndarray, predi
     params : FlowParams
     deflection : callable, optional
         As :func:`~.refine.refined_deflection`'s, called on the crop.
-    around : PreparedReference or ndarray, optional
+    around : PreparedReference, optional
         :func:`~.refine.predicted_reference` of the crop of ``reference`` and ``prediction``
         when already made (frames that share the prediction).
 
