@@ -4,10 +4,10 @@ A refined flow (:func:`~.refine.refined_deflection`) is ``p + W (d - p)`` with `
 tomography's prediction projected into the camera. Where ``p`` is zero (the camera's rays
 miss the solution's support) and stays zero over the flow's whole reach, the refined flow
 is the plain one ``W d``. So per camera-frame the refined flow is needed only on the region
-where ``|p|`` exceeds a tolerance, grown by the flow's reach (:func:`flow_reach`: every
-window, pyramid level, spline prefilter and smoothing kernel the deflection stage passes the
-images through, read off :class:`~.params.FlowParams`); the stored plain flow holds
-elsewhere. That region is computed on a crop grown by the reach once more, so that its
+where ``|p|`` exceeds a tolerance, grown by the flow's reach (:func:`flow_reach`: the
+half-widths of the LK window on every pyramid level, of the spline prefilter and of the
+smoothing kernels, from the camera's :class:`~.params.FlowParams`); the stored plain flow
+holds elsewhere. That region is computed on a crop grown by the reach once more, so that its
 edges (where the crop's borders replace the image's content) are out of the region's reach:
 the region's cells then see the same pixels as in the full image (:func:`refine_region`).
 The crop's origin lies on flow-cell and pyramid-cell boundaries, so its flow grid and every
