@@ -23,8 +23,8 @@ every deflection by as much. Modules:
 
 from .camera import CameraCapture, prepare_capture
 from .correction import (CAPTURE_STATS, FALLBACK, GAIN_UNKNOWN, MOTION_APPLIED, NOT_CONVERGED, PHOTOMETRIC_APPLIED,
-                         SCREEN_MARGIN, SCREENED, CaptureCorrection, corrected_deflection, stored_fit,
-                         to_reference_grid)
+                         SCREEN_MARGIN, SCREENED, CaptureCorrection, corrected_crop_deflection, corrected_deflection,
+                         moves, stored_fit, to_reference_grid)
 from .defects import DEAD, DEFECT_NAMES, HOT, STUCK, defect_counts, find_defective_pixels, valid_pixels
 from .motion import (MOTION_PARAMS, fit_flow_motion, motion_displacement, motion_extent, motion_field,
                      motion_size, motion_summary, no_motion)
@@ -35,7 +35,7 @@ from .static_region import box_footprint, static_cells, static_region
 
 __all__ = ["CaptureParams", "MOTION_MODELS", "MOTION_PARAMS", "BackgroundFit", "CaptureCorrection", "Photometric",
            "CameraCapture", "SampleRegion", "register_background", "sample_region", "prepare_capture",
-           "corrected_deflection", "stored_fit", "to_reference_grid", "find_defective_pixels",
+           "corrected_deflection", "corrected_crop_deflection", "moves", "stored_fit", "to_reference_grid", "find_defective_pixels",
            "defect_counts", "valid_pixels", "static_region", "static_cells", "box_footprint", "motion_displacement",
            "motion_field", "motion_extent", "motion_summary", "motion_size", "no_motion", "fit_flow_motion",
            "normalise_frame", "identity_photometric", "row_knots", "row_profile", "HOT", "DEAD", "STUCK",
