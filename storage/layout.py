@@ -297,6 +297,16 @@ def _capture_arrays(C: int, R: int, image_shape: tuple[int, int], row_knots) -> 
                   {"long_name": "Gaussian pre-smoothing of the camera's images before the flow (flow.presmooth; "
                                 "with auto, chosen from the reference's sharpness)",
                    "units": "pixel", "stage": "capture"}),
+        ArraySpec("reference_topup", ("camera",), (C,), (1,), "int32", 0,
+                  {"long_name": "capture frames averaged into the camera's reference where its rays miss the volume "
+                                "(capture.reference_topup; 0: the reference as recorded)",
+                   "units": "frames", "stage": "capture", **cam}),
+        _f32("reference", ("camera", "row", "column"), (C, H, W), (1, H, W),
+             {"long_name": "the camera's reference topped up with capture frames (written only where "
+                           "reference_topup is not 0)", "units": "grey level", "stage": "capture", **cam}),
+        ArraySpec("reference_count", ("camera", "row", "column"), (C, H, W), (1, H, W), "uint16", 0,
+                  {"long_name": "frames averaged at each pixel of the topped-up reference (written only where "
+                                "reference_topup is not 0)", "units": "frames", "stage": "capture", **cam}),
         _f32("background_motion", ("camera", "raw_frame", "motion"), (C, R, len(MOTION_PARAMS)),
              (1, 1, len(MOTION_PARAMS)),
              {"long_name": "motion of the background against the reference (u, v: pixels at the image centre; "
