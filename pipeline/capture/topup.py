@@ -13,8 +13,8 @@ such a frame is one more reference frame there. Inside the volume's image nothin
 a frame warped back by its *measured* flow would carry the flow error the reference's noise
 causes, the same in every frame, and build a reference displaced by it.
 
-The per-pixel count of averaged frames is returned with the reference (the reference's frames
-where nothing was added).
+The reference weighs as many frames in the average as its noise, measured against the frames,
+is worth; the per-pixel count of averaged frames is returned with it.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from .params import CaptureParams
 from .photometric import normalise_frame
 from .registration import SampleRegion, register_background
 
-__all__ = ["ReferenceTopup", "topup_reference", "warp_to_reference", "OUTLIER_NOISE", "SPLINE_ORDER"]
+__all__ = ["ReferenceTopup", "topup_reference", "reference_equivalent_frames", "warp_to_reference", "OUTLIER_NOISE", "SPLINE_ORDER"]
 
 #: A frame whose residual against the reference on the static pixels (after its motion and
 #: lighting are removed) exceeds this multiple of the median residual of the frames read is
@@ -54,20 +54,25 @@ class ReferenceTopup:
     reference : ndarray, shape (H, W), float32
         The reference with the frames added where nothing flows (bit for bit the input
         reference on every other pixel).
-    count : ndarray, shape (H, W), uint16
-        Frames averaged at each pixel (the reference's own included).
+    count : ndarray, shape (H, W), float32
+        Frames averaged at each pixel: the reference's :attr:`equivalent` frames plus the
+        capture frames averaged in there.
     frames : int
-        Capture frames averaged in.
+        Capture frames averaged in (0: the reference was kept as it is).
     rejected : int
         Frames read but not averaged in (a registration that did not converge or fell back to
         every pixel, a gain that cannot be estimated, or a residual above :data:`OUTLIER_NOISE`
         times the frames' median).
+    equivalent : float
+        The reference's noise in capture frames (:func:`reference_equivalent_frames`): its
+        weight in the average.
     """
 
     reference: np.ndarray
     count: np.ndarray
     frames: int
     rejected: int
+    equivalent: float
 
 
 def warp_to_reference(frame: np.ndarray, motion, *, iterations: int = 2) -> np.ndarray:
@@ -103,7 +108,7 @@ def warp_to_reference(frame: np.ndarray, motion, *, iterations: int = 2) -> np.n
 
 def topup_reference(reference: PreparedReference, raw: np.ndarray, frames: Iterable[np.ndarray], *,
                     n_reference: int, static: np.ndarray, region: SampleRegion,
-                    defects: np.ndarray | None = None,
+                    defects: np.ndarray | None = None, max_frames: float = CaptureParams.topup_below,
                     capture: CaptureParams = CaptureParams()) -> ReferenceTopup:
     """Average capture frames into a reference on the pixels whose rays miss the volume.
 
@@ -111,7 +116,10 @@ def topup_reference(reference: PreparedReference, raw: np.ndarray, frames: Itera
     offset profiles: :func:`~.registration.register_background` with ``capture``'s model),
     normalised (when ``capture.photometric``), moved back onto the reference's grid
     (:func:`warp_to_reference`) and added to the sum on the static pixels it covers. The
-    result there is ``(n_reference * reference + sum of the frames) / count``.
+    reference weighs as many frames as its measured noise is worth
+    (:func:`reference_equivalent_frames`, ``n_eff``); the result there is
+    ``(n_eff * reference + sum of the frames) / (n_eff + frames)``. A reference worth
+    ``max_frames`` or more (a noise-free rendered one, say) is kept as it is.
 
     Parameters
     ----------
@@ -131,6 +139,8 @@ def topup_reference(reference: PreparedReference, raw: np.ndarray, frames: Itera
         Defective pixels (non-zero; :func:`~.defects.find_defective_pixels`): they and the
         pixels within the cubic spline's reach of them (whose warped values they touch) are
         not averaged.
+    max_frames : float
+        ``capture.topup_below``.
     capture : CaptureParams
 
     Returns
@@ -152,19 +162,68 @@ def topup_reference(reference: PreparedReference, raw: np.ndarray, frames: Itera
                 rejected += 1
                 continue
             img, ok = w
-            r = (img - ref)[ok]
-            noise.append(1.4826 * float(np.median(np.abs(r - np.median(r)))) if r.size else np.inf)
+            r = _robust_var((img - ref)[ok])
+            noise.append(np.sqrt(r) if np.isfinite(r) else np.inf)
             warped.append(w)
     keep = [i for i, s in enumerate(noise) if np.isfinite(s) and s <= OUTLIER_NOISE * float(np.median(noise))]
     rejected += len(warped) - len(keep)
-    acc = ref.astype(np.float64) * n_ref
-    count = np.full((H, W), n_ref, np.uint16)
+    n_eff = reference_equivalent_frames(ref, [warped[i] for i in keep], n_reference=n_ref)
+    count = np.full((H, W), n_eff, np.float32)
+    if not keep or n_eff >= max_frames:
+        return ReferenceTopup(ref, count, 0, rejected, n_eff)
+    acc = np.zeros((H, W), np.float64)
+    added = np.zeros((H, W), np.int32)
     for i in keep:
         img, ok = warped[i]
         acc[ok] += img[ok]
-        count[ok] += 1
-    out = (acc / count).astype(np.float32)
-    return ReferenceTopup(out, count, len(keep), rejected)
+        added[ok] += 1
+    out = ref.copy()
+    t = added > 0
+    out[t] = ((ref[t] * n_eff + acc[t]) / (n_eff + added[t])).astype(np.float32)
+    count[t] += added[t]
+    return ReferenceTopup(out, count, len(keep), rejected, n_eff)
+
+
+def reference_equivalent_frames(reference: np.ndarray, warped: list, *, n_reference: int) -> float:
+    """How many capture frames the reference's noise is worth, measured on the static pixels.
+
+    A frame moved back onto the reference's grid differs from the reference by both their
+    noises, ``s_f^2 + s_r^2``; two such frames differ by ``2 s_f^2``. The reference weighs
+    ``s_f^2 / s_r^2`` frames: ``n_reference`` for a reference averaged from ``n_reference``
+    frames of the capture's noise, unbounded for a noise-free (rendered) one. Variances of the
+    differences without their outliers (:func:`_robust_var`), the median over frames and pairs; with fewer than two frames, ``n_reference``.
+
+    Parameters
+    ----------
+    reference : ndarray, shape (H, W)
+    warped : list of (ndarray, ndarray)
+        Frames moved back onto the reference's grid and their usable static pixels
+        (:func:`_warped_frame`).
+    n_reference : int
+        The reference's frames.
+    """
+    if len(warped) < 2:
+        return float(n_reference)
+    to_ref = [_robust_var(img[ok] - reference[ok]) for img, ok in warped]
+    pairs = [_robust_var(a[m] - b[m]) / 2.0 for (a, oa), (b, ob) in zip(warped[:-1], warped[1:])
+             for m in (oa & ob,)]
+    frame_var = float(np.median(pairs))
+    ref_var = float(np.median(to_ref)) - frame_var
+    return frame_var / ref_var if ref_var > 0 else float("inf")
+
+
+def _robust_var(x: np.ndarray, *, clip: float = 4.0, iterations: int = 3) -> float:
+    """The variance of ``x`` with values beyond ``clip`` standard deviations from the mean left
+    out (iterated): robust to a few outliers, and unlike a median absolute deviation exact on
+    integer grey levels (8-bit frames' differences)."""
+    x = np.asarray(x, np.float64)
+    if x.size == 0:
+        return float("nan")
+    keep = x
+    for _ in range(iterations):
+        m, sd = float(np.mean(keep)), float(np.std(keep))
+        keep = x[np.abs(x - m) <= clip * sd] if sd > 0 else keep
+    return float(np.var(keep))
 
 
 def _warped_frame(reference: PreparedReference, frame, region: SampleRegion, usable: np.ndarray,

@@ -80,7 +80,8 @@ def test_the_static_region_is_topped_up_without_bias(background):
     assert t.frames == K and t.rejected == 0
     inner = _static()
     inner[:8], inner[-8:], inner[:, :8], inner[:, -8:] = False, False, False, False
-    assert np.all(t.count[inner] == N_REF + K)
+    assert 0.8 * N_REF < t.equivalent < 1.25 * N_REF  # the reference weighs its measured noise
+    assert np.allclose(t.count[inner], t.equivalent + K)
     before = np.sqrt(np.mean((ref - truth)[inner] ** 2))
     after = np.sqrt(np.mean((t.reference - truth)[inner] ** 2))
     expected = np.sqrt(N_REF / (N_REF + K))  # the noise of N_REF + K frames against N_REF
@@ -96,7 +97,7 @@ def test_the_plume_does_not_leak_into_the_reference(background):
     ref, t = _topped(background, 6, plume)
     static = _static()
     np.testing.assert_array_equal(t.reference[~static], ref[~static])
-    assert np.all(t.count[~static] == N_REF)
+    assert np.all(t.count[~static] == np.float32(t.equivalent))
     assert t.frames == K
     truth = render(background, SHAPE)
     inner = static.copy()
@@ -123,3 +124,21 @@ def test_warp_to_reference_undoes_a_known_motion(background):
     inner = (slice(8, -8), slice(8, -8))
     assert np.sqrt(np.mean((back - truth)[inner] ** 2)) < 0.05 * np.std(truth)
     assert np.sqrt(np.mean((moved - truth)[inner] ** 2)) > 0.3 * np.std(truth)
+
+
+def test_a_noise_free_reference_is_kept_and_a_noisy_one_weighs_its_frames(background):
+    rng = np.random.default_rng(8)
+    static = _static()
+    frames = _capture(background, rng, _motions(rng, 6))
+    for ref, n, low, high in ((render(background, SHAPE), 1, 20.0, np.inf),
+                              (np.mean([render(background, SHAPE, noise=NOISE, rng=rng) for _ in range(N_REF)],
+                                       axis=0).astype(np.float32), N_REF, 0.8 * N_REF, 1.25 * N_REF)):
+        prep = prepare_reference(ref, presmooth=FLOW.presmooth, levels=FLOW.levels)
+        t = topup_reference(prep, ref, frames, n_reference=n, static=static,
+                            region=sample_region(prep, static=static), capture=CaptureParams())
+        assert low < t.equivalent < high
+        if n == 1:  # worth more than topup_below frames: kept bit for bit
+            assert t.frames == 0
+            np.testing.assert_array_equal(t.reference, ref)
+        else:
+            assert t.frames == 6

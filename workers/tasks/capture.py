@@ -54,8 +54,8 @@ def capture_task(ctx: RunContext, c: int) -> dict:
     p = _presmooth(ctx, c, kept) if auto else float(ctx.config.flow.presmooth)
     ctx.store.write("presmooth", (c,), np.array([p], np.float64))
     out["presmooth"] = p
-    if _may_top_up(ctx, c) and n_ref and n_ref[0] < params.topup_below:
-        out.update(_top_up(ctx, c, n_ref[0], d))
+    if params.reference_topup > 0:
+        out.update(_reference(ctx, c, n_ref[0] if n_ref else 0, d))
     return out
 
 
@@ -65,23 +65,36 @@ def _may_top_up(ctx: RunContext, c: int) -> bool:
     return ctx.config.capture.reference_topup > 0 and not getattr(ctx.session.sources[c], "interlaced", None)
 
 
-def _top_up(ctx: RunContext, c: int, n_ref: int, defects: np.ndarray) -> dict:
-    """:func:`~schlieren.pipeline.capture.topup_reference` of camera ``c``'s reference (of
-    ``n_ref`` frames) from ``capture.reference_topup`` capture frames; stored, and this
-    process's reference of the camera from now on."""
+def _reference(ctx: RunContext, c: int, n_ref: int, defects: np.ndarray) -> dict:
+    """Camera ``c``'s reference (of ``n_ref`` frames), topped up from ``capture.reference_topup``
+    capture frames when it has fewer than ``capture.topup_below`` frames and its measured noise
+    is worth fewer too (:func:`~schlieren.pipeline.capture.topup_reference`): stored (``reference``,
+    ``reference_count``, ``reference_topup``), and this process's reference of the camera from
+    now on. Interlaced cameras store none (NaN)."""
     params = ctx.config.capture
-    prep = ctx.prepared_reference(c)
-    region = capture.sample_region(prep, static=static_region(ctx, c), valid=capture.valid_pixels(defects),
-                                   min_static_fraction=params.min_static_fraction)
-    t = capture.topup_reference(prep, ctx.reference(c), _capture_frames(ctx, c, params.reference_topup),
-                                n_reference=n_ref, static=static_region(ctx, c), region=region,
-                                defects=defects, capture=params)
-    ctx.store.write("reference_topup", (c,), np.array([t.frames], np.int32))
-    if t.frames:
-        ctx.store.write("reference", (c,), t.reference[None])
-        ctx.store.write("reference_count", (c,), t.count[None])
-        ctx.reference_topped_up(c, t.reference)
-    return {"reference_frames": n_ref, "topup_frames": t.frames, "topup_rejected": t.rejected}
+    cam = ctx.cameras[c]
+    if not _may_top_up(ctx, c):
+        ref, count, t = np.full((cam.height, cam.width), np.nan, np.float32), np.zeros((cam.height, cam.width)), None
+    elif n_ref >= params.topup_below:
+        ref, count, t = ctx.reference(c), np.full((cam.height, cam.width), n_ref), None
+    else:
+        prep = ctx.prepared_reference(c)
+        region = capture.sample_region(prep, static=static_region(ctx, c), valid=capture.valid_pixels(defects),
+                                       min_static_fraction=params.min_static_fraction)
+        t = capture.topup_reference(prep, ctx.reference(c), _capture_frames(ctx, c, params.reference_topup),
+                                    n_reference=n_ref, static=static_region(ctx, c), region=region,
+                                    defects=defects, max_frames=params.topup_below, capture=params)
+        ref, count = t.reference, t.count
+    frames = t.frames if t is not None else 0
+    ctx.store.write("reference_topup", (c,), np.array([frames], np.int32))
+    ctx.store.write("reference", (c,), ref[None])
+    ctx.store.write("reference_count", (c,), count.astype(np.float32)[None])
+    if frames:
+        ctx.reference_topped_up(c, ref)
+    out = {"reference_frames": n_ref, "topup_frames": frames}
+    if t is not None:
+        out.update(topup_rejected=t.rejected, reference_equivalent=t.equivalent)
+    return out
 
 
 def _keep(img: np.ndarray, kept: list) -> np.ndarray:
