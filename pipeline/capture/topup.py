@@ -154,20 +154,25 @@ def topup_reference(reference: PreparedReference, raw: np.ndarray, frames: Itera
     if defects is not None and np.any(defects):
         near = cv2.dilate((np.asarray(defects) != 0).astype(np.uint8), np.ones((2 * _BORDER + 1,) * 2, np.uint8))
         usable &= near == 0
-    warped, noise, rejected = [], [], 0
+    moved, rejected = [], 0
     if not region.fallback and not region.empty and usable.any():
         for frame in frames:
-            w = _warped_frame(reference, frame, region, usable, capture)
-            if w is None:
+            f = _normalised_frame(reference, frame, region, capture)
+            if f is None:
                 rejected += 1
-                continue
-            img, ok = w
-            r = _robust_var((img - ref)[ok])
-            noise.append(np.sqrt(r) if np.isfinite(r) else np.inf)
-            warped.append(w)
+            else:
+                moved.append(f)
+    warped = [_warp(img, m, usable) for img, m in moved]
+    noise = [np.sqrt(_robust_var((img - ref)[ok])) for img, ok in warped]
     keep = [i for i, s in enumerate(noise) if np.isfinite(s) and s <= OUTLIER_NOISE * float(np.median(noise))]
     rejected += len(warped) - len(keep)
-    n_eff = reference_equivalent_frames(ref, [warped[i] for i in keep], n_reference=n_ref)
+    if keep:  # the registrations' common error, measured on their average and removed
+        d = _common_motion(reference, ref, [warped[i] for i in keep], region, capture)
+        warped = [_warp(moved[i][0], moved[i][1] + d, usable) for i in keep]
+    else:
+        warped = []
+    keep = list(range(len(warped)))
+    n_eff = reference_equivalent_frames(ref, warped, n_reference=n_ref)
     count = np.full((H, W), n_eff, np.float32)
     if not keep or n_eff >= max_frames:
         return ReferenceTopup(ref, count, 0, rejected, n_eff)
@@ -226,19 +231,45 @@ def _robust_var(x: np.ndarray, *, clip: float = 4.0, iterations: int = 3) -> flo
     return float(np.var(keep))
 
 
-def _warped_frame(reference: PreparedReference, frame, region: SampleRegion, usable: np.ndarray,
-                  capture: CaptureParams):
-    """One frame registered, normalised and moved back onto the reference's grid, with the
-    usable static pixels it covers; None when its registration cannot be trusted."""
-    H, W = reference.shape
+def _normalised_frame(reference: PreparedReference, frame, region: SampleRegion, capture: CaptureParams):
+    """One frame's registration and the frame normalised to the reference's lighting:
+    ``(frame, motion)``; None when its registration cannot be trusted."""
     fit = register_background(reference, frame, model=capture.motion_model, photometric=capture.photometric,
                               banding_rows=capture.banding_rows, region=region)
     if fit.fallback or not fit.converged or (capture.photometric and not fit.photometric.estimable()):
         return None
     img = normalise_frame(frame, fit.photometric) if capture.photometric else np.asarray(frame, np.float32)
-    img = warp_to_reference(img, fit.motion)
-    b = int(np.ceil(motion_extent(fit.motion, (W, H)))) + _BORDER
+    return img, fit.motion
+
+
+def _warp(img: np.ndarray, motion: np.ndarray, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``img`` moved back onto the reference's grid by ``motion``, and the usable static pixels
+    it covers (away from the border by the motion and the spline's reach)."""
+    H, W = img.shape
+    out = warp_to_reference(img, motion)
+    b = int(np.ceil(motion_extent(motion, (W, H)))) + _BORDER
     ok = usable.copy()
     ok[:b], ok[H - b:], ok[:, :b], ok[:, W - b:] = False, False, False, False
-    ok &= np.isfinite(img)
-    return img, ok
+    return out, ok & np.isfinite(out)
+
+
+def _common_motion(reference: PreparedReference, ref: np.ndarray, warped: list, region: SampleRegion,
+                   capture: CaptureParams) -> np.ndarray:
+    """The motion of the warped frames' average against the reference, on the static pixels.
+
+    Each registration against a noisy reference errs by much the same sub-pixel amount in every
+    frame (the noise, resampled at a fraction of a pixel, favours some fractions): frames moved
+    back by it sit slightly off the reference's grid. Their average sits there too, a
+    displacement its own registration (near zero motion, where that error vanishes) measures and
+    that is then added to every frame's motion: the topped-up static region stays on the grid of
+    the rest of the reference (a displacement between the two is a bias of every flow inside
+    the volume's image against the static cells its motion is fitted on)."""
+    acc = np.zeros(ref.shape, np.float64)
+    n = np.zeros(ref.shape, np.int32)
+    for img, ok in warped:
+        acc[ok] += img[ok]
+        n[ok] += 1
+    mean = ref.astype(np.float64)
+    mean[n > 0] = acc[n > 0] / n[n > 0]
+    return register_background(reference, mean.astype(np.float32), model=capture.motion_model, photometric=False,
+                               region=region).motion

@@ -89,7 +89,9 @@ def test_the_static_region_is_topped_up_without_bias(background):
     assert 0.9 * expected < after / before < 1.1 * expected
     err = (t.reference - truth)
     assert abs(np.mean(err[inner])) < 0.05  # grey levels: the flicker normalised away
-    assert np.all(np.abs(_shift(err, truth, inner)) < 0.003)  # px: warped back onto the reference's grid
+    # px: on the reference's own grid (its noise's displacement), which the rest of it keeps;
+    # the frames moved back by their own registrations alone sit 0.0017 px off it
+    assert np.all(np.abs(_shift(err, truth, inner) - _shift(ref - truth, truth, inner)) < 0.0006)
 
 
 def test_the_plume_does_not_leak_into_the_reference(background):
@@ -102,7 +104,7 @@ def test_the_plume_does_not_leak_into_the_reference(background):
     truth = render(background, SHAPE)
     inner = static.copy()
     inner[:8], inner[-8:], inner[:, :8], inner[:, -8:] = False, False, False, False
-    assert np.all(np.abs(_shift(t.reference - truth, truth, inner)) < 0.003)
+    assert np.all(np.abs(_shift(t.reference - truth, truth, inner) - _shift(ref - truth, truth, inner)) < 0.0006)
 
 
 def test_without_a_static_region_the_reference_is_kept(background):
