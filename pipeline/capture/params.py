@@ -97,7 +97,7 @@ class CaptureParams:
              "not keep its values that close by chance.")
     reference_topup: int = param(
         16, unit="frames", ge=0, le=1000,
-        help="Capture frames (evenly spread over the processed range) averaged into a reference of fewer than "
+        help="Capture frames (evenly spread over the session) averaged into a reference of fewer than "
              "`topup_below` frames where the camera's rays miss the volume, each moved back by its fitted motion "
              "and normalised to the reference's lighting: a reference of few frames carries its noise into every "
              "flow. 0: off.", see="benchmarks/results/reference_topup.md", tuned=True)

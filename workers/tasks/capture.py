@@ -81,7 +81,7 @@ def _reference(ctx: RunContext, c: int, n_ref: int, defects: np.ndarray) -> dict
         prep = ctx.prepared_reference(c)
         region = capture.sample_region(prep, static=static_region(ctx, c), valid=capture.valid_pixels(defects),
                                        min_static_fraction=params.min_static_fraction)
-        t = capture.topup_reference(prep, ctx.reference(c), _capture_frames(ctx, c, params.reference_topup),
+        t = capture.topup_reference(prep, ctx.reference(c), _capture_frames(ctx, c, params.reference_topup, session=True),
                                     n_reference=n_ref, static=static_region(ctx, c), region=region,
                                     defects=defects, max_frames=params.topup_below, capture=params)
         ref, count = t.reference, t.count
@@ -128,12 +128,12 @@ def _reference_frames(ctx: RunContext, c: int, n_ref: list):
     n_ref.append(mean.n)
 
 
-def _capture_frames(ctx: RunContext, c: int, n: int):
-    """``n`` capture frames of camera ``c`` evenly spread over the processed range (dropped or
-    unreadable ones skipped)."""
+def _capture_frames(ctx: RunContext, c: int, n: int, *, session: bool = False):
+    """``n`` capture frames of camera ``c`` evenly spread over the processed range (over all of
+    the camera's frames with ``session``; dropped or unreadable ones skipped)."""
     src = ctx.frames(c)
-    frames = np.unique(np.linspace(ctx.first_frame, ctx.first_frame + ctx.n_frames - 1, max(n, 0)).round()
-                       .astype(int)) if n > 0 else []
+    first, last = (0, len(src) - 1) if session else (ctx.first_frame, ctx.first_frame + ctx.n_frames - 1)
+    frames = np.unique(np.linspace(first, last, max(n, 0)).round().astype(int)) if n > 0 else []
     for f in frames:
         if int(f) in src.dropped:
             continue
