@@ -105,4 +105,4 @@ class CaptureParams:
         8, unit="frames", ge=0, le=100000,
         help="Only a reference of fewer frames than this, whose noise measured against the capture frames is "
              "worth fewer capture frames too, is topped up (`reference_topup`): one of many frames, or a noise-free "
-             "one, is left as it is.")
+             "one, is left as it is.", see="benchmarks/results/reference_topup.md", tuned=True)

@@ -95,15 +95,28 @@ def warp_to_reference(frame: np.ndarray, motion, *, iterations: int = 2) -> np.n
     -------
     ndarray, shape (H, W), float32
     """
-    img = np.asarray(frame, np.float64)
+    img = np.asarray(frame, np.float32)
     H, W = img.shape
-    y, x = np.mgrid[0:H, 0:W].astype(np.float64)
+    y, x = np.mgrid[0:H, 0:W]
+    return _sample(_coefficients(img), motion, y.ravel(), x.ravel(), iterations=iterations).reshape(H, W)
+
+
+def _coefficients(img: np.ndarray) -> np.ndarray:
+    """The image's B-spline coefficients of :data:`SPLINE_ORDER` (mirrored at the border)."""
+    return ndimage.spline_filter(np.asarray(img, np.float64), order=SPLINE_ORDER, mode="mirror")
+
+
+def _sample(coeffs: np.ndarray, motion, y: np.ndarray, x: np.ndarray, *, iterations: int = 2) -> np.ndarray:
+    """The image of B-spline coefficients ``coeffs`` moved back by ``motion``, at the reference's
+    pixels ``(y, x)`` (:func:`warp_to_reference`), float32."""
+    H, W = coeffs.shape
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
     px, py = x, y
     for _ in range(max(int(iterations), 1)):
         dx, dy = motion_displacement(motion, px, py, (W, H))
         px, py = x - dx, y - dy
-    out = ndimage.map_coordinates(img, [py, px], order=SPLINE_ORDER, mode="mirror")
-    return out.astype(np.float32)
+    return ndimage.map_coordinates(coeffs, [py, px], order=SPLINE_ORDER, mode="mirror",
+                                   prefilter=False).astype(np.float32)
 
 
 def topup_reference(reference: PreparedReference, raw: np.ndarray, frames: Iterable[np.ndarray], *,
@@ -232,24 +245,27 @@ def _robust_var(x: np.ndarray, *, clip: float = 4.0, iterations: int = 3) -> flo
 
 
 def _normalised_frame(reference: PreparedReference, frame, region: SampleRegion, capture: CaptureParams):
-    """One frame's registration and the frame normalised to the reference's lighting:
-    ``(frame, motion)``; None when its registration cannot be trusted."""
+    """One frame normalised to the reference's lighting, as B-spline coefficients
+    (:func:`_coefficients`), and its motion; None when its registration cannot be trusted."""
     fit = register_background(reference, frame, model=capture.motion_model, photometric=capture.photometric,
                               banding_rows=capture.banding_rows, region=region)
     if fit.fallback or not fit.converged or (capture.photometric and not fit.photometric.estimable()):
         return None
     img = normalise_frame(frame, fit.photometric) if capture.photometric else np.asarray(frame, np.float32)
-    return img, fit.motion
+    return _coefficients(img), fit.motion
 
 
-def _warp(img: np.ndarray, motion: np.ndarray, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``img`` moved back onto the reference's grid by ``motion``, and the usable static pixels
-    it covers (away from the border by the motion and the spline's reach)."""
-    H, W = img.shape
-    out = warp_to_reference(img, motion)
+def _warp(coeffs: np.ndarray, motion: np.ndarray, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The frame of B-spline coefficients ``coeffs`` moved back onto the reference's grid by
+    ``motion`` on the usable static pixels it covers (away from the border by the motion and
+    the spline's reach; NaN elsewhere), and those pixels."""
+    H, W = coeffs.shape
     b = int(np.ceil(motion_extent(motion, (W, H)))) + _BORDER
     ok = usable.copy()
     ok[:b], ok[H - b:], ok[:, :b], ok[:, W - b:] = False, False, False, False
+    y, x = np.nonzero(ok)
+    out = np.full((H, W), np.nan, np.float32)
+    out[y, x] = _sample(coeffs, motion, y, x)
     return out, ok & np.isfinite(out)
 
 
