@@ -139,7 +139,7 @@ class RunContext:
     def _stored_reference(self, c: int, parity: None) -> np.ndarray:
         """Camera ``c``'s reference topped up by its capture task (stored ``reference``), or
         the reference's frames' average when it was not topped up."""
-        if int(self.store.read("reference_topup", (c,))[0]) > 0:
+        if int(self.store.read("reference_topup", (c,))) > 0:
             return np.asarray(self.store.read("reference", (c,)))
         s = self.session.sources[c]
         return read_reference(s, camera_name=s.name, parity=parity)
