@@ -279,10 +279,9 @@ def _common_motion(reference: PreparedReference, ref: np.ndarray, warped: list, 
     displacement its own registration (near zero motion, where that error vanishes) measures and
     that is then added to every frame's motion: the topped-up static region stays on the grid of
     the rest of the reference (a displacement between the two is a bias of every flow inside
-    the volume's image against the static cells its motion is fitted on). The measurement has
-    its own noise (``motion_sigma``, at the image corner where the motion is largest): it is
-    shrunk by ``1 - (sigma / extent)^2`` (none left within one sigma), so that a frame set
-    without that error (a camera that did not move) is not moved by the noise instead."""
+    the volume's image against the static cells its motion is fitted on). Applied as measured:
+    shrinking it by its own noise (``1 - (sigma / extent)^2``) lowered the results it was
+    meant to protect (benchmarks/results/reference_topup.md)."""
     acc = np.zeros(ref.shape, np.float64)
     n = np.zeros(ref.shape, np.int32)
     for img, ok in warped:
@@ -290,9 +289,5 @@ def _common_motion(reference: PreparedReference, ref: np.ndarray, warped: list, 
         n[ok] += 1
     mean = ref.astype(np.float64)
     mean[n > 0] = acc[n > 0] / n[n > 0]
-    fit = register_background(reference, mean.astype(np.float32), model=capture.motion_model, photometric=False,
-                              region=region)
-    extent = motion_extent(fit.motion, ref.shape[::-1])
-    if not np.isfinite(fit.motion_sigma) or extent <= fit.motion_sigma:
-        return np.zeros_like(fit.motion)
-    return fit.motion * (1.0 - (fit.motion_sigma / extent) ** 2)
+    return register_background(reference, mean.astype(np.float32), model=capture.motion_model, photometric=False,
+                               region=region).motion
