@@ -53,6 +53,7 @@ VARIANTS = {
     "laball-nodefect": ("plume2-16cam-640", "lg-all-nodefect", 3),
     "laball-nodefocus": ("plume2-16cam-640", "lg-all-nodefocus", 3),
     "lab-3ref": ("plume2-16cam-640", "lab", 3),
+    "p1-laball": ("plume1-16cam-640", "lab-all", 3),
     "p1-defocus": ("plume1-16cam-640", "lg-defocus", 16),
     "p1-sharp": ("plume1-16cam-640", "lg-sharp", 16),
     "turb5-defocus": ("turb5-16cam-640", "lg-defocus", 16),

@@ -177,7 +177,8 @@ STAGES: tuple[Stage, ...] = (
     # needs it, which the clock decides (docs/tuning.md, "Frame quality")
     # defective pixels from the reference frames and a sample of the capture frames (issue 33),
     # and the flow's pre-smoothing from the reference's sharpness (pipeline/flow/focus.py)
-    Stage("capture", _capture.find_defective_pixels, "capture", ("images",), ("defective_pixels", "presmooth"),
+    Stage("capture", _capture.find_defective_pixels, "capture", ("images",),
+          ("defective_pixels", "presmooth", "reference_topup", "reference", "reference_count"),
           ("camera",), cost=0.05),
     # the flow of each raw frame with the camera's motion, the lighting's change and the
     # defective pixels removed (pipeline/capture/correction.py; params "flow" and "capture")

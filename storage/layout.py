@@ -119,7 +119,7 @@ def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tup
                   raw_first: int | None = None, n_summary: int = 2001,
                   flow_factor: int | None = None, image_shape: tuple[int, int] | None = None,
                   row_knots: Sequence[float] | None = None,
-                  per_frame_gradient: bool = False) -> list[ArraySpec]:
+                  per_frame_gradient: bool = False, reference_topup: bool = False) -> list[ArraySpec]:
     """Every array of a run's store (SPEC section 2 and docs/design.md).
 
     Parameters
@@ -156,6 +156,9 @@ def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tup
     per_frame_gradient : bool
         Also ``gradient_frame``, each frame's own tomographic solve, when a space-time stage
         computes ``gradient`` from it (``spacetime.window > 0``).
+    reference_topup : bool
+        Also each camera's reference, topped up from the capture (``capture.reference_topup``
+        > 0; with ``image_shape``: :func:`_topup_arrays`).
 
     Returns
     -------
@@ -171,6 +174,8 @@ def result_layout(*, camera_names: Sequence[str], n_frames: int, flow_shape: tup
         raw_first = first_frame
     h, w = (int(s) for s in flow_shape)
     capture = [] if image_shape is None else _capture_arrays(C, R, image_shape, row_knots)
+    if image_shape is not None and reference_topup:
+        capture += _topup_arrays(C, image_shape)
     return (_coordinates(camera_names, F, R, first_frame, raw_first, grid, (h, w), flow_factor)
             + _camera_arrays(C, F, R, (h, w), n_summary) + capture + _volumes(F, grid)
             + (_per_frame_gradient(F, grid) if per_frame_gradient else []))
@@ -311,6 +316,26 @@ def _capture_arrays(C: int, R: int, image_shape: tuple[int, int], row_knots) -> 
                            "motion the flow still showed (pixels), flags (1 motion removed, 2 gain and offset "
                            "removed, 4 measured on every pixel, 8 not converged)",
               "units": "1", "stage": "deflection", **cam}),
+    ]
+
+
+def _topup_arrays(C: int, image_shape: tuple[int, int]) -> list[ArraySpec]:
+    """The reference each camera's flows were measured against, with the capture frames averaged
+    into it where its rays miss the volume (``capture.reference_topup``,
+    :mod:`schlieren.pipeline.capture.topup`): written for every camera when the top-up is on."""
+    H, W = (int(v) for v in image_shape)
+    cam: dict = {}
+    return [
+        ArraySpec("reference_topup", ("camera",), (C,), (1,), "int32", 0,
+                  {"long_name": "capture frames averaged into the camera's reference where its rays miss the volume "
+                                "(capture.reference_topup; 0: the reference as recorded)",
+                   "units": "frames", "stage": "capture", **cam}),
+        _f32("reference", ("camera", "row", "column"), (C, H, W), (1, H, W),
+             {"long_name": "the reference the camera's flows were measured against (NaN for interlaced cameras, "
+                           "whose fields have their own)", "units": "grey level", "stage": "capture", **cam}),
+        _f32("reference_count", ("camera", "row", "column"), (C, H, W), (1, H, W),
+             {"long_name": "frames averaged at each pixel of the reference (its own frames as many as its measured "
+                           "noise is worth, when topped up)", "units": "frames", "stage": "capture", **cam}),
     ]
 
 

@@ -160,7 +160,8 @@ def run_layout(session: Session, cfg: RunConfig) -> tuple[list, Extents]:
                            n_summary=cfg.masks.n_quantiles + 1, flow_factor=fg.factor,
                            image_shape=(session.cameras[0].height, session.cameras[0].width),
                            row_knots=row_knots(session.cameras[0].height, cfg.capture.banding_rows),
-                           per_frame_gradient=cfg.spacetime.window > 0)
+                           per_frame_gradient=cfg.spacetime.window > 0,
+                           reference_topup=cfg.capture.reference_topup > 0)
     if cfg.uncertainty.enabled:  # the optional stage's standard errors beside the values
         layout = with_uncertainty(layout)
     return layout, ext

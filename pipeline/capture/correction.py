@@ -43,7 +43,7 @@ from .params import CaptureParams
 from .photometric import Photometric, normalise_frame
 from .registration import BackgroundFit, register_background
 
-__all__ = ["CaptureCorrection", "corrected_deflection", "stored_fit", "to_reference_grid", "MOTION_APPLIED",
+__all__ = ["CaptureCorrection", "corrected_deflection", "corrected_crop_deflection", "moves", "stored_fit", "to_reference_grid", "MOTION_APPLIED",
            "PHOTOMETRIC_APPLIED", "FALLBACK", "NOT_CONVERGED", "GAIN_UNKNOWN", "SCREENED", "CAPTURE_STATS",
            "SCREEN_MARGIN"]
 
@@ -179,6 +179,56 @@ def corrected_deflection(reference, frame: np.ndarray, flow: FlowParams = FlowPa
             if source == "camera":
                 d = to_reference_grid(d, motion, size, flow.factor)
     return d.astype(np.float32), CaptureCorrection(motion, fit, residual, flags)
+
+
+def moves(fit: BackgroundFit, capture: CaptureParams, image_size) -> bool:
+    """Whether :func:`corrected_deflection` applies ``fit``'s motion to a frame of
+    ``image_size`` (width, height)."""
+    return _motion_applies(fit, capture, tuple(image_size))
+
+
+def corrected_crop_deflection(reference, frame: np.ndarray, flow: FlowParams = FlowParams(),
+                              capture: CaptureParams = CaptureParams(), *, fit: BackgroundFit,
+                              crop: tuple[int, int, int, int], whole, bad: np.ndarray | None = None) -> np.ndarray:
+    """Steps 2 and 3 of :func:`corrected_deflection` on a crop of a frame, with a known
+    registration that applies no motion (:func:`moves`; e.g. :func:`stored_fit` of a frame
+    measured before): the frame's gain and offset removed at the crop's rows where the
+    decision for the whole frame says so, the defective pixels weighted out, the flow of
+    the crop. The motion the flow still shows on the static cells (step 4) is not fitted: the
+    static cells lie mostly outside the crop, and the stored fit already holds it.
+
+    Parameters
+    ----------
+    reference : PreparedReference or ndarray, shape (h, w)
+        The crop of the reference (or of a reference resampled around a prediction).
+    frame : ndarray, shape (h, w)
+        The crop of the frame.
+    flow, capture
+        As :func:`corrected_deflection`'s.
+    fit : BackgroundFit
+        The frame's registration (image-wide row profiles).
+    crop : (x0, y0, x1, y1)
+        Where the crop lies in the image.
+    whole : PreparedReference
+        The camera's prepared reference over the whole image: its normalisation decides the
+        gain and offset as for the whole frame.
+    bad : ndarray, shape (H, W), bool, optional
+        The camera's defective pixels over the whole image.
+
+    Returns
+    -------
+    ndarray, shape (h // f, w // f, 2), float32
+    """
+    H, W = whole.shape
+    if moves(fit, capture, (W, H)):
+        raise ValueError("corrected_crop_deflection: the registration applies a motion; use corrected_deflection")
+    x0, y0, x1, y1 = crop
+    img = np.asarray(frame, np.float32)
+    if (not capture.photometric or fit.photometric.estimable()) and _photometric_applies(fit, capture, whole):
+        gain, offset = fit.photometric.profiles(H)
+        img = (img - offset[y0:y1].astype(np.float32)[:, None]) * (1.0 / gain[y0:y1]).astype(np.float32)[:, None]
+    invalid = None if bad is None else np.asarray(bad, bool)[y0:y1, x0:x1]
+    return deflection_stage(reference, img, flow, invalid=invalid)
 
 
 def stored_fit(motion, photometric, stats, knots) -> BackgroundFit:

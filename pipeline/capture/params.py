@@ -95,3 +95,14 @@ class CaptureParams:
         help="Capture frames read (evenly spread over the processed range) beside the reference frames to find "
              "defective pixels. More frames find more stuck pixels: one is flagged only where a normal pixel would "
              "not keep its values that close by chance.")
+    reference_topup: int = param(
+        16, unit="frames", ge=0, le=1000,
+        help="Capture frames (evenly spread over the session) averaged into a reference of fewer than "
+             "`topup_below` frames where the camera's rays miss the volume, each moved back by its fitted motion "
+             "and normalised to the reference's lighting: a reference of few frames carries its noise into every "
+             "flow. 0: off.", see="benchmarks/results/reference_topup.md", tuned=True)
+    topup_below: int = param(
+        8, unit="frames", ge=0, le=100000,
+        help="Only a reference of fewer frames than this, whose noise measured against the capture frames is "
+             "worth fewer capture frames too, is topped up (`reference_topup`): one of many frames, or a noise-free "
+             "one, is left as it is.", see="benchmarks/results/reference_topup.md", tuned=True)

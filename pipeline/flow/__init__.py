@@ -38,7 +38,8 @@ from .params import (CELL_SOLVE_MIN_CELLS, METHODS, FlowParams, camera_window, p
 from .invalid import InvalidPixels, prepare_invalid
 from .post import downsample_flow, remove_outliers, smooth_flow
 from .reference import PreparedReference, frame_pyramid, invalid_pixels, prepare_reference
-from .refine import RefineParams, cells_to_pixels, refined_deflection
+from .refine import RefineParams, cells_to_pixels, predicted_reference, refined_deflection
+from .roi import RefineRegion, flow_reach, refine_region, refined_deflection_in_region
 from .splines import prolong_flow, spline_coefficients, warp_coefficient_rows, warp_coefficients, warp_image
 from .stage import deflection_field, deflection_stage
 from .windows import measurement_sigma
@@ -77,4 +78,9 @@ __all__ = [
     "cells_to_pixels",
     "refined_deflection",
     "RefineParams",
+    "RefineRegion",
+    "predicted_reference",
+    "flow_reach",
+    "refine_region",
+    "refined_deflection_in_region",
 ]

@@ -114,8 +114,9 @@ def test_the_reference_is_averaged_from_the_frames_the_defect_test_reads(tmp_pat
     ctx = SimpleNamespace(session=SimpleNamespace(sources=[src]),
                           once=lambda key, make: small[key] if key in small else small.setdefault(key, make()))
     ctx.reference_averaged = lambda c, make: RunContext.reference_averaged(ctx, c, make)
-    frames = list(capture_task._reference_frames(ctx, 0))
-    assert len(frames) == 4
+    n: list = []
+    frames = list(capture_task._reference_frames(ctx, 0, n))
+    assert len(frames) == 4 and n == [4]
     np.testing.assert_array_equal(small[("reference", 0, None)], read_reference(src))
     np.testing.assert_array_equal(small[("reference", 0, None)],
                                   stack.astype(np.float64).mean(axis=0).astype(np.float32))

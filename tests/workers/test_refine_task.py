@@ -94,9 +94,32 @@ def test_the_stored_registration_gives_the_flows_of_registering_again(store_copy
     calls = []
     register = capture.correction.register_background
     monkeypatch.setattr(capture.correction, "register_background", lambda *a, **k: calls.append(1) or register(*a, **k))
-    reused = refine.refined_flows(ctx, 1, geom, grad)
+    reused = refine.refined_flows(ctx, 1, geom, grad, crop=False)
     assert not calls
     monkeypatch.setattr(refine, "_stored_fit", lambda *a: None)
-    again = refine.refined_flows(ctx, 1, geom, grad)
+    again = refine.refined_flows(ctx, 1, geom, grad, crop=False)
     assert calls
     np.testing.assert_array_equal(reused, again)
+
+
+def test_the_cropped_refinement_gives_the_full_images_flows(store_copy, monkeypatch):
+    """``refine.crop`` (the refined flow measured only where the prediction reaches, the stored
+    flow elsewhere) gives the whole image's refined flows within 5e-4 px (the resampling's
+    own floor at zero displacement, which the stored flow outside the crop does not have),
+    and its crops are those :func:`~schlieren.pipeline.flow.refine_region` chose."""
+    from schlieren.pipeline import flow as flowmod
+    from schlieren.workers.tasks import refine
+    from schlieren.workers.tasks.geometry import cached_geometry, geometry_key
+
+    ctx = _context(store_copy, 1)
+    geom = cached_geometry(ctx.store_path, geometry_key(ctx))
+    grad = np.asarray(ctx.store.read("gradient", (1,)), np.float64)
+    full = refine.refined_flows(ctx, 1, geom, grad, crop=False)
+    regions = []
+    make = flowmod.refine_region
+    monkeypatch.setattr(flowmod, "refine_region", lambda *a, **k: regions.append(make(*a, **k)) or regions[-1])
+    cropped = refine.refined_flows(ctx, 1, geom, grad, crop=True)
+    assert len(regions) == len(ctx.cameras) and not any(r.empty for r in regions)
+    ok = np.isfinite(full)
+    np.testing.assert_array_equal(ok, np.isfinite(cropped))
+    np.testing.assert_allclose(cropped[ok], full[ok], atol=5e-4)

@@ -31,26 +31,69 @@ __all__ = ["capture_task", "static_region", "defective_pixels", "camera_capture"
 
 
 def capture_task(ctx: RunContext, c: int) -> dict:
-    """Camera ``c``'s defective pixels (stored ``defective_pixels``) and their counts, and its
-    flow pre-smoothing (stored ``presmooth``, in the receipt)."""
+    """Camera ``c``'s defective pixels (stored ``defective_pixels``) and their counts, its
+    flow pre-smoothing (stored ``presmooth``, in the receipt) and, for a reference of few
+    frames, the reference topped up from the capture (stored ``reference``, ``reference_count``
+    and ``reference_topup``)."""
     params = ctx.config.capture
     cam = ctx.cameras[c]
     auto = ctx.config.flow.presmooth == AUTO
     kept: list[np.ndarray] = []  # the reference frames at every other row and column: the sensor noise
+    n_ref: list[int] = []  # the reference's frames, once read
     out: dict = {}
     if params.defective_pixels:
-        refs = (_keep(img, kept) if auto else img for img in _reference_frames(ctx, c))
-        d = capture.find_defective_pixels(itertools.chain(refs, _capture_frames(ctx, c)),
+        refs = (_keep(img, kept) if auto else img for img in _reference_frames(ctx, c, n_ref))
+        d = capture.find_defective_pixels(itertools.chain(refs, _capture_frames(ctx, c, params.defect_frames)),
                                           threshold=params.defect_threshold, stuck_ratio=params.stuck_ratio)
         out = capture.defect_counts(d)
     else:
         d = np.zeros((cam.height, cam.width), np.uint8)
-        if auto:
-            kept = [np.asarray(img)[::2, ::2] for img in _reference_frames(ctx, c)]
+        if auto or _may_top_up(ctx, c):
+            kept = [np.asarray(img)[::2, ::2] for img in _reference_frames(ctx, c, n_ref)]
     ctx.store.write("defective_pixels", (c,), d[None])
     p = _presmooth(ctx, c, kept) if auto else float(ctx.config.flow.presmooth)
     ctx.store.write("presmooth", (c,), np.array([p], np.float64))
     out["presmooth"] = p
+    if params.reference_topup > 0:
+        out.update(_reference(ctx, c, n_ref[0] if n_ref else 0, d))
+    return out
+
+
+def _may_top_up(ctx: RunContext, c: int) -> bool:
+    """Whether camera ``c``'s reference may be topped up (``capture.reference_topup``; not for
+    interlaced cameras, whose fields have references of their own)."""
+    return ctx.config.capture.reference_topup > 0 and not getattr(ctx.session.sources[c], "interlaced", None)
+
+
+def _reference(ctx: RunContext, c: int, n_ref: int, defects: np.ndarray) -> dict:
+    """Camera ``c``'s reference (of ``n_ref`` frames), topped up from ``capture.reference_topup``
+    capture frames when it has fewer than ``capture.topup_below`` frames and its measured noise
+    is worth fewer too (:func:`~schlieren.pipeline.capture.topup_reference`): stored (``reference``,
+    ``reference_count``, ``reference_topup``), and this process's reference of the camera from
+    now on. Interlaced cameras store none (NaN)."""
+    params = ctx.config.capture
+    cam = ctx.cameras[c]
+    if not _may_top_up(ctx, c):
+        ref, count, t = np.full((cam.height, cam.width), np.nan, np.float32), np.zeros((cam.height, cam.width)), None
+    elif n_ref >= params.topup_below:
+        ref, count, t = ctx.reference(c), np.full((cam.height, cam.width), n_ref), None
+    else:
+        prep = ctx.prepared_reference(c)
+        region = capture.sample_region(prep, static=static_region(ctx, c), valid=capture.valid_pixels(defects),
+                                       min_static_fraction=params.min_static_fraction)
+        t = capture.topup_reference(prep, ctx.reference(c), _capture_frames(ctx, c, params.reference_topup, session=True),
+                                    n_reference=n_ref, static=static_region(ctx, c), region=region,
+                                    defects=defects, max_frames=params.topup_below, capture=params)
+        ref, count = t.reference, t.count
+    frames = t.frames if t is not None else 0
+    ctx.store.write("reference_topup", (c,), np.array([frames], np.int32))
+    ctx.store.write("reference", (c,), ref[None])
+    ctx.store.write("reference_count", (c,), count.astype(np.float32)[None])
+    if frames:
+        ctx.reference_topped_up(c, ref)
+    out = {"reference_frames": n_ref, "topup_frames": frames}
+    if t is not None:
+        out.update(topup_rejected=t.rejected, reference_equivalent=t.equivalent)
     return out
 
 
@@ -69,10 +112,11 @@ def _presmooth(ctx: RunContext, c: int, kept: list) -> float:
                              noise=noise if np.isfinite(noise) else 0.0, n_frames=max(len(kept), 1))
 
 
-def _reference_frames(ctx: RunContext, c: int):
+def _reference_frames(ctx: RunContext, c: int, n_ref: list):
     """Camera ``c``'s reference frames (one by one; none for interlaced cameras, whose
     fields are compared with per-field references). Once all are read, their average is the
-    process's reference of the camera (:meth:`RunContext.reference`: not read again)."""
+    process's reference of the camera (:meth:`RunContext.reference`: not read again) and
+    their number is appended to ``n_ref``."""
     s = ctx.session.sources[c]
     if getattr(s, "interlaced", None):
         return
@@ -81,15 +125,15 @@ def _reference_frames(ctx: RunContext, c: int):
         mean.add(img)
         yield img
     ctx.reference_averaged(c, mean.result)
+    n_ref.append(mean.n)
 
 
-def _capture_frames(ctx: RunContext, c: int):
-    """``defect_frames`` capture frames of camera ``c`` evenly spread over the processed range
-    (dropped or unreadable ones skipped)."""
-    n = ctx.config.capture.defect_frames
+def _capture_frames(ctx: RunContext, c: int, n: int, *, session: bool = False):
+    """``n`` capture frames of camera ``c`` evenly spread over the processed range (over all of
+    the camera's frames with ``session``; dropped or unreadable ones skipped)."""
     src = ctx.frames(c)
-    frames = np.unique(np.linspace(ctx.first_frame, ctx.first_frame + ctx.n_frames - 1, max(n, 0)).round()
-                       .astype(int)) if n > 0 else []
+    first, last = (0, len(src) - 1) if session else (ctx.first_frame, ctx.first_frame + ctx.n_frames - 1)
+    frames = np.unique(np.linspace(first, last, max(n, 0)).round().astype(int)) if n > 0 else []
     for f in frames:
         if int(f) in src.dropped:
             continue

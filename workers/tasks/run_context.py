@@ -132,7 +132,24 @@ class RunContext:
     def reference(self, c: int, parity: int | None = None) -> np.ndarray:
         """Camera ``c``'s reference (for interlaced cameras: that of the fields of ``parity``)."""
         s = self.session.sources[c]
-        return self.once(("reference", c, parity), lambda: read_reference(s, camera_name=s.name, parity=parity))
+        return self.once(("reference", c, parity), lambda: self._stored_reference(c, parity) if (
+            parity is None and self.config.capture.reference_topup > 0) else
+            read_reference(s, camera_name=s.name, parity=parity))
+
+    def _stored_reference(self, c: int, parity: None) -> np.ndarray:
+        """Camera ``c``'s reference topped up by its capture task (stored ``reference``), or
+        the reference's frames' average when it was not topped up."""
+        if int(self.store.read("reference_topup", (c,))) > 0:
+            return np.asarray(self.store.read("reference", (c,)))
+        s = self.session.sources[c]
+        return read_reference(s, camera_name=s.name, parity=parity)
+
+    def reference_topped_up(self, c: int, reference: np.ndarray) -> None:
+        """Camera ``c``'s reference is ``reference`` from now on (its capture task topped it up
+        and stored it): what this process prepared from the recorded one is dropped."""
+        self._small[("reference", c, None)] = reference
+        for key in (("prepared_reference", c, None), ("camera_capture", c, None), ("reference_mean", c, None)):
+            self._small.pop(key, None)
 
     def reference_averaged(self, c: int, make) -> np.ndarray:
         """Camera ``c``'s reference (not interlaced) from ``make()``, a task's own average of its

@@ -68,12 +68,12 @@ def tomography_task(ctx: RunContext, k: int) -> dict:
     support = _block_support(ctx, k, params.hull_dilation)
     grad, info = tomography.solve_gradient(geom, flows, hull, params=params, x0=x0, support=support,
                                            **flow_blur(ctx))
-    passes, window_scale = ctx.config.refine.passes, ctx.config.refine.window_scale
+    passes, window_scale, crop = ctx.config.refine.passes, ctx.config.refine.window_scale, ctx.config.refine.crop
     for _ in range(passes):
         # beyond the paper: the flows re-measured around this solution's prediction carry the
         # window's bias of the residual only, so they are solved with a share of the flow-window
         # model (refine.window_scale; 0: without it)
-        refined = tomography.bin_cells(refined_flows(ctx, k, geom, grad), ctx.ray_binning)
+        refined = tomography.bin_cells(refined_flows(ctx, k, geom, grad, crop=crop), ctx.ray_binning)
         grad, info = tomography.solve_gradient(geom, refined, hull, params=params, support=support,
                                                **flow_blur(ctx, window_scale))
     ctx.store.write(per_frame_array(ctx), (k,), np.asarray(grad, dtype=np.float32))
