@@ -1,9 +1,11 @@
 """Visual hull of the flow from per-camera masks (paper sec. 4 "Visual hull generation", sec. 5).
 
-A voxel survives if its footprint touches the mask of every camera that sees it. The
-test is conservative: a voxel is kept by a camera if the distance (in flow-grid pixels)
-from its projected centre to the nearest mask pixel is at most the radius of its
-projected bounding sphere plus half a pixel diagonal (plus ``margin_px``). Voxels seen by
+A voxel survives if its footprint touches the mask of every camera that sees it (beyond the
+paper, optionally but for ``max_misses`` cameras, or but for a camera whose mask disagrees with
+the others' consensus in that frame: ``outlier_ratio``). The test is conservative: a voxel
+is kept by a camera if the distance (in flow-grid pixels) from its projected centre to the
+nearest mask pixel is at most the radius of its projected bounding sphere plus half a pixel
+diagonal (plus ``margin_px``). Voxels seen by
 fewer than ``min_views`` cameras are carved (nothing can be reconstructed there).
 """
 
@@ -17,7 +19,7 @@ import numpy as np
 from schlieren.pipeline.geometry import Camera, FlowGrid, Grid
 from schlieren.pipeline.params import param, parameters
 
-__all__ = ["HullParams", "HullProjection", "hull_projection", "visual_hull"]
+__all__ = ["HullParams", "HullProjection", "hull_projection", "visual_hull", "lone_rejections"]
 
 
 @parameters
@@ -37,6 +39,12 @@ class HullParams:
              "mask: 0 is the paper's strict intersection; 1 may suit many cameras with ragged masks from "
              "lossy video.",
         see="benchmarks/results/realistic_hull_misses1.md", tuned=True)
+    outlier_ratio: float = param(
+        3.0, unit="1", ge=0, le=1000,
+        help="With `max_misses` 0, a camera whose mask alone rejects more than this many times as many voxels as "
+             "the median camera's (voxels all others keep) disagrees with the rig's consensus in that frame, and the "
+             "voxels only it rejects are kept; masks that agree keep the strict intersection exactly (0 disables).",
+        see="benchmarks/results/lab_hull.md", tuned=True)
 
 
 @dataclass(frozen=True)
@@ -106,7 +114,8 @@ def _distance_to_mask(mask: np.ndarray) -> np.ndarray:
 def visual_hull(masks: np.ndarray, cameras: list[Camera], grid: Grid, flow_grid: FlowGrid, *,
                 params: HullParams = HullParams(), projection: HullProjection | None = None) -> np.ndarray:
     """Carve the voxels whose projection falls outside the mask of any camera that sees them
-    (of more than ``params.max_misses`` cameras).
+    (of more than ``params.max_misses`` cameras; with ``params.outlier_ratio``, a voxel only an
+    outlier camera rejects is kept: :func:`lone_rejections`).
 
     Parameters
     ----------
@@ -135,12 +144,40 @@ def visual_hull(masks: np.ndarray, cameras: list[Camera], grid: Grid, flow_grid:
     n_vox = int(np.prod(grid.shape))
     if projection is not None and projection.pixel.shape != (len(cameras), n_vox):
         raise ValueError(f"projection {projection.pixel.shape} is not of {len(cameras)} cameras x {n_vox} voxels")
-    # Only the voxels every earlier camera kept are tested (the result is the same: a
-    # carved voxel stays carved, and a kept voxel has been seen by all earlier cameras),
-    # so the later cameras look up (or project) a hull-sized set instead of the whole grid.
+    limit = params.max_misses + (1 if params.outlier_ratio > 0 else 0)
+    cand, views, misses, who = _carve(masks, cameras, grid, flow_grid, params, projection, limit)
+    if params.outlier_ratio > 0:
+        cand = cand[(misses[cand] <= params.max_misses) | _forgiven(cand, misses, who, params, len(cameras))]
+    keep = np.zeros(n_vox, bool)
+    keep[cand] = True
+    keep &= views >= params.min_views
+    return keep.reshape(grid.shape)
+
+
+def lone_rejections(masks: np.ndarray, cameras: list[Camera], grid: Grid, flow_grid: FlowGrid, *,
+                    params: HullParams = HullParams(), projection: HullProjection | None = None) -> np.ndarray:
+    """How many voxels each camera's mask alone rejects (every other camera that sees them keeps
+    them): the counts ``outlier_ratio`` compares with the median camera's.
+
+    Returns
+    -------
+    counts : ndarray, shape (C,) int
+    """
+    _, _, misses, who = _carve(np.asarray(masks, bool), cameras, grid, flow_grid, params, projection, 1)
+    return np.bincount(who[misses == 1], minlength=len(cameras))
+
+
+def _carve(masks, cameras, grid, flow_grid, params, projection, limit):
+    """The voxels that no more than ``limit`` cameras put outside their masks, with every voxel's
+    count of cameras that see it, of cameras that reject it and the last camera that did."""
+    # Only the voxels every earlier camera kept (rejected by at most ``limit``) are tested (the
+    # result is the same: a carved voxel stays carved), so the later cameras look up (or
+    # project) a hull-sized set instead of the whole grid.
+    n_vox = int(np.prod(grid.shape))
     cand = np.arange(n_vox)
     views = np.zeros(n_vox, np.int32)
-    misses = np.zeros(n_vox, np.int32) if params.max_misses > 0 else None
+    misses = np.zeros(n_vox, np.int32) if limit > 0 else None
+    who = np.full(n_vox, -1, np.int32) if limit > 0 else None
     X = grid.centres().reshape(-1, 3) if projection is None else None
     for c, cam in enumerate(cameras):
         if cand.size == 0:  # everything carved already
@@ -157,11 +194,23 @@ def visual_hull(masks: np.ndarray, cameras: list[Camera], grid: Grid, flow_grid:
             dist = _distance_to_mask(masks[c]).ravel()
             ok = np.ones(len(cand), bool)
             ok[inside] = dist[pix[inside]] <= tol[inside]
-        if misses is not None:  # carved only once more than max_misses cameras rejected it
+        if misses is not None:  # carved only once more than ``limit`` cameras rejected it
             misses[cand[~ok]] += 1
-            ok |= misses[cand] <= params.max_misses
+            who[cand[~ok]] = c
+            ok |= misses[cand] <= limit
         cand = cand[ok]
-    keep = np.zeros(n_vox, bool)
-    keep[cand] = True
-    keep &= views >= params.min_views
-    return keep.reshape(grid.shape)
+    if misses is None:
+        misses = np.zeros(n_vox, np.int32)
+    return cand, views, misses, who
+
+
+def _forgiven(cand, misses, who, params: HullParams, n_cameras: int) -> np.ndarray:
+    """Which of ``cand`` (voxels rejected by at most ``max_misses + 1`` cameras) only outlier
+    cameras' masks carve beyond ``max_misses``: a camera is an outlier when the voxels it alone
+    rejects (every other camera keeps them) exceed ``outlier_ratio`` times the median camera's
+    count, and at least one voxel."""
+    extra = misses[cand] == params.max_misses + 1
+    alone = np.bincount(who[cand[extra]], minlength=n_cameras) if params.max_misses == 0 else \
+        np.zeros(n_cameras, np.int64)
+    outlier = alone > params.outlier_ratio * max(float(np.median(alone)), 1.0)
+    return extra & outlier[np.maximum(who[cand], 0)]

@@ -67,14 +67,18 @@ def test_unseen_voxels_and_empty_masks():
     full = np.ones((4,) + fg.shape, bool)
     assert visual_hull(full, cams, grid, fg).all()
     empty = full.copy()
-    empty[2] = False  # one camera sees no flow anywhere: everything it sees is carved
-    assert not visual_hull(empty, cams, grid, fg).any()
+    empty[2] = False  # one camera sees no flow anywhere: in the strict intersection everything it sees is carved
+    strict = HullParams(outlier_ratio=0.0)
+    assert not visual_hull(empty, cams, grid, fg, params=strict).any()
+    # ... by default it disagrees with the three others' consensus (it alone rejects every voxel they keep)
+    assert visual_hull(empty, cams, grid, fg).all()
     # the first camera carves everything: the distorted cameras after it have nothing to test
     lens = [Camera(c.name, c.K, np.array([-0.05, 0.01, 0.0, 0.0, 0.0]), c.R, c.t, image, c.bg_point, c.bg_normal)
             for c in cams]
     first_empty = full.copy()
     first_empty[0] = False
-    assert not visual_hull(first_empty, lens, grid, fg).any()
+    assert not visual_hull(first_empty, lens, grid, fg, params=strict).any()
+    assert not visual_hull(np.zeros_like(full), lens, grid, fg).any()  # no camera sees flow: nothing is kept
     assert visual_hull(full, lens, grid, fg).sum() > 0
     # A camera that does not see the volume cannot carve it.
     away = cams[0]
@@ -145,7 +149,7 @@ def test_max_misses_keeps_voxels_one_noisy_mask_cut_off(shared):
     r = np.linalg.norm(grid.centres() - centre, axis=-1)
     inside = r <= R + 0.5 * grid.voxel_size
     for k, expect_whole in ((0, False), (1, True)):
-        params = HullParams(max_misses=k)
+        params = HullParams(max_misses=k, outlier_ratio=0.0)
         proj = hull_projection(cams, grid, fg, params=params) if shared else None
         hull = visual_hull(cut, cams, grid, fg, params=params, projection=proj)
         assert hull[inside].all() == expect_whole, k
@@ -164,5 +168,49 @@ def test_max_misses_keeps_voxels_one_noisy_mask_cut_off(shared):
     # an empty mask counts as one rejection of everything its camera sees
     empty = masks.copy()
     empty[0] = False
-    assert not visual_hull(empty, cams, grid, fg).any()
+    assert not visual_hull(empty, cams, grid, fg, params=HullParams(outlier_ratio=0.0)).any()
     assert visual_hull(empty, cams, grid, fg, params=HullParams(max_misses=1))[inside].all()
+
+
+@pytest.mark.parametrize("shared", [False, True])
+def test_outlier_camera_is_forgiven_and_agreeing_masks_stay_strict(shared):
+    """``outlier_ratio``: one camera whose mask lost part of the sphere (a known voxel set only it
+    rejects) is an outlier against the others' consensus, and the sphere survives whole; where the
+    masks agree (the analytic silhouettes, or all of them with random holes) every camera alone
+    carves about as much as the median camera and the hull equals the strict intersection
+    exactly; two cameras missing the same part still carve it."""
+    from schlieren.pipeline.hull import hull_projection, lone_rejections
+
+    grid = Grid((-0.05, -0.05, -0.05), (0.05, 0.05, 0.05), 0.0025)
+    image = (160, 120)
+    fg = FlowGrid(image, 2)
+    cams = ring(8, grid, image)
+    centre, R = np.array([0.002, -0.003, 0.001]), 0.02
+    masks = sphere_masks(cams, fg, centre, R)
+    r = np.linalg.norm(grid.centres() - centre, axis=-1)
+    inside = r <= R + 0.5 * grid.voxel_size
+    params = HullParams(outlier_ratio=3.0)
+    proj = hull_projection(cams, grid, fg, params=params) if shared else None
+
+    def hull(m, p=params):
+        return visual_hull(m, cams, grid, fg, params=p, projection=proj)
+
+    strict = HullParams(outlier_ratio=0.0)
+    assert HullParams().outlier_ratio == params.outlier_ratio  # the default
+    np.testing.assert_array_equal(hull(masks), hull(masks, strict))
+    rng = np.random.default_rng(2)
+    ragged = masks & (rng.random(masks.shape) > 0.03)
+    np.testing.assert_array_equal(hull(ragged), hull(ragged, strict))
+    cut = masks.copy()
+    cut[3, : fg.shape[0] // 2] = False  # camera 3 misses the sphere's upper half
+    assert not hull(cut, strict)[inside].all()
+    alone = lone_rejections(cut, cams, grid, fg, projection=proj)
+    assert alone.argmax() == 3 and alone[3] > 3.0 * np.median(alone)
+    assert lone_rejections(masks, cams, grid, fg).max() <= 3.0 * max(np.median(lone_rejections(masks, cams, grid, fg)), 1)
+    kept = hull(cut)
+    assert kept[inside].all()
+    others = [c for c in range(len(cams)) if c != 3]  # what only camera 3 carved comes back, nothing more
+    seven = visual_hull(masks[others], [cams[c] for c in others], grid, fg, params=strict)
+    assert (kept >= hull(masks, strict)).all() and (kept <= seven).all()
+    cut[5, : fg.shape[0] // 2] = False
+    assert not hull(cut)[inside].all()
