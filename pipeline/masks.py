@@ -301,7 +301,7 @@ def flow_noise(flow: np.ndarray) -> float:
 
     Parameters
     ----------
-    flow : ndarray, shape (h, w, 2)
+    flow : ndarray, shape (..., 2)
 
     Returns
     -------
@@ -375,7 +375,7 @@ def frame_evidence(potential: np.ndarray, threshold: float, *, flow=None,
                    smooth_sigma: float = MaskParams.smooth_sigma,
                    deflection_threshold: float = MaskParams.deflection_threshold,
                    flow_sigma: float = MaskParams.flow_sigma, noise_factor: float = MaskParams.noise_factor,
-                   grow_factor: float = MaskParams.grow_factor) -> np.ndarray:
+                   grow_factor: float = MaskParams.grow_factor, noise_cells: np.ndarray | None = None) -> np.ndarray:
     """The cells one frame marks as flow, before the temporal union and the dilation of
     :func:`make_mask` (which ORs this over the frames around its centre).
 
@@ -385,6 +385,11 @@ def frame_evidence(potential: np.ndarray, threshold: float, *, flow=None,
     threshold : float
     flow : ndarray, shape (h, w, 2), optional
         The flow the potential came from.
+    noise_cells : ndarray, shape (h, w), bool, optional
+        The cells whose flow noise sets the deflection criterion (default all). A reference
+        topped up where the rays miss the volume (``capture.reference_topup``) makes the flow
+        there quieter than where the plume can be; the criterion must follow the latter's
+        noise, or noise inside the volume's image passes it (benchmarks/results/reference_topup.md).
 
     Returns
     -------
@@ -399,7 +404,10 @@ def frame_evidence(potential: np.ndarray, threshold: float, *, flow=None,
             fl = cv2.GaussianBlur(fl, (0, 0), sigmaX=flow_sigma, sigmaY=flow_sigma,
                                   borderType=cv2.BORDER_REFLECT)
         thr = deflection_threshold
-        sigma = flow_noise(fl) if noise_factor > 0 or grow_factor > 0 else 0.0
+        sigma = 0.0
+        if noise_factor > 0 or grow_factor > 0:
+            sigma = flow_noise(fl[noise_cells]) if noise_cells is not None and noise_cells.sum() >= 100 else 0.0
+            sigma = sigma or flow_noise(fl)
         if noise_factor > 0:
             thr = max(thr, noise_factor * sigma)
         mag = np.hypot(fl[..., 0], fl[..., 1])

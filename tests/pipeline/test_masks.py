@@ -183,6 +183,32 @@ def test_flow_noise_is_recovered_and_drives_the_deflection_threshold():
     assert adaptive[core].mean() > 0.9
 
 
+def test_noise_cells_set_the_deflection_criterion_where_the_reference_was_not_topped_up():
+    """A reference topped up outside the volume's image leaves the flow there 3x quieter than
+    inside it; the frame-wide noise then puts the deflection criterion under the inner noise,
+    which passes it. Measured on the inner cells (``noise_cells``), the criterion follows the
+    inner noise and the inner cells without flow stay out of the evidence."""
+    rng = np.random.default_rng(5)
+    h, w = 120, 160
+    yy, xx = np.mgrid[0:h, 0:w]
+    inner = (np.abs(xx - 80) < 40) & (np.abs(yy - 60) < 40)  # the volume's image: 33 % of the cells
+    sigma = np.where(inner, 0.03, 0.01)[..., None]
+    flow = (rng.normal(size=(h, w, 2)) * sigma).astype(np.float32)
+    core = (np.abs(xx - 80) < 6) & (np.abs(yy - 60) < 30)
+    flow[core, 0] += 0.4
+    assert M.flow_noise(flow[inner]) == pytest.approx(0.03, rel=0.2)
+    P = M.flow_potential(flow)
+    thr = np.inf  # the deflection criterion alone
+    whole = M.frame_evidence(P, thr, flow=flow, flow_sigma=0.0, grow_factor=0)
+    split = M.frame_evidence(P, thr, flow=flow, flow_sigma=0.0, grow_factor=0, noise_cells=inner)
+    quiet_inner = inner & ~core
+    assert whole[quiet_inner].mean() > 0.05      # 5 x the frame-wide noise lies under the inner noise's tail
+    assert split[quiet_inner].mean() < 0.01
+    assert split[core].mean() > 0.95
+    assert np.array_equal(M.frame_evidence(P, thr, flow=flow, flow_sigma=0.0, grow_factor=0,
+                                           noise_cells=np.zeros((h, w), bool)), whole)  # too few cells: frame-wide
+
+
 def test_grow_factor_follows_faint_flanks_connected_to_the_plume_and_not_the_noise():
     """Hysteresis of the deflection criterion: with noisy flow (the noise lifts the criterion
     to 5 sigma) the flanks of a plume whose deflection decays smoothly are kept down to

@@ -48,6 +48,21 @@ def _static_cells(ctx: RunContext, c: int, shape) -> np.ndarray | None:
     return ctx.once(("static_cells", c), make)
 
 
+def _noise_cells(ctx: RunContext, c: int, shape) -> np.ndarray | None:
+    """Camera ``c``'s flow cells whose reference was not topped up (the cells some of whose
+    rays meet the volume), when its capture task topped the reference up; else None (the
+    deflection criterion's noise from the whole frame, as before)."""
+    if ctx.config.capture.reference_topup <= 0:
+        return None
+
+    def make():
+        if int(ctx.store.read("reference_topup", (c,))) <= 0:
+            return None
+        cells = ~capture.static_cells(static_region(ctx, c), ctx.flow_grid.factor)
+        return cells if cells.shape == tuple(shape) else None
+    return ctx.once(("noise_cells", c), make)
+
+
 def threshold_task(ctx: RunContext) -> dict:
     """The sequence-wide mask threshold (stored ``mask_threshold``) from every potential's summary."""
     params = ctx.config.masks
@@ -68,8 +83,10 @@ def mask_task(ctx: RunContext, c: int, k: int) -> dict:
     thr = ctx.mask_threshold()
 
     def evidence(i):  # masksmod.make_mask, with each frame's evidence made once per process
+        flow = ctx.read_upstream("flow", (c, i))
         return masksmod.frame_evidence(ctx.read_upstream("potential", (c, i)), thr,
-                                       flow=ctx.read_upstream("flow", (c, i)), smooth_sigma=params.smooth_sigma,
+                                       flow=flow, noise_cells=_noise_cells(ctx, c, flow.shape[:2]),
+                                       smooth_sigma=params.smooth_sigma,
                                        deflection_threshold=params.deflection_threshold,
                                        flow_sigma=params.flow_sigma, noise_factor=params.noise_factor,
                                        grow_factor=params.grow_factor)
