@@ -103,6 +103,6 @@ class CaptureParams:
              "flow. 0: off.", see="benchmarks/results/reference_topup.md", tuned=True)
     topup_below: int = param(
         8, unit="frames", ge=0, le=100000,
-        help="Only a reference of fewer frames than this, whose noise measured against the capture frames is "
-             "worth fewer capture frames too, is topped up (`reference_topup`): one of many frames, or a noise-free "
-             "one, is left as it is.", see="benchmarks/results/reference_topup.md", tuned=True)
+        help="Only a reference of 2 or more but fewer frames than this, whose noise measured against the capture "
+             "frames is worth fewer capture frames too, is topped up (`reference_topup`): one of many frames, a "
+             "noise-free one, or a single image (whose worth would cost the measurement itself) is left as it is.", see="benchmarks/results/reference_topup.md", tuned=True)

@@ -75,8 +75,11 @@ def _reference(ctx: RunContext, c: int, n_ref: int, defects: np.ndarray) -> dict
     cam = ctx.cameras[c]
     if not _may_top_up(ctx, c):
         ref, count, t = np.full((cam.height, cam.width), np.nan, np.float32), np.zeros((cam.height, cam.width)), None
-    elif n_ref >= params.topup_below:
-        ref, count, t = ctx.reference(c), np.full((cam.height, cam.width), n_ref), None
+    elif n_ref >= params.topup_below or n_ref < 2:
+        # one image: what it is worth (a single frame, or an average stored as one image) costs
+        # registered and moved capture frames to measure, at paper scale more than the rest of the
+        # capture task (benchmarks/results/reference_topup.md, "Cost"); it is kept as it is
+        ref, count, t = ctx.reference(c), np.full((cam.height, cam.width), max(n_ref, 1)), None
     else:
         prep = ctx.prepared_reference(c)
         region = capture.sample_region(prep, static=static_region(ctx, c), valid=capture.valid_pixels(defects),
