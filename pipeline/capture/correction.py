@@ -224,9 +224,8 @@ def corrected_crop_deflection(reference, frame: np.ndarray, flow: FlowParams = F
         raise ValueError("corrected_crop_deflection: the registration applies a motion; use corrected_deflection")
     x0, y0, x1, y1 = crop
     img = np.asarray(frame, np.float32)
-    if (not capture.photometric or fit.photometric.estimable()) and _photometric_applies(fit, capture, whole):
-        gain, offset = fit.photometric.profiles(H)
-        img = (img - offset[y0:y1].astype(np.float32)[:, None]) * (1.0 / gain[y0:y1]).astype(np.float32)[:, None]
+    if fit.photometric.estimable() and _photometric_applies(fit, capture, whole):
+        img = normalise_frame(img, fit.photometric, first_row=y0, image_rows=H)
     invalid = None if bad is None else np.asarray(bad, bool)[y0:y1, x0:x1]
     return deflection_stage(reference, img, flow, invalid=invalid)
 

@@ -111,13 +111,17 @@ def identity_photometric(height: int, banding_rows: int) -> Photometric:
     return Photometric(knots, np.ones(len(knots)), np.zeros(len(knots)))
 
 
-def normalise_frame(frame: np.ndarray, photometric: Photometric) -> np.ndarray:
+def normalise_frame(frame: np.ndarray, photometric: Photometric, *, first_row: int = 0,
+                    image_rows: int | None = None) -> np.ndarray:
     """The frame with its gain and offset removed: ``(frame - offset(row)) / gain(row)``.
 
     Parameters
     ----------
     frame : ndarray, shape (H, W)
         Grey levels.
+    first_row, image_rows : int, optional
+        ``frame`` is rows ``first_row ..`` of an image of ``image_rows`` rows (a crop; the
+        profiles are the whole image's). Default: the whole image.
 
     Returns
     -------
@@ -132,6 +136,7 @@ def normalise_frame(frame: np.ndarray, photometric: Photometric) -> np.ndarray:
         raise ValueError(f"a frame with gain {np.min(photometric.gain):.3g} at some row cannot be normalised "
                          f"(the gain must be finite and at least {MIN_GAIN})")
     img = np.asarray(frame, np.float32)
-    gain, offset = photometric.profiles(img.shape[0])
-    inv = (1.0 / gain).astype(np.float32)[:, None]
-    return (img - offset.astype(np.float32)[:, None]) * inv
+    rows = slice(first_row, first_row + img.shape[0])
+    gain, offset = photometric.profiles(img.shape[0] if image_rows is None else image_rows)
+    inv = (1.0 / gain[rows]).astype(np.float32)[:, None]
+    return (img - offset[rows].astype(np.float32)[:, None]) * inv

@@ -37,15 +37,8 @@ def potential_task(ctx: RunContext, c: int, k: int) -> dict:
 
 
 def _static_cells(ctx: RunContext, c: int, shape) -> np.ndarray | None:
-    """Camera ``c``'s flow cells whose rays miss the volume (``masks.baseline: static``; the
-    capture stage's static region, computed once per process), or None."""
-    if ctx.config.masks.baseline != "static":
-        return None
-
-    def make():
-        cells = capture.static_cells(static_region(ctx, c), ctx.flow_grid.factor)
-        return cells if cells.shape == tuple(shape) else None
-    return ctx.once(("static_cells", c), make)
+    """Camera ``c``'s flow cells whose rays miss the volume (``masks.baseline: static``), or None."""
+    return _camera_static_cells(ctx, c, shape) if ctx.config.masks.baseline == "static" else None
 
 
 def _noise_cells(ctx: RunContext, c: int, shape) -> np.ndarray | None:
@@ -56,11 +49,18 @@ def _noise_cells(ctx: RunContext, c: int, shape) -> np.ndarray | None:
         return None
 
     def make():
-        if int(ctx.store.read("reference_topup", (c,))) <= 0:
-            return None
-        cells = ~capture.static_cells(static_region(ctx, c), ctx.flow_grid.factor)
-        return cells if cells.shape == tuple(shape) else None
+        static = _camera_static_cells(ctx, c, shape)
+        return None if static is None or int(ctx.store.read("reference_topup", (c,))) <= 0 else ~static
     return ctx.once(("noise_cells", c), make)
+
+
+def _camera_static_cells(ctx: RunContext, c: int, shape) -> np.ndarray | None:
+    """The capture stage's static region of camera ``c`` on the flow grid (cells all of whose
+    pixels' rays miss the volume; computed once per process), or None if not of ``shape``."""
+    def make():
+        cells = capture.static_cells(static_region(ctx, c), ctx.flow_grid.factor)
+        return cells if cells.shape == tuple(shape) else None
+    return ctx.once(("static_cells", c), make)
 
 
 def threshold_task(ctx: RunContext) -> dict:
